@@ -1,0 +1,1 @@
+"""System identification and modelling built on ``integrators``."""
