@@ -1,5 +1,9 @@
 """Differentiable Runge-Kutta integrators (numerics only; knows nothing of ``sysid``)."""
 
+from .adaptive import solve_adaptive
+from .collocation import collocation_output_weights, gauss_legendre, radau_iia
+from .controllers import IController, PIController
+from .dae_layer import DAELayer
 from .errors import (
     ConvergenceError,
     HighIndexError,
@@ -12,10 +16,33 @@ from .errors import (
     SingularMatrixError,
     TableauError,
 )
+from .implicit import daeint, solve_implicit_ode
+from .inputs import bind_rhs
+from .layers import ODELayer
+from .newton import (
+    MinimizeResult,
+    NewtonResult,
+    NewtonStatus,
+    batch_jacobian,
+    minimize,
+    newton,
+)
+from .odeint import odeint
+from .problems import ImplicitDAE, ImplicitODE, SemiExplicitDAE
+from .sensitivities import SensitivityResult, sensitivities, variational_sensitivities
 from .solution import Solution, SolverStats, Status
 from .tableau import TABLEAU_NAMES, ButcherTableau, tableau
 
 __all__ = [
+    "DAELayer",
+    "ImplicitDAE",
+    "ImplicitODE",
+    "SemiExplicitDAE",
+    "daeint",
+    "solve_implicit_ode",
+    "IController",
+    "PIController",
+    "solve_adaptive",
     "TABLEAU_NAMES",
     "ButcherTableau",
     "ConvergenceError",
@@ -32,4 +59,19 @@ __all__ = [
     "Status",
     "TableauError",
     "tableau",
+    "collocation_output_weights",
+    "gauss_legendre",
+    "radau_iia",
+    "MinimizeResult",
+    "NewtonResult",
+    "NewtonStatus",
+    "batch_jacobian",
+    "minimize",
+    "newton",
+    "SensitivityResult",
+    "sensitivities",
+    "variational_sensitivities",
+    "ODELayer",
+    "bind_rhs",
+    "odeint",
 ]

@@ -15,7 +15,7 @@ numerically instead of trusting a typed-in label.
 from __future__ import annotations
 
 from fractions import Fraction
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 import torch
@@ -273,8 +273,9 @@ class ButcherTableau:
         """``(A, b, c, error_weights)`` as torch tensors (cached per dtype and device)."""
         key = (dtype, str(device))
         if key not in self._tensor_cache:
+
             def conv(arr):
-                return None if arr is None else torch.as_tensor(arr, dtype=dtype, device=device)
+                return None if arr is None else torch.tensor(arr, dtype=dtype, device=device)
 
             self._tensor_cache[key] = (
                 conv(self.A),
@@ -288,8 +289,7 @@ class ButcherTableau:
         kind = "explicit" if self.is_explicit else "implicit"
         emb = "" if self.b_err is None else f", embedded order {self.embedded_order}"
         return (
-            f"ButcherTableau({self.name!r}, {kind}, stages={self.stages}, order={self.order}"
-            f"{emb})"
+            f"ButcherTableau({self.name!r}, {kind}, stages={self.stages}, order={self.order}{emb})"
         )
 
 
@@ -319,7 +319,13 @@ def _catalogue() -> dict[str, dict]:
     ]
     dopri_b = ["35/384", "0", "500/1113", "125/192", "-2187/6784", "11/84", "0"]
     dopri_b_err = [
-        "5179/57600", "0", "7571/16695", "393/640", "-92097/339200", "187/2100", "1/40",
+        "5179/57600",
+        "0",
+        "7571/16695",
+        "393/640",
+        "-92097/339200",
+        "187/2100",
+        "1/40",
     ]
     return {
         "euler": dict(A=[[0.0]], b=[1.0], order=1),
@@ -353,7 +359,7 @@ def _catalogue() -> dict[str, dict]:
 TABLEAU_NAMES = tuple(_catalogue())
 
 
-@lru_cache(maxsize=None)
+@cache
 def tableau(name: str) -> ButcherTableau:
     """A catalogued tableau by name: one of :data:`TABLEAU_NAMES` (notes §6.2-6.5, §7.1).
 

@@ -1,0 +1,108 @@
+"""Collocation polynomials of implicit RK steps: stage extrapolation and dense output.
+
+Inside a collocation step ``[t_k, t_k + h]`` the state is (notes eq. 7.44)
+``x(t_k + theta h) = x_k + h sum_i w_i(theta) K_i`` with ``w_i(theta) = int_0^theta l_i``, and
+the stage derivatives/algebraic stages are the values at ``c_i`` of the degree ``s - 1``
+polynomials ``sum_j K_j l_j(tau)`` / ``sum_j Z_j l_j(tau)``. Extrapolating those polynomials
+past ``tau = 1`` gives the starting guess of the next step's Newton iteration.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .collocation import collocation_output_weights
+from .errors import TableauError
+
+
+def lagrange_basis(nodes: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
+    """``l_j(tau)`` (eq. 7.27) for nodes (q,) and points ``tau`` of any shape: (*tau, q)."""
+    q = nodes.shape[0]
+    diff = tau[..., None] - nodes  # (..., q)
+    denom = nodes[:, None] - nodes[None, :] + torch.eye(q, dtype=nodes.dtype, device=nodes.device)
+    factors = diff[..., None, :] / denom  # (..., j, m)
+    eye = torch.eye(q, dtype=torch.bool, device=nodes.device)
+    return torch.where(eye, torch.ones_like(factors), factors).prod(-1)
+
+
+def extrapolate_stages(c: torch.Tensor, W: torch.Tensor, ratio: torch.Tensor) -> torch.Tensor:
+    """Next step's stage guess from the previous step's stage polynomial.
+
+    Args:
+        c: (s,) nodes; W: (*batch, s, p) previous stages; ratio: (*batch,) ``h_new / h_old``.
+
+    Returns:
+        (*batch, s, p) values of the previous polynomial at ``1 + c_i ratio``.
+    """
+    tau = 1.0 + c * ratio[..., None]  # (*batch, s)
+    L = lagrange_basis(c, tau)  # (*batch, s, s)
+    return L @ W
+
+
+def is_collocation(tab) -> bool:
+    """True when ``tab`` is a collocation method (then eq. 7.44 gives dense output)."""
+    try:
+        collocation_output_weights(tab, [0.5])
+    except TableauError:
+        return False
+    return True
+
+
+class StepRecords:
+    """Per-step data of an integration, one record per driver iteration for every sample.
+
+    A sample that did not advance in an iteration repeats its previous record, so each
+    sample's start times are non-decreasing and the last record starting at or before a query
+    time is the step containing it.
+    """
+
+    def __init__(self, tab, n: int):
+        self.tab, self.n = tab, n
+        self.t0, self.h, self.x, self.W, self.z = [], [], [], [], []
+
+    def append(self, t0, h, x, W, z):
+        """Add a record: t0, h (*batch,), x (*batch, n), W (*batch, s, p), z (*batch, m)."""
+        self.t0.append(t0)
+        self.h.append(h)
+        self.x.append(x)
+        self.W.append(W)
+        self.z.append(z)
+
+    def evaluate(self, tq: torch.Tensor):
+        """States at times ``tq`` (M,): ``(x (*batch, M, n), z (*batch, M, m))``."""
+        t0 = torch.stack(self.t0)  # (L, *batch)
+        batch = t0.shape[1:]
+        L = t0.shape[0]
+        t0f = t0.reshape(L, -1)
+        B = t0f.shape[1]
+        idx = (t0f[None, :, :] <= tq[:, None, None]).sum(1) - 1  # (M, B)
+        idx = idx.clamp(0, L - 1)
+        cols = torch.arange(B, device=tq.device)[None, :].expand_as(idx)
+
+        def take(seq):
+            stacked = torch.stack(seq).reshape(L, B, *seq[0].shape[len(batch) :])
+            return stacked[idx, cols]  # (M, B, ...)
+
+        h = take(self.h)
+        start = t0f[idx, cols]
+        theta = ((tq[:, None] - start) / h).clamp(0.0, 1.0)
+        W = take(self.W)
+        x0 = take(self.x)
+        n = self.n
+        w = collocation_output_weights(self.tab, theta)  # (M, B, s)
+        x = x0 + h[..., None] * torch.einsum("mbs,mbsn->mbn", w, W[..., :n])
+        z0 = take(self.z)
+        if z0.shape[-1]:
+            c = torch.as_tensor(np.array(self.tab.c), dtype=x.dtype, device=x.device)
+            nodes = torch.cat([c.new_zeros(1), c])
+            basis = lagrange_basis(nodes, theta)  # (M, B, s + 1)
+            values = torch.cat([z0[..., None, :], W[..., n:]], dim=-2)
+            z = torch.einsum("mbq,mbqk->mbk", basis, values)
+        else:
+            z = z0
+        M = tq.shape[0]
+        return (
+            x.permute(1, 0, 2).reshape(*batch, M, n),
+            z.permute(1, 0, 2).reshape(*batch, M, z.shape[-1]),
+        )

@@ -1,0 +1,142 @@
+"""One residual form for every problem class solved by the implicit Runge-Kutta methods.
+
+Each stage ``i`` of a step has unknowns ``W_i = (K_i, Z_i)`` (stage derivative, algebraic
+stage; ``p = n + m`` entries) and stage state ``X_i = x_k + dt sum_j a_ij K_j``. The stage
+residual ``R_i = r(t_i, K_i, X_i, Z_i, u_i)`` is
+
+- explicit ODE ``x' = f(t, x, u)``:                ``K - f(t, X, u)``             (eq. 7.14)
+- semi-explicit DAE ``x' = f, 0 = g``:             ``[K - f(t, X, Z, u); g(...)]`` (eq. 7.63)
+- implicit ODE / DAE ``F(t, x', x[, z], u) = 0``: ``F(t, K, X[, Z], u)``         (eq. 7.52, 7.56)
+
+and its derivative blocks ``E = [dr/dK, dr/dZ]``, ``G = [dr/dX, 0]`` (both (p, p)) define the
+Newton matrix (see ``_irk_linalg``). Jacobians are computed by reverse-mode autograd, one
+backward pass per residual component for the whole batch (the batch stays a batch, so
+parameters that broadcast against it keep working).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+
+def batched_jacobian(fun: Callable, v: torch.Tensor) -> torch.Tensor:
+    """Jacobian of a sample-wise map ``fun: (*batch, d) -> (*batch, q)``: (*batch, q, d).
+
+    One forward evaluation and ``q`` backward passes of summed output components (members of
+    the batch are independent, so the gradient of ``sum_batch y_i`` is row ``i`` of every
+    member's Jacobian). No functorch transform is involved, so any differentiable ``fun``
+    works.
+    """
+    with torch.enable_grad():
+        vg = v.detach().requires_grad_(True)
+        y = fun(vg)
+        q = y.shape[-1]
+        y = y.expand(*v.shape[:-1], q)
+        if not y.requires_grad:
+            return torch.zeros(*y.shape, v.shape[-1], dtype=v.dtype, device=v.device)
+        rows = []
+        for i in range(q):
+            (g,) = torch.autograd.grad(
+                y[..., i].sum(), vg, retain_graph=i < q - 1, allow_unused=True
+            )
+            rows.append(torch.zeros_like(vg) if g is None else g)
+    return torch.stack(rows, dim=-2)
+
+
+class StageSystem:
+    """The residual ``r`` of one problem class.
+
+    Args:
+        kind: "ode", "semi" or "implicit".
+        n, m: numbers of differential and algebraic states.
+        fns: ``(f,)`` for "ode", ``(f, g)`` for "semi", ``(F,)`` for "implicit".
+        has_input: whether the user's functions take ``u`` as last argument.
+    """
+
+    def __init__(self, kind: str, n: int, m: int, fns: tuple, has_input: bool):
+        self.kind, self.n, self.m = kind, n, m
+        self.fns = fns
+        self.has_input = has_input
+
+    @property
+    def p(self) -> int:
+        return self.n + self.m
+
+    def _call(self, fn, t, *args, u=None):
+        return fn(t, *args, u) if self.has_input else fn(t, *args)
+
+    def rhs_f(self, t, x, z, u):
+        """``f(t, x[, z], u)`` for the explicit kinds (the derivative at a consistent point)."""
+        if self.kind == "ode":
+            return self._call(self.fns[0], t, x, u=u)
+        return self._call(self.fns[0], t, x, z, u=u)
+
+    def residual(self, t, K, X, Z, u) -> torch.Tensor:
+        """Stage residual (*batch, p) for K, X (*batch, n) and Z (*batch, m) (m may be 0)."""
+        if self.kind == "ode":
+            return K - self._call(self.fns[0], t, X, u=u)
+        if self.kind == "semi":
+            f = self._call(self.fns[0], t, X, Z, u=u)
+            g = self._call(self.fns[1], t, X, Z, u=u)
+            return torch.cat([K - f, g], dim=-1)
+        if self.m == 0:
+            return self._call(self.fns[0], t, K, X, u=u)
+        return self._call(self.fns[0], t, K, X, Z, u=u)
+
+    def blocks(self, t, K, X, Z, u):
+        """Derivative blocks ``E, G`` (*batch, p, p) and the index-check matrix.
+
+        Returns:
+            ``(E, G, index_matrix, reference)``: ``index_matrix`` is ``dg/dz`` (semi-explicit,
+            Corollary 1, eq. 5.56) or ``[dF/dx', dF/dz]`` (implicit, Theorem 9, eq. 5.53), None
+            for explicit ODEs; ``reference`` is the full Jacobian whose norm scales the
+            rank test.
+        """
+        n, m = self.n, self.m
+        batch = X.shape[:-1]
+        eye_n = torch.eye(n, dtype=X.dtype, device=X.device).expand(*batch, n, n)
+        if self.kind == "ode":
+            Jf = batched_jacobian(lambda x: self._call(self.fns[0], t, x, u=u), X)
+            return eye_n, -Jf, None, None
+        if self.kind == "semi":
+
+            def fg(v):
+                x, z = v[..., :n], v[..., n:]
+                f = self._call(self.fns[0], t, x, z, u=u)
+                g = self._call(self.fns[1], t, x, z, u=u)
+                return torch.cat([f, g], dim=-1)
+
+            J = batched_jacobian(fg, torch.cat([X, Z], dim=-1))
+            fx, fz, gx, gz = J[..., :n, :n], J[..., :n, n:], J[..., n:, :n], J[..., n:, n:]
+            zeros_mn = torch.zeros(*batch, m, n, dtype=X.dtype, device=X.device)
+            E = torch.cat(
+                [torch.cat([eye_n, -fz], dim=-1), torch.cat([zeros_mn, gz], dim=-1)], dim=-2
+            )
+            zeros_pm = torch.zeros(*batch, n + m, m, dtype=X.dtype, device=X.device)
+            G = torch.cat([torch.cat([-fx, gx], dim=-2), zeros_pm], dim=-1)
+            return E, G, gz, J[..., n:, :]
+
+        def F(v):
+            k, x, z = v[..., :n], v[..., n : 2 * n], v[..., 2 * n :]
+            return self.residual(t, k, x, z, u)
+
+        J = batched_jacobian(F, torch.cat([K, X, Z], dim=-1))
+        FK, FX, FZ = J[..., :n], J[..., n : 2 * n], J[..., 2 * n :]
+        E = torch.cat([FK, FZ], dim=-1)
+        G = torch.cat([FX, torch.zeros_like(FZ)], dim=-1)
+        return E, G, E, J
+
+
+def rank_ratio(index_matrix: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    """Smallest singular value of ``index_matrix`` relative to the norm of ``reference``.
+
+    Returns:
+        (*batch,) ratios; 0 for an exactly rank-deficient (e.g. zero) index matrix.
+    """
+    sv = torch.linalg.svdvals(index_matrix.detach())
+    scale = torch.linalg.matrix_norm(reference.detach(), ord=2).clamp_min(
+        torch.finfo(index_matrix.dtype).tiny
+    )
+    return sv[..., -1] / scale

@@ -1,0 +1,393 @@
+"""Adaptive embedded explicit Runge-Kutta with per-sample step sizes (contract C2, notes §6.5).
+
+Each trial step computes the stages of the tableau once and two solutions from them,
+``x_{k+1} = x_k + dt sum_i b_i K_i`` and ``xhat_{k+1} = x_k + dt sum_i bhat_i K_i``
+(notes eq. 6.44a-b); their difference is the local error estimate that the step-size
+controller (:mod:`integrators.controllers`) turns into accept/reject and the next step.
+For first-same-as-last tableaus such as Dormand-Prince 5(4) the last stage of an accepted
+step is ``K_1`` of the next one (notes eq. 6.45), so a step costs ``s - 1`` evaluations.
+
+Batching: every sample of the batch has its own time, step size, error norm, decision and
+counters. The batch is advanced together, one batched ``rhs`` call per stage with the
+per-sample stage times passed as a ``(*batch, 1)`` tensor (contract C1); a sample that has
+finished (or failed) takes steps of size zero and its state is frozen, so its answer and its
+step count are exactly those of solving it alone.
+
+Output: the steps are not shortened to hit the requested times. Each accepted step keeps the
+coefficients of its continuous extension (:mod:`integrators.dense`), and the requested times,
+as well as any time passed to ``Solution.at``, are evaluated from them with a batched
+``searchsorted`` over each sample's accepted-step grid.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from .controllers import IController, PIController, error_norm, initial_step
+from .dense import continuous_extension
+from .errors import InputValidationError
+from .solution import Solution, SolverStats, Status
+from .tableau import ButcherTableau, tableau
+
+_DEFAULT_CHECK_EVERY = 8  # host synchronisations ("is every sample done?") every N steps
+
+
+def _as_tolerance(value, name, batch_shape, nx, dtype, device):
+    """A float, or a tensor broadcast to the flat (B, nx) layout used inside the solver."""
+    if isinstance(value, torch.Tensor):
+        if value.numel() == 0 or torch.any(value < 0) or not torch.all(torch.isfinite(value)):
+            raise InputValidationError(f"{name} must be finite and non-negative, got {value}.")
+        try:
+            full = value.to(dtype=dtype, device=device).expand(*batch_shape, nx)
+        except RuntimeError as exc:
+            raise InputValidationError(
+                f"{name} of shape {tuple(value.shape)} does not broadcast to the states "
+                f"{(*batch_shape, nx)}."
+            ) from exc
+        return full.reshape(-1, nx)
+    value = float(value)
+    if not (math.isfinite(value) and value >= 0.0):
+        raise InputValidationError(f"{name} must be finite and non-negative, got {value}.")
+    return value
+
+
+def _as_dt0(dt0, batch_shape, dtype, device):
+    dt0 = torch.as_tensor(dt0, dtype=dtype, device=device).detach()
+    if torch.any(~torch.isfinite(dt0)) or torch.any(dt0 <= 0):
+        raise InputValidationError(f"dt0 must be positive and finite, got {dt0}.")
+    try:
+        return dt0.expand(batch_shape).reshape(-1).clone()
+    except RuntimeError as exc:
+        raise InputValidationError(
+            f"dt0 of shape {tuple(dt0.shape)} must be a scalar or broadcast to the batch "
+            f"shape {tuple(batch_shape)}."
+        ) from exc
+
+
+def _sample_label(flat_index: int, batch_shape) -> str:
+    if len(batch_shape) <= 1:
+        return f"sample {flat_index}"
+    return f"sample {tuple(int(i) for i in np.unravel_index(flat_index, tuple(batch_shape)))}"
+
+
+class _StepRecord:
+    """Per-step dense-output data of all samples, stacked along a step axis at the end.
+
+    For record j of sample b the interpolant is, with ``theta = (s - start) / h``,
+    ``x(s) = x + theta (r_1 + theta (r_2 + theta (r_3 + theta r_4)))`` on
+    ``[start, start + h]``. Rejected attempts and finished samples get ``h = 0`` and ``r = 0``
+    (a constant piece, whatever ``r`` holds), so each sample's start times are non-decreasing
+    and the last record with ``start <= s`` always holds the right piece.
+    """
+
+    def __init__(self):
+        self.start, self.h, self.x, self.r = [], [], [], []
+
+    def append(self, start, h, x, r):
+        self.start.append(start)
+        self.h.append(h)
+        self.x.append(x)
+        self.r.append(r)
+
+    def interpolant(self, t0, t_end, t_reached, failed, dead, batch_shape):
+        start = torch.stack(self.start, dim=1)  # (B, N)
+        h = torch.stack(self.h, dim=1)  # (B, N)
+        xs = torch.stack(self.x, dim=1)  # (B, N, nx)
+        rs = torch.stack(self.r, dim=1)  # (B, N, nx, 4)
+        B, _, nx = xs.shape
+        span = abs(t_end - t0)
+        slack = 8.0 * torch.finfo(start.dtype).eps * max(abs(t0), abs(t_end), span)
+
+        def evaluate(s: torch.Tensor) -> torch.Tensor:
+            s = s.to(dtype=start.dtype, device=start.device).detach().reshape(-1)
+            if s.numel() and (float(s.min()) < t0 - slack or float(s.max()) > t_end + slack):
+                raise InputValidationError(
+                    f"dense output requested at t in [{float(s.min()):.6g}, "
+                    f"{float(s.max()):.6g}] but the solution covers [{t0:.6g}, {t_end:.6g}]; "
+                    "pass times inside the integration interval."
+                )
+            M = s.numel()
+            query = s.expand(B, M).contiguous()
+            idx = (torch.searchsorted(start, query, right=True) - 1).clamp_min(0)
+            t_k = start.gather(1, idx)
+            h_k = h.gather(1, idx)
+            moving = h_k > 0
+            theta = torch.where(moving, (query - t_k) / torch.where(moving, h_k, 1.0), 0.0)
+            theta = theta.clamp(0.0, 1.0).unsqueeze(-1)  # (B, M, 1)
+            x_k = xs.gather(1, idx.unsqueeze(-1).expand(B, M, nx))
+            r_k = rs.gather(1, idx[..., None, None].expand(B, M, nx, 4))
+            poly = r_k[..., 3]
+            for m in (2, 1, 0):
+                poly = r_k[..., m] + theta * poly
+            # constant pieces (rejected trials) may hold non-finite r: select, not multiply
+            out = torch.where(moving.unsqueeze(-1), x_k + theta * poly, x_k)
+            beyond = (failed[:, None] & (query > t_reached[:, None])) | dead[:, None]
+            out = torch.where(beyond.unsqueeze(-1), torch.full_like(out, math.nan), out)
+            return out.reshape(*batch_shape, M, nx)
+
+        return evaluate
+
+
+def solve_adaptive(
+    rhs,
+    x0: torch.Tensor,
+    t: torch.Tensor,
+    tab: ButcherTableau | None = None,
+    *,
+    rtol=1e-6,
+    atol=1e-9,
+    controller: IController | None = None,
+    dt0=None,
+    max_steps: int = 100_000,
+    check_every: int = _DEFAULT_CHECK_EVERY,
+) -> Solution:
+    """Integrate ``x' = rhs(t, x)`` with an embedded explicit Runge-Kutta pair, per sample.
+
+    Args:
+        rhs: ``rhs(t, x) -> (*batch, nx)`` with ``t`` a (*batch, 1) tensor of per-sample times
+            (contract C1; e.g. from :func:`integrators.inputs.bind_rhs`).
+        x0: (*batch, nx) initial states (at ``t[0]``).
+        t: (T,) strictly increasing output times; the states are reported there by dense
+            output, the steps are not shortened to hit them.
+        tab: explicit tableau with embedded weights ``b_err``; Dormand-Prince 5(4) when None.
+        rtol, atol: relative and absolute tolerances of the error norm
+            (:func:`integrators.controllers.error_norm`): floats, or tensors broadcastable to
+            (*batch, nx).
+        controller: :class:`~integrators.controllers.IController` or
+            :class:`~integrators.controllers.PIController` (the default,
+            ``PIController()``).
+        dt0: first trial step, a float or a (*batch,) tensor; chosen per sample from
+            ``f(x0)`` and one Euler probe when None (:func:`controllers.initial_step`).
+        max_steps: maximum number of step attempts (accepted plus rejected) per sample.
+        check_every: the loop asks the device whether every sample is done only every
+            ``check_every`` steps (finished samples just take zero steps meanwhile).
+
+    A trial step whose error norm is not finite (inf/nan in a stage or the new state) is
+    rejected like any other and retried with ``min_factor`` times the step; only if the step
+    then shrinks below the time resolution does the sample stop, as NON_FINITE (or as
+    STEP_TOO_SMALL when the last trial was finite, e.g. at a finite escape time).
+
+    Returns:
+        :class:`Solution` with ``x`` (*batch, T, nx), per-sample ``status`` (SUCCESS,
+        MAX_STEPS, NON_FINITE or STEP_TOO_SMALL, with a message naming the sample and the
+        time it reached; its outputs beyond that time are NaN), ``stats`` with per-sample
+        ``n_steps``, ``n_rejected``, ``n_f_evals`` tensors and batch totals in
+        ``stats.extra`` (``n_rhs_calls``: batched right-hand-side calls, ``n_iterations``:
+        batched step attempts, ``t_reached``: (*batch,) final times), and ``interpolant`` for
+        ``Solution.at``. Differentiable by backpropagation through the accepted steps; the
+        step sizes are computed from detached values.
+
+    Raises:
+        InputValidationError: a tableau without embedded weights or not explicit, bad
+            tolerances, ``dt0`` or ``max_steps``, or an rhs returning the wrong shape.
+    """
+    tab = tableau("dopri5") if tab is None else tab
+    if tab.b_err is None or not tab.is_explicit:
+        raise InputValidationError(
+            f"solve_adaptive needs an explicit tableau with embedded weights b_err; "
+            f"{tab!r} is not one. Use tableau('dopri5') or pass b_err."
+        )
+    if int(max_steps) < 1:
+        raise InputValidationError(f"max_steps must be >= 1, got {max_steps}.")
+    max_steps = int(max_steps)
+    check_every = max(1, int(check_every))
+    controller = PIController() if controller is None else controller
+
+    dtype, device = x0.dtype, x0.device
+    batch_shape = tuple(x0.shape[:-1])
+    nx = x0.shape[-1]
+    B = int(np.prod(batch_shape)) if batch_shape else 1
+    rtol = _as_tolerance(rtol, "rtol", batch_shape, nx, dtype, device)
+    atol = _as_tolerance(atol, "atol", batch_shape, nx, dtype, device)
+    if not isinstance(rtol, torch.Tensor) and not isinstance(atol, torch.Tensor):
+        if rtol == 0.0 and atol == 0.0:
+            raise InputValidationError("rtol and atol cannot both be zero.")
+
+    t_out = t.detach().to(dtype=dtype, device=device)
+    t0, t_end = float(t_out[0]), float(t_out[-1])
+    span = t_end - t0
+    dt_min = 16.0 * torch.finfo(dtype).eps * max(abs(t0), abs(t_end), span)
+
+    ext = continuous_extension(tab)
+    s = tab.stages
+    A, b, c, e = tab.tensors(dtype, device)
+    n_ext = s + 1 if ext.extra_eval else s
+    e_ext = torch.zeros(n_ext, dtype=dtype, device=device)
+    e_ext[:s] = e
+    # one matmul gives the error estimate and the four dense-output coefficient vectors
+    combine = torch.cat([e_ext[:, None], ext.tensor(dtype, device)], dim=1)  # (n_ext, 5)
+    q = min(tab.order, tab.embedded_order)
+    evals_per_attempt = s if ext.extra_eval else s - 1
+    c_list = [float(v) for v in tab.c]
+    a_rows = [A[i, :i].contiguous() for i in range(s)]
+    b_vec = b.contiguous()
+
+    n_calls = 0
+
+    def call(t_flat, x_flat):
+        nonlocal n_calls
+        n_calls += 1
+        out = rhs(t_flat.reshape(*batch_shape, 1), x_flat.reshape(*batch_shape, nx))
+        if out.shape != (*batch_shape, nx):
+            raise InputValidationError(
+                f"rhs returned shape {tuple(out.shape)} but the state has shape "
+                f"{(*batch_shape, nx)}; f(t, x) must return dx/dt of the state's shape."
+            )
+        return out.reshape(B, nx)
+
+    x = x0.reshape(B, nx)
+    t_cur = torch.full((B,), t0, dtype=dtype, device=device)
+    k1 = call(t_cur, x)
+    with torch.no_grad():
+        finite0 = torch.isfinite(x).all(-1) & torch.isfinite(k1).all(-1)
+        x_safe = torch.where(finite0[:, None], x, 0.0)
+        k1_safe = torch.where(finite0[:, None], k1, 0.0)
+        if dt0 is None:
+            h_next = initial_step(
+                call, t_cur, x_safe.detach(), k1_safe.detach(), q, rtol, atol, span
+            )
+        else:
+            h_next = _as_dt0(dt0, batch_shape, dtype, device).clamp_max(span)
+    # a sample that is non-finite at t0 is frozen at zeros so that it poisons nothing
+    if not bool(finite0.all()):
+        x = torch.where(finite0[:, None], x, 0.0)
+        k1 = torch.where(finite0[:, None], k1, 0.0)
+    init_evals = 2 if dt0 is None else 1  # f(t0, x0), plus the probe of initial_step
+
+    status = torch.where(finite0, Status.SUCCESS, Status.NON_FINITE).to(torch.int8)
+    active = finite0.clone()
+    err_prev = torch.ones(B, dtype=dtype, device=device)
+    after_reject = torch.zeros(B, dtype=torch.bool, device=device)
+    last_nonfinite = torch.zeros(B, dtype=torch.bool, device=device)
+    n_acc = torch.zeros(B, dtype=torch.int64, device=device)
+    n_att = torch.zeros(B, dtype=torch.int64, device=device)
+    records = _StepRecord()
+    t_end_vec = torch.full((B,), t_end, dtype=dtype, device=device)
+    code_non_finite, code_too_small, code_max_steps = (
+        torch.tensor(int(code), dtype=torch.int8, device=device)
+        for code in (Status.NON_FINITE, Status.STEP_TOO_SMALL, Status.MAX_STEPS)
+    )
+    zero_r = torch.zeros(B, nx, 4, dtype=dtype, device=device)
+    iteration = 0
+
+    while True:
+        if iteration % check_every == 0 and not bool(active.any()):
+            break
+        iteration += 1
+        with torch.no_grad():
+            remaining = t_end_vec - t_cur
+            # a trial that would leave less than dt_min before t_end goes all the way
+            last = h_next + dt_min >= remaining
+            h = torch.where(last, remaining, h_next) * active
+        hc = h[:, None]
+        stages = [k1]
+        x_stage = x
+        for i in range(1, s):
+            x_stage = torch.addcmul(x, hc, torch.stack(stages, -1) @ a_rows[i])
+            stages.append(call(torch.add(t_cur, h, alpha=c_list[i]), x_stage))
+        if tab.is_fsal:
+            x_new, f_new = x_stage, stages[-1]
+        else:
+            x_new = torch.addcmul(x, hc, torch.stack(stages, -1) @ b_vec)
+            f_new = call(t_cur + h, x_new)
+            stages.append(f_new)
+        combined = torch.stack(stages, -1) @ combine  # (B, nx, 5)
+        r = combined[..., 1:] * hc[..., None]  # (B, nx, 4)
+
+        with torch.no_grad():
+            err = combined[..., 0].detach() * hc
+            norm = error_norm(err, x.detach(), x_new.detach(), rtol, atol)
+            finite = torch.isfinite(norm)
+            accept, h_prop = controller.propose(norm, err_prev, h, q, after_reject)
+            accept = accept & active & finite
+            n_att += active
+            n_acc += accept
+            err_prev = torch.where(accept, norm, err_prev)
+            after_reject = active & ~accept
+            last_nonfinite = active & ~finite
+            t_next = torch.where(accept, torch.where(last, t_end_vec, t_cur + h), t_cur)
+            still = active & ~(accept & last)
+            too_small = still & (h_prop < dt_min)
+            out_of_steps = still & ~too_small & (n_att >= max_steps)
+            status = torch.where(
+                too_small, torch.where(last_nonfinite, code_non_finite, code_too_small), status
+            )
+            status = torch.where(out_of_steps, code_max_steps, status)
+            active = still & ~too_small & ~out_of_steps
+            h_next = h_prop
+
+        acc_col = accept[:, None]
+        records.append(t_cur, h * accept, x, r)
+        x = torch.where(acc_col, x_new, x)
+        k1 = torch.where(acc_col, f_new, k1)
+        t_cur = t_next
+
+    records.append(t_cur, torch.zeros_like(t_cur), x, zero_r)
+    failed = status != Status.SUCCESS
+    interpolant = records.interpolant(t0, t_end, t_cur, failed, ~finite0, batch_shape)
+    x_out = interpolant(t_out)
+
+    messages = _messages(status, t_cur, ~finite0, max_steps, batch_shape)
+    n_f = init_evals + evals_per_attempt * n_att
+    stats = SolverStats(
+        n_f_evals=n_f.reshape(batch_shape),
+        n_steps=n_acc.reshape(batch_shape),
+        n_rejected=(n_att - n_acc).reshape(batch_shape),
+        extra={
+            "n_rhs_calls": n_calls,
+            "n_iterations": iteration,
+            "t_reached": t_cur.reshape(batch_shape),
+            "controller": repr(controller),
+        },
+    )
+    return Solution(
+        t=t_out,
+        x=x_out,
+        status=status.reshape(batch_shape),
+        stats=stats,
+        messages=messages,
+        method=tab.name,
+        interpolant=interpolant,
+    )
+
+
+def _messages(status, t_reached, dead_at_start, max_steps, batch_shape):
+    """One line per failed sample (one host synchronisation)."""
+    codes = status.cpu().numpy()
+    dead = dead_at_start.cpu().numpy()
+    bad = np.nonzero(codes != Status.SUCCESS)[0]
+    if bad.size == 0:
+        return []
+    times = t_reached.detach().cpu().numpy()
+    out = []
+    for i in bad:
+        who = _sample_label(int(i), batch_shape)
+        code = Status(int(codes[i]))
+        when = float(times[i])
+        if code == Status.MAX_STEPS:
+            out.append(
+                f"{who}: MAX_STEPS, {max_steps} step attempts used before reaching the final "
+                f"time; stopped at t = {when:.10g}. Raise max_steps, loosen rtol/atol, or use "
+                "an implicit method if the problem is stiff."
+            )
+        elif code == Status.NON_FINITE and dead[i]:
+            out.append(
+                f"{who}: NON_FINITE, the initial state or f(t0, x0) is inf/nan at "
+                f"t = {when:.10g}; all its outputs are NaN. Check x0 and the model there."
+            )
+        elif code == Status.NON_FINITE:
+            out.append(
+                f"{who}: NON_FINITE, the state or f became inf/nan in every trial step after "
+                f"t = {when:.10g} and the step size shrank to nothing. Check the model for a "
+                "finite escape time or a division by zero there."
+            )
+        else:
+            out.append(
+                f"{who}: STEP_TOO_SMALL, the step size fell below the time resolution at "
+                f"t = {when:.10g}; the solution may blow up there (finite escape time) or the "
+                "problem is very stiff (use an implicit method)."
+            )
+    return out

@@ -1,0 +1,194 @@
+"""Step-size control for embedded Runge-Kutta pairs (notes §6.5), batched per sample.
+
+The solver measures each trial step with the weighted RMS norm of the local error estimate
+``err = x_{k+1} - xhat_{k+1} = dt sum_i (b_i - bhat_i) K_i`` (notes eq. 6.44a-b):
+
+    ||err|| = sqrt(mean_j (err_j / (atol + rtol max(|x_k,j|, |x_{k+1},j|)))^2),
+
+one number per sample. A step is accepted when ``||err|| <= 1``. The controllers below map
+that norm (and the norm of the previous accepted step) to a new step size with
+``dt_new = dt * factor``, where for an error estimator of order ``q`` the local error
+behaves like ``C dt^(q+1)``, so ``factor = ||err||^(-1/(q+1))`` would hit the tolerance
+exactly. Every function works on (B,) tensors: each sample has its own error, decision and
+step size. They are meant to be called on detached values (step-size decisions are not
+differentiated).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from .errors import InputValidationError
+
+_TINY_ERR = 1e-10  # error norms below this are treated as this (factor capped anyway)
+
+
+def error_norm(err, x_old, x_new, rtol, atol) -> torch.Tensor:
+    """Hairer's weighted RMS norm of a local error estimate, per sample.
+
+    Args:
+        err: (B, n) local error estimates.
+        x_old, x_new: (B, n) states at the start and the end of the step.
+        rtol, atol: floats or tensors broadcastable to (B, n).
+
+    Returns:
+        (B,) norms; inf/nan entries flag non-finite trials.
+    """
+    scale = atol + rtol * torch.maximum(x_old.abs(), x_new.abs())
+    return torch.linalg.vector_norm(err / scale, dim=-1) / math.sqrt(err.shape[-1])
+
+
+def _check_factors(safety, min_factor, max_factor) -> None:
+    if not 0.0 < safety <= 1.0:
+        raise InputValidationError(f"safety must lie in (0, 1], got {safety}.")
+    if not 0.0 < min_factor < 1.0 < max_factor:
+        raise InputValidationError(
+            f"need 0 < min_factor < 1 < max_factor, got min_factor={min_factor}, "
+            f"max_factor={max_factor}."
+        )
+
+
+def _sanitise(err_norm: torch.Tensor) -> torch.Tensor:
+    """Non-finite norms become +inf (maximal shrink), tiny ones a floor (no 0^-a)."""
+    return torch.nan_to_num(err_norm, nan=math.inf, posinf=math.inf).clamp_min(_TINY_ERR)
+
+
+class IController:
+    """Integral (elementary) controller: ``factor = safety * ||err||^(-1/(q+1))``.
+
+    Args:
+        safety: fraction of the optimal factor actually used (0.9: aim a bit below tolerance).
+        min_factor, max_factor: bounds on ``dt_new / dt``. After a rejection the step may not
+            grow (Hairer, Nørsett & Wanner, §II.4), so the bound is 1 there.
+    """
+
+    def __init__(self, safety: float = 0.9, min_factor: float = 0.2, max_factor: float = 10.0):
+        _check_factors(safety, min_factor, max_factor)
+        self.safety = float(safety)
+        self.min_factor = float(min_factor)
+        self.max_factor = float(max_factor)
+
+    def _grow_factor(self, err, err_prev, shrink, k) -> torch.Tensor:
+        """The factor after an accepted step (the I controller reuses ``shrink``)."""
+        return shrink
+
+    def propose(self, err_norm, err_prev, dt, order, after_reject=None):
+        """Decide acceptance and the next step size for every sample.
+
+        Args:
+            err_norm: (B,) error norm of the trial step (:func:`error_norm`); inf/nan
+                (a non-finite trial) means reject and shrink by ``min_factor``.
+            err_prev: (B,) error norm of the last accepted step (1.0 before the first).
+            dt: (B,) size of the trial step.
+            order: order ``q`` of the error estimator (the lower order of the pair, 4 for
+                Dormand-Prince 5(4)); the exponents use ``k = q + 1``.
+            after_reject: optional (B,) bool, True where the previous trial was rejected
+                (the factor is then capped at 1).
+
+        Returns:
+            (accept (B,) bool, dt_new (B,)): ``dt_new`` is the next trial step, whether this
+            one is accepted (advance, then try ``dt_new``) or rejected (retry with it).
+        """
+        k = float(order) + 1.0
+        err = _sanitise(err_norm)
+        accept = err <= 1.0
+        shrink = self.safety * err.pow(-1.0 / k)
+        factor = torch.where(accept, self._grow_factor(err, err_prev, shrink, k), shrink)
+        if after_reject is None:
+            factor = factor.clamp(self.min_factor, self.max_factor)
+        else:
+            factor = torch.where(
+                after_reject, factor.clamp_max(1.0), factor.clamp_max(self.max_factor)
+            ).clamp_min(self.min_factor)
+        return accept, dt * factor
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(safety={self.safety}, min_factor={self.min_factor}, "
+            f"max_factor={self.max_factor})"
+        )
+
+
+class PIController(IController):
+    """Proportional-integral controller (Gustafsson 1991; Söderlind's notation).
+
+    After an accepted step,
+    ``factor = safety * ||err_n||^(-beta1/k) * ||err_{n-1}||^(-beta2/k)``, ``k = q + 1``,
+    where ``err_{n-1}`` is the norm of the previous accepted step. ``beta1 = 1, beta2 = 0`` is
+    the I controller. The defaults ``beta1 = 0.85, beta2 = -0.2`` are the usual gains for
+    order-5 pairs (Hairer's DOPRI5 with his ``beta = 0.04``: exponents 0.17 and 0.04 for
+    k = 5); Gustafsson's ``beta1 = 0.7, beta2 = -0.4`` damps the step-size oscillation more
+    strongly where stability rather than accuracy limits the step, at a few more steps. A
+    rejected step falls back to the I formula (the history says nothing about the failed
+    step).
+    """
+
+    def __init__(
+        self,
+        beta1: float = 0.85,
+        beta2: float = -0.2,
+        safety: float = 0.9,
+        min_factor: float = 0.2,
+        max_factor: float = 10.0,
+    ):
+        super().__init__(safety, min_factor, max_factor)
+        if beta1 <= 0.0:
+            raise InputValidationError(f"beta1 must be positive, got {beta1}.")
+        self.beta1 = float(beta1)
+        self.beta2 = float(beta2)
+
+    def _grow_factor(self, err, err_prev, shrink, k) -> torch.Tensor:
+        prev = err_prev.clamp_min(_TINY_ERR)
+        return self.safety * err.pow(-self.beta1 / k) * prev.pow(-self.beta2 / k)
+
+    def __repr__(self) -> str:
+        return (
+            f"PIController(beta1={self.beta1}, beta2={self.beta2}, safety={self.safety}, "
+            f"min_factor={self.min_factor}, max_factor={self.max_factor})"
+        )
+
+
+@torch.no_grad()
+def initial_step(rhs, t0, x0, f0, order, rtol, atol, span) -> torch.Tensor:
+    """Per-sample starting step (Hairer, Nørsett & Wanner, §II.4, algorithm of ``hinit``).
+
+    With ``sc = atol + rtol |x0|`` and RMS norms ``d0 = ||x0/sc||``, ``d1 = ||f0/sc||``:
+    a probe step ``h0 = 0.01 d0/d1`` (1e-6 when either is tiny) gives one explicit Euler
+    point ``x1 = x0 + h0 f0``; with ``d2 = ||(f(t0 + h0, x1) - f0)/sc|| / h0`` the step
+    ``h1 = (0.01 / max(d1, d2))^(1/(q+1))`` makes the leading error term about 1 % of the
+    tolerance. The result is ``min(100 h0, h1, span)``.
+
+    Args:
+        rhs: ``rhs(t, x)`` on flat (B,) times and (B, n) states (one batched call here).
+        t0: (B,) start times.  x0, f0: (B, n) state and derivative at ``t0``.
+        order: order ``q`` of the error estimator.
+        rtol, atol: tolerances broadcastable to (B, n).
+        span: (B,) or float, length of the integration interval (an upper bound).
+
+    Returns:
+        (B,) positive step sizes.
+    """
+    n = x0.shape[-1]
+    scale = atol + rtol * x0.abs()
+
+    def rms(v):
+        return torch.linalg.vector_norm(v / scale, dim=-1) / math.sqrt(n)
+
+    d0, d1 = rms(x0), rms(f0)
+    small = (d0 < 1e-5) | (d1 < 1e-5)
+    h0 = torch.where(small, torch.full_like(d0, 1e-6), 0.01 * d0 / torch.where(small, 1.0, d1))
+    h0 = torch.minimum(h0, torch.as_tensor(span, dtype=h0.dtype, device=h0.device))
+    f1 = rhs(t0 + h0, x0 + h0[:, None] * f0)
+    d2 = rms(f1 - f0) / h0
+    dmax = torch.maximum(d1, d2)
+    flat = dmax <= 1e-15
+    h1 = torch.where(
+        flat,
+        torch.clamp_min(h0 * 1e-3, 1e-6),
+        (0.01 / torch.where(flat, 1.0, dmax)).pow(1.0 / (order + 1.0)),
+    )
+    h = torch.minimum(100.0 * h0, h1)
+    h = torch.where(torch.isfinite(h) & (h > 0), h, h0)
+    return torch.minimum(h, torch.as_tensor(span, dtype=h.dtype, device=h.device))

@@ -1,0 +1,44 @@
+"""``DAELayer``: a ``daeint`` simulation as a ``torch.nn.Module``."""
+
+from __future__ import annotations
+
+import torch
+
+from .errors import InputValidationError
+from .implicit import daeint
+
+
+class DAELayer(torch.nn.Module):
+    """Maps initial states to trajectories of an implicit ODE or index-1 DAE.
+
+    ``forward(x0, z0=None, t=None, u=None) = daeint(problem, x0, z0, t, ...)``; gradients
+    reach ``x0`` and the parameters of the problem's functions by
+    the implicit function theorem at every step.
+
+    Args:
+        problem: :class:`~integrators.problems.ImplicitODE`,
+            :class:`~integrators.problems.SemiExplicitDAE` or
+            :class:`~integrators.problems.ImplicitDAE`; its functions that are ``nn.Module``
+            are registered as submodules ``fn0, fn1`` so their parameters train.
+        t: (T,) default output times (a buffer) or None to require ``t`` in ``forward``.
+        return_solution: True returns the Solution, False only ``x`` (*batch, T, n).
+        **daeint_kwargs: further ``daeint`` options (``method``, ``rtol``, ``substeps``...).
+    """
+
+    def __init__(self, problem, t=None, return_solution=True, **daeint_kwargs):
+        super().__init__()
+        self.problem = problem
+        self.fns = torch.nn.ModuleList(problem.modules())
+        self.return_solution = return_solution
+        self.daeint_kwargs = daeint_kwargs
+        self.register_buffer("t", None if t is None else torch.as_tensor(t))
+
+    def forward(self, x0, z0=None, t=None, u=None):
+        """Simulate from ``x0`` (*batch, n) (and algebraic guess ``z0`` (*batch, m))."""
+        t = self.t if t is None else t
+        if t is None:
+            raise InputValidationError(
+                "DAELayer needs output times: pass t to the constructor or to forward()."
+            )
+        sol = daeint(self.problem, x0, z0, t, u=u, **self.daeint_kwargs)
+        return sol if self.return_solution else sol.x

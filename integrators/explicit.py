@@ -1,0 +1,342 @@
+"""Fixed-step explicit Runge-Kutta for any explicit Butcher tableau (notes eq. 6.26).
+
+For one step of size ``h`` from ``(t_k, x_k)``:
+
+    K_i     = f(t_k + c_i h, x_k + h * sum_{j<i} a_ij K_j),   i = 1..s
+    x_{k+1} = x_k + h * sum_i b_i K_i
+
+The output grid ``t`` (T,) may be non-uniform; each interval ``[t_k, t_{k+1}]`` is split into
+``substeps`` equal steps. Sampled inputs are held (zero-order hold, eq. 8.34) or interpolated
+linearly *per interval*: every stage of a step inside ``[t_k, t_{k+1}]`` sees ``u_k`` (ZOH),
+including stages with ``c_i = 1``.
+
+Speed: the tableau is turned into Python-float coefficients once, zero coefficients are
+skipped, and stages that neither ``b`` nor a later needed stage uses are not evaluated (e.g.
+the FSAL stage of dopri5 at fixed step). The time loop runs in chunks of several steps; a
+chunk is a plain Python function that can be compiled with ``torch.compile`` (fusing the
+model ``f`` and the stage sums into one kernel). Compiled chunks are cached per model, so the
+one-off compile time is paid once per model and shape (reported in
+``stats.extra["compile_s"]``). Finiteness is checked once per output time without host
+synchronisation; the only synchronisation is one at the end.
+
+Failure handling: a sample whose state becomes inf/nan gets ``Status.NON_FINITE``; its
+carried state is frozen at the last finite output (so the rest of the batch is unaffected)
+and its outputs from the first non-finite output time on are NaN. ``Solution.messages`` names
+the sample index and the time interval where it happened.
+"""
+
+from __future__ import annotations
+
+import time
+import weakref
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .errors import InputValidationError, TableauError
+from .inputs import BoundRHS
+from .solution import Solution, SolverStats, Status
+
+#: ``compile="auto"`` compiles once this many steps were taken with the same model and
+#: configuration (over all calls): the one-off compile (seconds) then pays for itself.
+AUTO_COMPILE_MIN_STEPS = 50_000
+#: Steps per compiled chunk (the chunk is unrolled; more steps = longer compile).
+CHUNK_STEPS = 8
+
+
+@dataclass(frozen=True)
+class _Scheme:
+    """An explicit tableau as Python floats, with unused stages and zero entries removed.
+
+    ``stages`` are the indices of evaluated stages in order; ``a[n]`` lists the non-zero
+    ``(position in stages, a_ij)`` of stage ``stages[n]``; ``b`` the non-zero
+    ``(position, b_i)``; ``c[n]`` the node of stage ``stages[n]``.
+    """
+
+    stages: tuple[int, ...]
+    a: tuple[tuple[tuple[int, float], ...], ...]
+    b: tuple[tuple[int, float], ...]
+    c: tuple[float, ...]
+
+    @classmethod
+    def from_tableau(cls, tab) -> _Scheme:
+        A, b, c = tab.A, tab.b, tab.c
+        s = tab.stages
+        needed = [bool(b[i] != 0.0) for i in range(s)]
+        for i in range(s - 1, -1, -1):  # a stage is needed if a needed later stage uses it
+            if needed[i]:
+                for j in range(i):
+                    if A[i, j] != 0.0:
+                        needed[j] = True
+        stages = tuple(i for i in range(s) if needed[i])
+        pos = {i: n for n, i in enumerate(stages)}
+        a = tuple(
+            tuple((pos[j], float(A[i, j])) for j in range(i) if A[i, j] != 0.0) for i in stages
+        )
+        return cls(
+            stages=stages,
+            a=a,
+            b=tuple((pos[i], float(b[i])) for i in stages if b[i] != 0.0),
+            c=tuple(float(c[i]) for i in stages),
+        )
+
+
+def _lincomb(x, h, terms):
+    """``x + h * sum(coef * K)`` with Python-float coefficients (one op per term for float h)."""
+    if not terms:
+        return x
+    if isinstance(h, float):
+        out = x
+        for coef, K in terms:
+            out = torch.add(out, K, alpha=h * coef)
+        return out
+    acc = None
+    for coef, K in terms:
+        acc = K * coef if acc is None else torch.add(acc, K, alpha=coef)
+    return x + h * acc
+
+
+def _make_chunk(f, kind, u_fn, scheme: _Scheme, substeps: int, n_out: int):
+    """A function advancing ``n_out`` output intervals of ``substeps`` steps each.
+
+    chunk(x, t_stage, h, h_float, u0, du) -> (x_last, outputs, finite)
+        x: (*batch, nx) state at the chunk start.
+        t_stage: (n_out * substeps, n_stages) stage times.
+        h: (n_out * substeps,) step sizes (tensor, used when h_float is None).
+        h_float: tuple of Python-float step sizes, or None (compiled chunks).
+        u0, du: (..., n_out, nu) input at the interval start and its increment over the
+            interval (du is None for zero-order hold), or None.
+    Returns the state at the chunk end, the (*batch, n_out, nx) states at the output times
+    (non-finite samples frozen at the previous output) and the (n_out, *batch) finiteness
+    flags (one tensor each, so a compiled chunk allocates few outputs).
+    """
+    stages = scheme.stages
+    a, b, c = scheme.a, scheme.b, scheme.c
+    m = substeps
+
+    def chunk(x, t_stage, h, h_float, u0, du):
+        outputs, finite = [], []
+        prev = x
+        for q in range(n_out):
+            if kind == "zoh":
+                uq = u0[..., q, :]
+            elif kind == "linear":
+                uq, dq = u0[..., q, :], du[..., q, :]
+            for j in range(m):
+                n = q * m + j
+                hn = h[n] if h_float is None else h_float[n]
+                tn = t_stage[n]
+                K = []
+                for p in range(len(stages)):
+                    xs = _lincomb(x, hn, [(coef, K[r]) for r, coef in a[p]])
+                    ts = tn[p]
+                    if kind == "none":
+                        K.append(f(ts, xs))
+                    elif kind == "callable":
+                        K.append(f(ts, xs, u_fn(ts)))
+                    elif kind == "zoh":
+                        K.append(f(ts, xs, uq))
+                    else:
+                        theta = (j + c[p]) / m
+                        us = uq if theta == 0.0 else torch.add(uq, dq, alpha=theta)
+                        K.append(f(ts, xs, us))
+                x = _lincomb(x, hn, [(coef, K[r]) for r, coef in b])
+            ok = torch.isfinite(x).all(-1)
+            x = torch.where(ok.unsqueeze(-1), x, prev)
+            prev = x
+            outputs.append(x)
+            finite.append(ok)
+        if n_out == 1:
+            return x, x.unsqueeze(-2), finite[0].unsqueeze(0)
+        return x, torch.stack(outputs, dim=-2), torch.stack(finite, dim=0)
+
+    return chunk
+
+
+class _Entry:
+    """Compiled chunk functions for one model/configuration, and their usage counters."""
+
+    def __init__(self):
+        self.steps_seen = 0
+        self.compiled = None
+        self.failed = False
+        self.signatures: set = set()
+
+
+_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _cache_entry(f, config) -> _Entry:
+    """The cache entry of model ``f`` (bound methods are keyed by their instance)."""
+    owner = getattr(f, "__self__", None) if hasattr(f, "__func__") else None
+    key_obj = owner if owner is not None else f
+    key = (getattr(f, "__func__", None), config)
+    try:
+        per_model = _CACHE.setdefault(key_obj, {})
+    except TypeError:  # not weak-referenceable: nothing is kept between calls
+        return _Entry()
+    return per_model.setdefault(key, _Entry())
+
+
+def clear_compile_cache() -> None:
+    """Forget all compiled chunks (the next compiled run compiles again)."""
+    _CACHE.clear()
+
+
+def solve_explicit(
+    rhs,
+    x0: torch.Tensor,
+    t: torch.Tensor,
+    tab,
+    *,
+    substeps: int = 1,
+    compile="auto",
+) -> Solution:
+    """Fixed-step explicit Runge-Kutta on the grid ``t`` (notes eq. 6.26).
+
+    Args:
+        rhs: a :class:`~integrators.inputs.BoundRHS` from ``bind_rhs`` or any ``rhs(t, x)``;
+            it receives 0-dim tensor times.
+        x0: (*batch, nx) initial states (validated by the caller).
+        t: (T,) strictly increasing output times, same dtype/device as ``x0``.
+        tab: an explicit :class:`~integrators.tableau.ButcherTableau` (``b_err`` is ignored).
+        substeps: integer number of equal steps per output interval (>= 1).
+        compile: True (``torch.compile`` the chunked step, eager fallback if compilation
+            fails), False, or ``"auto"`` (compile once :data:`AUTO_COMPILE_MIN_STEPS` steps
+            were taken with this model over all calls).
+
+    Returns:
+        Solution with ``x`` (*batch, T, nx), per-sample ``status`` (SUCCESS or NON_FINITE)
+        and ``stats`` (n_steps, n_f_evals; ``extra["compiled"]``, ``extra["compile_s"]`` the
+        wall time of calls that triggered a compilation, else 0).
+
+    Raises:
+        TableauError: for an implicit tableau.
+        InputValidationError: for ``substeps`` that is not an integer >= 1.
+    """
+    if not tab.is_explicit:
+        raise TableauError(
+            f"tableau {tab.name!r} is implicit (a_ij != 0 for some j >= i); fixed-step explicit "
+            "integration needs a strictly lower-triangular A. Use odeint(..., method=tab), "
+            "which dispatches implicit tableaus to the implicit solver."
+        )
+    if isinstance(substeps, bool) or not isinstance(substeps, (int, np.integer)) or substeps < 1:
+        raise InputValidationError(f"substeps must be an integer >= 1, got {substeps!r}.")
+    substeps = int(substeps)
+    scheme = _Scheme.from_tableau(tab)
+    if isinstance(rhs, BoundRHS):
+        f, kind, u_fn = rhs.f, rhs.kind, rhs.u
+    else:
+        f, kind, u_fn = rhs, "none", None
+    batch = x0.shape[:-1]
+    T = t.shape[0]
+    n_int = T - 1
+    m = substeps
+    n_steps = n_int * m
+
+    # Per-step start times, sizes and stage times, computed once, vectorised.
+    h_int = (t[1:] - t[:-1]) / m  # (T-1,)
+    frac = torch.arange(m, dtype=t.dtype, device=t.device) / m
+    h = h_int.repeat_interleave(m)  # (n_steps,)
+    t_start = (t[:-1, None] + (t[1:] - t[:-1])[:, None] * frac).reshape(-1)
+    c = torch.tensor(scheme.c, dtype=t.dtype, device=t.device)
+    t_stage = t_start[:, None] + h[:, None] * c  # (n_steps, n_stages)
+    use_float_h = not t.requires_grad
+    h_list = tuple(h.tolist()) if use_float_h else None
+
+    u0 = du = None
+    if kind in ("zoh", "linear"):
+        u0 = rhs.samples[..., :-1, :]
+        if kind == "linear":
+            du = rhs.samples[..., 1:, :] - u0
+
+    config = (id(tab), tab.A.tobytes(), tab.b.tobytes(), kind, id(u_fn), m)
+    entry = _cache_entry(f, config)
+    entry.steps_seen += n_steps
+    want = compile is True or (compile == "auto" and entry.steps_seen >= AUTO_COMPILE_MIN_STEPS)
+    if compile not in (True, False, "auto"):
+        raise InputValidationError(f"compile must be True, False or 'auto', got {compile!r}.")
+    use_compiled = want and not entry.failed and not torch.compiler.is_compiling()
+    n_out_chunk = max(1, CHUNK_STEPS // m) if use_compiled else 1
+    chunk_eager = _make_chunk(f, kind, u_fn, scheme, m, n_out_chunk)
+    tail_eager = chunk_eager if n_out_chunk == 1 else _make_chunk(f, kind, u_fn, scheme, m, 1)
+    compile_s = 0.0
+    if use_compiled and entry.compiled is None:
+        tic = time.perf_counter()  # the first torch.compile imports dynamo/inductor (seconds)
+        entry.compiled = torch.compile(_make_chunk(f, kind, u_fn, scheme, m, n_out_chunk))
+        compile_s += time.perf_counter() - tic
+
+    grad_mode = torch.is_grad_enabled()
+    outputs: list[torch.Tensor] = [x0.unsqueeze(-2)]
+    finite: list[torch.Tensor] = []
+    x = x0
+    k = 0
+    while k < n_int:
+        n_c = n_out_chunk if k + n_out_chunk <= n_int else 1
+        s0, s1 = k * m, (k + n_c) * m
+        us = None if u0 is None else u0[..., k : k + n_c, :]
+        ds = None if du is None else du[..., k : k + n_c, :]
+        if n_c == n_out_chunk and use_compiled and not entry.failed:
+            args = (x, t_stage[s0:s1], h[s0:s1], None, us, ds)
+            signature = (tuple(x.shape), x.dtype, x.device, grad_mode, x.requires_grad)
+            fresh = signature not in entry.signatures
+            tic = time.perf_counter()
+            try:
+                x, ys, oks = entry.compiled(*args)
+            except Exception:  # compilation unavailable: fall back to eager, remember it
+                entry.failed = True
+                continue
+            if fresh:
+                compile_s += time.perf_counter() - tic
+                entry.signatures.add(signature)
+        else:
+            fn = chunk_eager if n_c == n_out_chunk else tail_eager
+            hf = None if h_list is None else h_list[s0:s1]
+            x, ys, oks = fn(x, t_stage[s0:s1], h[s0:s1], hf, us, ds)
+        outputs.append(ys)
+        finite.append(oks)
+        k += n_c
+    x_out = torch.cat(outputs, dim=-2)  # (*batch, T, nx)
+
+    status = torch.zeros(batch, dtype=torch.int8, device=x0.device)
+    messages: list[str] = []
+    if finite:
+        ok = torch.cat(finite, dim=0)  # (T-1, *batch)
+        bad = ~ok
+        failed = bad.any(0)
+        if bool(failed.any()):  # the single host synchronisation of the run
+            first = bad.to(torch.int8).argmax(0) + 1  # output index of the first bad state
+            first = torch.where(failed, first, torch.full_like(first, T))
+            late = torch.arange(T, device=x0.device) >= first.unsqueeze(-1)  # (*batch, T)
+            x_out = torch.where(late.unsqueeze(-1), torch.full_like(x_out, float("nan")), x_out)
+            status = torch.where(failed, Status.NON_FINITE.value, status).to(torch.int8)
+            messages = _failure_messages(failed, first, t)
+    stats = SolverStats(
+        n_f_evals=n_steps * len(scheme.stages),
+        n_steps=n_steps,
+        extra={
+            "compiled": bool(use_compiled and not entry.failed),
+            "compile_s": compile_s,
+            "substeps": m,
+        },
+    )
+    return Solution(t=t, x=x_out, status=status, stats=stats, messages=messages, method=tab.name)
+
+
+def _failure_messages(failed: torch.Tensor, first: torch.Tensor, t: torch.Tensor) -> list[str]:
+    """One message per failed sample: its index and the output interval of the failure."""
+    t_host = t.detach().cpu().tolist()
+    firsts = first.cpu().numpy()
+    msgs = []
+    for idx in map(tuple, np.argwhere(failed.cpu().numpy())):
+        k = int(firsts[idx])
+        sample = idx[0] if len(idx) == 1 else idx
+        msgs.append(
+            f"sample {sample}: the state became non-finite (inf/nan) between t = "
+            f"{t_host[k - 1]:.6g} and t = {t_host[k]:.6g}; its outputs from t = {t_host[k]:.6g} "
+            "on are NaN. The solution may escape to infinity in finite time (like x' = x^2, "
+            "x(0) = 1 at t = 1, notes eq. 1.44), or the step is too large for stability: try "
+            "more substeps, an adaptive method ('dopri5') or an implicit one."
+        )
+    return msgs

@@ -1,0 +1,456 @@
+"""Implicit Runge-Kutta integration of stiff ODEs, implicit ODEs and index-1 DAEs (notes §7).
+
+Public entry points:
+
+- :func:`solve_implicit_ode` (contract C3): ``x' = rhs(t, x)`` with a Gauss-Legendre, Radau IIA
+  or any implicit tableau, fixed step (eq. 7.14-7.18) or adaptive (Radau IIA, odd ``s``).
+- :func:`daeint`: :class:`~integrators.problems.ImplicitODE` (eq. 7.51-7.52),
+  :class:`~integrators.problems.SemiExplicitDAE` (eq. 7.63) and
+  :class:`~integrators.problems.ImplicitDAE` (eq. 7.56-7.60), after an index check
+  (Theorem 9, Corollary 1) and a consistent initialisation of the algebraic states.
+
+Stage equations are solved by simplified Newton with the factorisation reused across
+iterations and steps; for tableaus with invertible, diagonalisable ``A`` (Radau IIA, Gauss) the
+``s p x s p`` Newton system is split into one real / complex ``p x p`` solve per eigenvalue
+(pair) of ``A^{-1}``. Reverse-mode gradients use the implicit function theorem at every step
+(one transposed linear solve per step; memory independent of the number of Newton
+iterations): they reach ``x0`` and every tensor requiring grad that the model uses
+(``nn.Module`` parameters or captured tensors). Step sizes and times are not differentiated.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ._irk_core import EPS, InputSignal, IRKCore
+from ._irk_fixed import integrate_fixed
+from ._irk_system import StageSystem, rank_ratio
+from .errors import HighIndexError, InputValidationError, TableauError
+from .problems import ImplicitDAE, ImplicitODE, SemiExplicitDAE
+from .solution import Solution, SolverStats
+from .tableau import ButcherTableau, tableau
+
+__all__ = ["daeint", "solve_implicit_ode"]
+
+_DEFAULT_STAGES = {"gauss_legendre": 2, "radau_iia": 3}
+_NEWTON_KEYS = {"max_iter", "newton_tol", "linear_solver", "dt0", "index_tol", "index_check_every"}
+
+
+def resolve_tableau(method, stages=None) -> ButcherTableau:
+    """The implicit tableau named by ``method`` ("gauss_legendre", "radau_iia",
+    "implicit_euler", "implicit_midpoint") or given as a :class:`ButcherTableau`."""
+    from .collocation import gauss_legendre, radau_iia
+
+    if isinstance(method, ButcherTableau):
+        tab = method
+    elif method in _DEFAULT_STAGES:
+        s = _DEFAULT_STAGES[method] if stages is None else stages
+        tab = gauss_legendre(s) if method == "gauss_legendre" else radau_iia(s)
+    elif method in ("implicit_euler", "implicit_midpoint"):
+        tab = tableau(method)
+    else:
+        raise InputValidationError(
+            f"unknown implicit method {method!r}; use 'gauss_legendre', 'radau_iia' (with "
+            "stages=s), 'implicit_euler', 'implicit_midpoint' or an implicit ButcherTableau."
+        )
+    if tab.is_explicit:
+        raise TableauError(
+            f"tableau {tab.name!r} is explicit; use odeint for explicit methods, or pass an "
+            "implicit tableau here."
+        )
+    return tab
+
+
+def _is_radau(tab: ButcherTableau) -> bool:
+    from .collocation import radau_iia
+
+    ref = radau_iia(tab.stages)
+    return np.allclose(tab.A, ref.A, atol=1e-12) and np.allclose(tab.b, ref.b, atol=1e-12)
+
+
+def _validate_state(x, label, dtype=None, device=None):
+    if not isinstance(x, torch.Tensor):
+        x = torch.as_tensor(x, dtype=dtype or torch.get_default_dtype(), device=device)
+    if not x.is_floating_point():
+        x = x.to(torch.get_default_dtype())
+    if x.dim() < 1:
+        raise InputValidationError(f"{label} must have shape (*batch, n), got a scalar.")
+    bad = ~torch.isfinite(x.detach())
+    if bool(bad.any()):
+        first = tuple(torch.nonzero(bad)[0].tolist())
+        raise InputValidationError(f"{label} contains inf/nan at index {first}.")
+    return x
+
+
+def _validate_time(t, like: torch.Tensor) -> torch.Tensor:
+    t = torch.as_tensor(t, dtype=like.dtype, device=like.device).detach()
+    if t.dim() != 1 or t.shape[0] < 2:
+        raise InputValidationError(
+            f"t must be a 1-D tensor of at least 2 increasing output times, got shape "
+            f"{tuple(t.shape)}."
+        )
+    if not bool(torch.isfinite(t).all()) or not bool((t[1:] > t[:-1]).all()):
+        k = int(torch.nonzero(~(t[1:] > t[:-1]))[0]) if bool((t[1:] <= t[:-1]).any()) else 0
+        raise InputValidationError(
+            f"t must be finite and strictly increasing; check t[{k}] and t[{k + 1}]."
+        )
+    return t
+
+
+def _split_options(options: dict) -> dict:
+    unknown = set(options) - _NEWTON_KEYS
+    if unknown:
+        raise InputValidationError(
+            f"unknown option(s) {sorted(unknown)} for the implicit solver; known options are "
+            f"{sorted(_NEWTON_KEYS)}."
+        )
+    return options
+
+
+def newton_tolerance(rtol: float, dtype, override=None) -> float:
+    """Stage-solve tolerance on ``eta ||dW||`` (Hairer-Wanner's rule, scaled norm)."""
+    if override is not None:
+        return float(override)
+    eps = EPS.get(dtype, EPS[torch.float32])
+    return max(10.0 * eps / rtol, min(0.03, rtol**0.5))
+
+
+def _run(
+    core,
+    x0,
+    z0,
+    xdot0,
+    t,
+    *,
+    adaptive,
+    rtol,
+    atol,
+    substeps,
+    max_steps,
+    options,
+    extra,
+    messages,
+    method_name,
+):
+    max_iter = int(options.get("max_iter", 7 if adaptive else 15))
+    tol = newton_tolerance(rtol, x0.dtype, options.get("newton_tol"))
+    index_tol = float(options.get("index_tol", 1e-10))
+    every = int(options.get("index_check_every", 10))
+    if adaptive:
+        from .radau import integrate_adaptive
+
+        out = integrate_adaptive(
+            core,
+            x0,
+            z0,
+            xdot0,
+            t,
+            rtol=rtol,
+            atol=atol,
+            max_steps=max_steps,
+            max_iter=max_iter,
+            newton_tol=tol,
+            index_tol=index_tol,
+            index_check_every=every,
+            dt0=options.get("dt0"),
+        )
+    else:
+        if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
+            raise InputValidationError(f"substeps must be an integer >= 1, got {substeps!r}.")
+        out = integrate_fixed(
+            core,
+            x0,
+            z0,
+            xdot0,
+            t,
+            substeps=int(substeps),
+            rtol=rtol,
+            atol=atol,
+            max_iter=max_iter,
+            newton_tol=tol,
+            index_tol=index_tol,
+            index_check_every=every,
+        )
+    records = out["records"]
+    stats = SolverStats(
+        n_f_evals=out["n_f"],
+        n_steps=out["n_steps"],
+        n_rejected=out.get("n_rejected", 0),
+        n_newton_iters=out["n_newton"],
+        n_factorizations=out["n_lu"],
+        n_jac_evals=out["n_jac"],
+        extra=dict(extra, linear_solver=core.solver.mode, tableau=core.tab.name),
+    )
+    return Solution(
+        t=t,
+        x=out["x"],
+        status=out["status"],
+        stats=stats,
+        z=out["z"] if core.system.m else None,
+        messages=messages + out["messages"],
+        method=method_name,
+        interpolant=None if records is None else (lambda tq: records.evaluate(tq)[0]),
+    )
+
+
+def solve_implicit_ode(
+    rhs,
+    x0,
+    t,
+    method="radau_iia",
+    *,
+    stages=None,
+    adaptive=None,
+    rtol=1e-6,
+    atol=1e-9,
+    substeps=1,
+    max_steps=100_000,
+    **newton_options,
+) -> Solution:
+    """Integrate the explicit ODE ``x' = rhs(t, x)`` with an implicit RK method (contract C3).
+
+    Args:
+        rhs: ``rhs(t, x) -> (*batch, n)``, e.g. a ``BoundRHS`` from ``bind_rhs`` (its input is
+            then held per step as in eq. 8.34 in fixed-step mode).
+        x0: (*batch, n) initial states.
+        t: (T,) strictly increasing output times.
+        method: "radau_iia", "gauss_legendre", "implicit_euler", "implicit_midpoint" or an
+            implicit :class:`ButcherTableau`.
+        stages: number of collocation stages (default 3 for Radau IIA, 2 for Gauss-Legendre).
+        adaptive: error-controlled steps (Radau IIA with odd ``s`` only); default True for
+            Radau IIA, False otherwise.
+        rtol, atol: local error tolerances (adaptive) and the Newton stopping scale
+            ``atol + rtol |x|`` (both modes).
+        substeps: fixed-step mode: steps per output interval.
+        max_steps: adaptive mode: step attempts per sample before MAX_STEPS.
+        **newton_options: ``max_iter`` (Newton iterations per stage solve, 7 adaptive / 15
+            fixed), ``newton_tol`` (override of the stopping tolerance), ``linear_solver``
+            ("auto", "transformed", "full"), ``dt0`` (first step, adaptive); for DAEs
+            ``index_tol`` and ``index_check_every`` (steps between forced Jacobian
+            re-evaluations for the rank test, default 10).
+
+    Returns:
+        :class:`Solution` with per-sample ``status`` and ``stats`` (Newton iterations,
+        factorisations, Jacobian evaluations, steps, rejections) and dense output ``at``.
+    """
+    options = _split_options(newton_options)
+    x0 = _validate_state(x0, "x0")
+    t = _validate_time(t, x0)
+    tab = resolve_tableau(method, stages)
+    adaptive = _check_adaptive(tab, adaptive)
+    kind = getattr(rhs, "kind", None)
+    if kind is not None and hasattr(rhs, "f"):
+        fn, has_input, signal = rhs.f, kind != "none", InputSignal(rhs)
+    else:
+        fn, has_input, signal = rhs, False, InputSignal(None)
+    system = StageSystem("ode", x0.shape[-1], 0, (fn,), has_input)
+    core = IRKCore(tab, system, signal, x0.dtype, x0.device, options.get("linear_solver", "auto"))
+    z0 = x0.new_zeros(*x0.shape[:-1], 0)
+    t0 = t[0].expand(*x0.shape[:-1], 1) if adaptive else t[0]
+    with torch.no_grad():
+        xdot0 = system.rhs_f(t0, x0, z0, signal.at(t0))
+    return _run(
+        core,
+        x0,
+        z0,
+        xdot0,
+        t,
+        adaptive=adaptive,
+        rtol=rtol,
+        atol=atol,
+        substeps=substeps,
+        max_steps=max_steps,
+        options=options,
+        extra={},
+        messages=[],
+        method_name=tab.name,
+    )
+
+
+def _check_adaptive(tab, adaptive):
+    radau = _is_radau(tab)
+    if adaptive is None:  # named Radau IIA methods adapt; implicit Euler etc. keep fixed steps
+        return radau and tab.stages % 2 == 1 and tab.name.startswith("radau_iia")
+    if adaptive and not (radau and tab.stages % 2 == 1):
+        raise InputValidationError(
+            f"adaptive step control is implemented for Radau IIA with an odd number of stages "
+            f"(its embedded estimate needs a real eigenvalue of A^-1); got {tab.name!r}. Use "
+            "method='radau_iia' with stages=1, 3 or 5, or adaptive=False."
+        )
+    return bool(adaptive)
+
+
+def daeint(
+    problem,
+    x0,
+    z0,
+    t,
+    *,
+    method="radau_iia",
+    stages=None,
+    adaptive=None,
+    rtol=1e-6,
+    atol=1e-9,
+    u=None,
+    interpolation="zoh",
+    substeps=1,
+    max_steps=100_000,
+    **newton_options,
+) -> Solution:
+    """Integrate an implicit ODE or an index-1 DAE with an implicit RK method.
+
+    Before the first step the index is checked (``dg/dz`` for :class:`SemiExplicitDAE`,
+    ``[dF/dx', dF/dz]`` for :class:`ImplicitDAE`, ``dF/dx'`` for :class:`ImplicitODE` must have
+    full rank; Theorem 9, Corollary 1, eq. 5.53, 5.56) and the initial algebraic states (and
+    the initial derivative of implicit problems) are made consistent by a Newton solve; the
+    correction is reported in ``sol.stats.extra["z0_correction"]`` ((*batch,) max-norm) and in
+    ``sol.messages``. The rank test is repeated whenever the Jacobian is re-evaluated.
+
+    Args:
+        problem: :class:`ImplicitODE`, :class:`SemiExplicitDAE` or :class:`ImplicitDAE`.
+        x0: (*batch, n) initial differential states.
+        z0: (*batch, m) guess of the initial algebraic states (None for ImplicitODE); only a
+            starting point of the consistency Newton solve, so it receives no gradient.
+        t: (T,) strictly increasing output times.
+        method, stages, adaptive, rtol, atol, substeps, max_steps, **newton_options: as in
+            :func:`solve_implicit_ode`; ``index_tol`` (default 1e-10) is the relative
+            singular-value threshold of the rank test.
+        u: input: None, a callable ``u(t)`` or samples (T, nu) / (*batch, T, nu) on ``t``.
+        interpolation: "zoh" or "linear" for sampled inputs (contract C1).
+
+    Returns:
+        :class:`Solution` with ``x`` (*batch, T, n) and ``z`` (*batch, T, m) (None for
+        ImplicitODE).
+
+    Raises:
+        HighIndexError: the index-check matrix is rank deficient at the initial point.
+        ConvergenceError: no consistent initial algebraic state was found.
+    """
+    if not isinstance(problem, ImplicitODE | SemiExplicitDAE | ImplicitDAE):
+        raise InputValidationError(
+            f"daeint expects an ImplicitODE, SemiExplicitDAE or ImplicitDAE, got "
+            f"{type(problem).__name__}; for x' = f(t, x) use odeint."
+        )
+    options = _split_options(newton_options)
+    x0 = _validate_state(x0, "x0")
+    t = _validate_time(t, x0)
+    if isinstance(problem, ImplicitODE):
+        if z0 is not None and torch.as_tensor(z0).numel():
+            raise InputValidationError("an ImplicitODE has no algebraic states: pass z0=None.")
+        z0 = x0.new_zeros(*x0.shape[:-1], 0)
+    else:
+        if z0 is None:
+            raise InputValidationError(
+                f"{type(problem).__name__} needs a guess z0 of shape (*batch, m) of the "
+                "initial algebraic states (it is made consistent before the first step)."
+            )
+        z0 = _validate_state(z0, "z0", x0.dtype, x0.device)
+        if z0.shape[:-1] != x0.shape[:-1]:
+            z0 = z0.expand(*x0.shape[:-1], z0.shape[-1])
+    tab = resolve_tableau(method, stages)
+    adaptive = _check_adaptive(tab, adaptive)
+    from .inputs import bind_rhs
+
+    signal = InputSignal(
+        None if u is None else bind_rhs(lambda tt, xx, uu: uu, u, t, interpolation=interpolation)
+    )
+    system = StageSystem(
+        problem.kind, x0.shape[-1], z0.shape[-1], problem.functions(), u is not None
+    )
+    core = IRKCore(tab, system, signal, x0.dtype, x0.device, options.get("linear_solver", "auto"))
+    t0 = t[0].expand(*x0.shape[:-1], 1) if adaptive else t[0]
+    index_tol = float(options.get("index_tol", 1e-10))
+    z0c, xdot0, correction, msgs = consistent_start(system, signal, t0, x0, z0, index_tol)
+    extra = {"z0_correction": correction} if system.m else {}
+    return _run(
+        core,
+        x0,
+        z0c,
+        xdot0,
+        t,
+        adaptive=adaptive,
+        rtol=rtol,
+        atol=atol,
+        substeps=substeps,
+        max_steps=max_steps,
+        options=options,
+        extra=extra,
+        messages=msgs,
+        method_name=tab.name,
+    )
+
+
+def consistent_start(system: StageSystem, signal: InputSignal, t0, x0, z0, index_tol):
+    """Index check and consistent ``(z0, x'(t0))`` by Newton (notes §5.4, eq. 5.53-5.58).
+
+    Returns:
+        ``(z0, xdot0, correction, messages)`` with ``correction`` the (*batch,) max-norm of
+        the change made to ``z0``.
+    """
+    from .newton import newton
+
+    n, m = system.n, system.m
+    u0 = signal.at(t0)
+    params = [p for fn in system.fns if isinstance(fn, torch.nn.Module) for p in fn.parameters()]
+    guess_xdot = torch.zeros_like(x0)
+    _check_index(system, t0, guess_xdot, x0, z0.detach(), u0, index_tol)
+    if system.kind == "semi":
+
+        def phi(z, x):
+            return system._call(system.fns[1], t0, x, z, u=u0)
+
+        res = newton(phi, z0.detach(), x0, method="damped", params=params, max_iter=50)
+        z_new = res.x
+        _raise_unconverged(res, "g(t0, x0, z) = 0 for z")
+        xdot0 = system.rhs_f(t0, x0, z_new, u0)
+    else:
+
+        def phi(v, x):
+            return system.residual(t0, v[..., :n], x, v[..., n:], u0)
+
+        guess = torch.cat([guess_xdot, z0], dim=-1).detach()
+        res = newton(phi, guess, x0, method="damped", params=params, max_iter=50)
+        _raise_unconverged(res, "F(t0, x0', x0, z) = 0 for (x0', z)")
+        xdot0, z_new = res.x[..., :n], res.x[..., n:]
+    _check_index(system, t0, xdot0, x0, z_new, u0, index_tol)
+    correction = (z_new - z0).detach().abs().amax(-1) if m else x0.new_zeros(x0.shape[:-1])
+    msgs = []
+    if m and bool((correction > 0).any()):
+        worst = float(correction.max())
+        msgs.append(
+            f"initial algebraic states z0 were inconsistent (g != 0); corrected by Newton, "
+            f"largest change {worst:.3g} (see stats.extra['z0_correction'])."
+        )
+    return z_new, xdot0.detach(), correction, msgs
+
+
+def _check_index(system, t0, xdot, x, z, u, index_tol):
+    """Raise HighIndexError where the index-check matrix is rank deficient (Theorem 9)."""
+    with torch.no_grad():
+        _, _, index_matrix, reference = system.blocks(t0, xdot.detach(), x.detach(), z.detach(), u)
+        ratio = rank_ratio(index_matrix, reference)
+    bad = ratio <= index_tol
+    if not bool(bad.any()):
+        return
+    idx = [tuple(i) for i in torch.nonzero(bad).tolist()][:10]
+    which = "dg/dz" if system.kind == "semi" else ("[dF/dx', dF/dz]" if system.m else "dF/dx'")
+    raise HighIndexError(
+        f"the DAE is of index > 1: {which} is rank deficient at t0 for samples {idx} "
+        f"(smallest singular value / Jacobian norm = {float(ratio[bad].min()):.2e} <= "
+        f"index_tol = {index_tol:g}; Theorem 9, Corollary 1). Implicit RK methods give "
+        "meaningless results on such DAEs (notes §7.6.1): index-reduce the model "
+        "(differentiate the constraints, notes §5.4-5.5) before calling daeint."
+    )
+
+
+def _raise_unconverged(res, what):
+    from .errors import ConvergenceError
+
+    if bool(res.converged.all()):
+        return
+    idx = [tuple(i) for i in torch.nonzero(~res.converged).tolist()][:10]
+    raise ConvergenceError(
+        f"consistent initialisation failed: Newton on {what} did not converge for samples "
+        f"{idx}. Give a better z0 guess, or check that the DAE has a solution at t0."
+    )

@@ -1,0 +1,167 @@
+"""Right-hand sides with bound inputs (contract C1).
+
+A model is ``f(t, x)`` or ``f(t, x, u)``. :func:`bind_rhs` turns it into ``rhs(t, x)`` by
+binding an input signal, which is either
+
+* a callable ``u(t) -> (nu,) or (*batch, nu)``,
+* samples on the output grid ``t_grid`` of shape ``(T, nu)`` (shared by the batch) or
+  ``(*batch, T, nu)``, held constant between samples (zero-order hold, notes eq. 8.34:
+  ``u(t_k + tau dt) = u_k`` for ``tau in [0, 1)``) or interpolated linearly
+  (``u(t_k + tau dt) = (1 - tau) u_k + tau u_{k+1}``).
+
+``t`` is either a 0-dim tensor (a time shared by the batch, used by fixed-step solvers) or a
+``(*batch, 1)`` tensor (one time per sample, used by adaptive solvers); the user's ``f`` and a
+callable ``u`` receive that same ``t``.
+
+Fixed-step solvers do not look the input up by time: they read :attr:`BoundRHS.samples` and
+hold ``u_k`` over the *closed* step interval ``[t_k, t_k + dt]``, so a stage with ``c_i = 1``
+(the last stage of RK4) still uses ``u_k`` as eq. 8.34 prescribes. A pure time lookup at
+``t_{k+1}`` would return ``u_{k+1}`` (the hold is right-continuous), which breaks the exact
+discretisation of piecewise-constant inputs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from .errors import InputValidationError
+
+INTERPOLATIONS = ("zoh", "linear")
+
+
+class BoundRHS:
+    """``rhs(t, x)``: the user's model with its input bound (see module docstring).
+
+    Attributes:
+        f: the user's model ``f(t, x)`` (``kind == "none"``) or ``f(t, x, u)``.
+        kind: ``"none"``, ``"callable"``, ``"zoh"`` or ``"linear"``.
+        u: the input callable (``kind == "callable"``) or None.
+        samples: (T, nu) or (*batch, T, nu) input samples (``"zoh"``/``"linear"``) or None.
+        t_grid: (T,) sample times of ``samples`` or None.
+    """
+
+    def __init__(self, f, kind, u=None, samples=None, t_grid=None):
+        self.f = f
+        self.kind = kind
+        self.u = u
+        self.samples = samples
+        self.t_grid = t_grid
+
+    def __call__(self, t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """Evaluate ``f`` at time ``t`` (0-dim or (*batch, 1)) and state ``x`` (*batch, nx)."""
+        if self.kind == "none":
+            return self.f(t, x)
+        if self.kind == "callable":
+            return self.f(t, x, self.u(t))
+        return self.f(t, x, self.input_at(t))
+
+    def input_at(self, t: torch.Tensor) -> torch.Tensor:
+        """The input at time(s) ``t`` looked up from the samples.
+
+        Zero-order hold is right-continuous (``u_k`` on ``[t_k, t_{k+1})``); both rules hold
+        the first/last sample outside ``[t_0, t_{T-1}]``.
+
+        Args:
+            t: 0-dim tensor, or (*batch, 1) per-sample times.
+
+        Returns:
+            (nu,) or (*batch, nu) for a 0-dim ``t`` (depending on the samples' shape);
+            (*batch, nu) for per-sample times.
+        """
+        grid, samples = self.t_grid, self.samples
+        T = grid.shape[0]
+        tq = t.reshape(1) if t.dim() == 0 else t
+        idx = torch.searchsorted(grid, tq.contiguous(), right=True) - 1
+        if self.kind == "zoh" or T == 1:
+            return _take(samples, idx.clamp(0, T - 1), t.dim() == 0)
+        k = idx.clamp(0, T - 2)
+        t_lo, t_hi = grid[k], grid[k + 1]
+        theta = ((tq - t_lo) / (t_hi - t_lo)).clamp(0.0, 1.0)
+        lo = _take(samples, k, t.dim() == 0)
+        hi = _take(samples, k + 1, t.dim() == 0)
+        if t.dim() == 0:
+            theta = theta.reshape(())
+        return lo + theta * (hi - lo)
+
+
+def _take(samples: torch.Tensor, idx: torch.Tensor, shared_time: bool) -> torch.Tensor:
+    """Select sample rows: ``idx`` is (1,) for a shared time or (*batch, 1) per sample."""
+    if shared_time:
+        return samples.index_select(-2, idx).squeeze(-2)
+    if samples.dim() == 2:  # (T, nu) shared by the batch
+        return samples[idx.squeeze(-1)]
+    batch = torch.broadcast_shapes(samples.shape[:-2], idx.shape[:-1])
+    samples = samples.expand(*batch, *samples.shape[-2:])
+    idx = idx.expand(*batch, 1).unsqueeze(-1).expand(*batch, 1, samples.shape[-1])
+    return torch.gather(samples, -2, idx).squeeze(-2)
+
+
+def bind_rhs(f: Callable, u, t_grid, *, interpolation: str = "zoh") -> BoundRHS:
+    """Bind an input to a model: ``rhs(t, x)`` (contract C1).
+
+    Args:
+        f: ``f(t, x)`` when ``u is None``, else ``f(t, x, u)``; returns (*batch, nx).
+        u: None; a callable ``u(t) -> (nu,) or (*batch, nu)``; or samples of shape (T, nu) or
+            (*batch, T, nu) on ``t_grid`` (array-likes are converted to ``t_grid``'s dtype).
+        t_grid: (T,) strictly increasing sample times (the output grid of ``odeint``).
+        interpolation: ``"zoh"`` (zero-order hold, notes eq. 8.34) or ``"linear"``; only used
+            for sampled inputs.
+
+    Returns:
+        A :class:`BoundRHS`, callable as ``rhs(t, x)``.
+
+    Raises:
+        InputValidationError: unknown interpolation, samples whose time axis (dim -2) does not
+            have length T, or non-finite samples (the message names the sample index).
+    """
+    if not callable(f):
+        raise InputValidationError(f"f must be callable f(t, x[, u]), got {type(f).__name__}.")
+    if interpolation not in INTERPOLATIONS:
+        raise InputValidationError(
+            f"unknown interpolation {interpolation!r}; use one of {INTERPOLATIONS}."
+        )
+    if u is None:
+        return BoundRHS(f, "none")
+    if callable(u) and not isinstance(u, torch.Tensor):
+        return BoundRHS(f, "callable", u=u)
+    t_grid = torch.as_tensor(t_grid)
+    if t_grid.dim() != 1:
+        raise InputValidationError(f"t_grid must be 1-D (T,), got shape {tuple(t_grid.shape)}.")
+    dtype = t_grid.dtype if t_grid.is_floating_point() else torch.get_default_dtype()
+    samples = torch.as_tensor(u, dtype=dtype, device=t_grid.device)
+    T = t_grid.shape[0]
+    if samples.dim() < 2 or samples.shape[-2] != T:
+        raise InputValidationError(
+            f"sampled input u must have shape (T, nu) or (*batch, T, nu) with T = len(t) = {T}, "
+            f"got shape {tuple(samples.shape)}. For a single input channel use u[..., None]; "
+            "for an input defined between the output times pass a callable u(t)."
+        )
+    check_finite(samples, "input u", time_dim=-2)
+    return BoundRHS(f, interpolation, samples=samples, t_grid=t_grid.to(dtype))
+
+
+def check_finite(value: torch.Tensor, label: str, time_dim: int | None = None) -> None:
+    """Raise InputValidationError naming the first non-finite entry of ``value``.
+
+    Args:
+        value: tensor to check (one host synchronisation).
+        label: name used in the message.
+        time_dim: the dimension that is the time axis (named as "time index"), if any.
+    """
+    bad = ~torch.isfinite(value.detach())
+    if not bool(bad.any()):
+        return
+    first = torch.nonzero(bad)[0].tolist()
+    where = f"at index {tuple(first)}"
+    if time_dim is not None and value.dim() >= 2:
+        tdim = time_dim % value.dim()
+        batch = tuple(first[:tdim])
+        where = f"at time index {first[tdim]}" + (f", sample index {batch}" if batch else "")
+        where += f", channel {first[-1]}" if tdim != value.dim() - 1 else ""
+    bad_value = value.detach()[tuple(first)].item()
+    raise InputValidationError(
+        f"{label} contains a non-finite value ({bad_value}) {where}; clean or interpolate "
+        "the data before simulating."
+    )

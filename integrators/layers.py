@@ -1,0 +1,45 @@
+"""``ODELayer``: an ``odeint`` simulation as a ``torch.nn.Module`` (neural-ODE style)."""
+
+from __future__ import annotations
+
+import torch
+
+from .errors import InputValidationError
+from .odeint import odeint
+
+
+class ODELayer(torch.nn.Module):
+    """Maps initial states to trajectories: ``forward(x0) = odeint(f, x0, t, ...)``.
+
+    Args:
+        f: the model ``f(t, x)`` or ``f(t, x, u)``; an ``nn.Module`` is registered as the
+            submodule ``f`` so its parameters appear in ``layer.parameters()`` and train.
+        t: (T,) default output times (a buffer, so it follows ``.to(device)``), or None to
+            require ``t`` in every forward call.
+        method: any ``odeint`` method.
+        return_solution: True returns the :class:`~integrators.solution.Solution`; False
+            returns only its states ``x`` (*batch, T, nx).
+        **odeint_kwargs: further ``odeint`` options (``substeps``, ``rtol``, ``compile``...).
+    """
+
+    def __init__(self, f, t=None, method="rk4", return_solution=True, **odeint_kwargs):
+        super().__init__()
+        self.f = f
+        self.method = method
+        self.return_solution = return_solution
+        self.odeint_kwargs = odeint_kwargs
+        self.register_buffer("t", None if t is None else torch.as_tensor(t))
+
+    def forward(self, x0, t=None, u=None):
+        """Simulate from ``x0`` (*batch, nx) over ``t`` (or the default grid) with input ``u``.
+
+        Returns:
+            The Solution, or its (*batch, T, nx) states when ``return_solution=False``.
+        """
+        t = self.t if t is None else t
+        if t is None:
+            raise InputValidationError(
+                "ODELayer needs output times: pass t to the constructor or to forward()."
+            )
+        sol = odeint(self.f, x0, t, method=self.method, u=u, **self.odeint_kwargs)
+        return sol if self.return_solution else sol.x

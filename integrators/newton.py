@@ -1,0 +1,729 @@
+"""Batched Newton methods for nonlinear equations and unconstrained minimisation (notes §3).
+
+``newton`` solves ``phi(x, *args) = 0`` for ``x`` independently for every member of a batch:
+
+- ``method="full"``: full Newton steps ``x <- x - J(x)^{-1} phi(x)`` (eq. 3.5-3.9), quadratic
+  convergence near a regular root (Theorem 3).
+- ``method="damped"``: reduced steps ``x <- x + t dx`` with ``t`` found by backtracking on the
+  merit function ``||phi||_2^2`` with the Armijo condition. The Newton step is a descent
+  direction of that merit function (Theorem 4, eq. 3.30-3.32: its slope is ``-2 ||phi||^2``).
+- ``method="simplified"``: the Jacobian (or a user-supplied approximation ``M``) is evaluated and
+  factorised once and reused; convergence is linear with rate ``kappa = ||I - M^{-1} J||``
+  (Theorem 6, eq. 3.45-3.47).
+
+The solution is differentiable with respect to the tensors in ``args`` (and optional closure
+``params``) by the implicit function theorem (eq. 3.40): the backward pass solves one linear
+system with the transposed Jacobian at the converged point, so no Newton iteration is stored
+and memory does not grow with the number of iterations. ``x0`` receives no gradient. The
+IFT backward is first order (``once_differentiable``): no Hessians through a solve.
+
+``minimize`` applies the same machinery to ``min_theta Phi(theta)`` with the exact Hessian
+(eq. 3.49-3.52) or to least-squares residuals with the regularised Gauss-Newton Hessian
+``J^T J + alpha I`` (eq. 3.57-3.61).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+import torch
+
+from .errors import ConvergenceError, InputValidationError, SingularMatrixError
+
+__all__ = [
+    "MinimizeResult",
+    "NewtonResult",
+    "NewtonStatus",
+    "batch_jacobian",
+    "minimize",
+    "newton",
+]
+
+_ARMIJO = 1e-4
+_MAX_BACKTRACKS = 30
+_MAX_SHOWN = 10
+
+
+class NewtonStatus(IntEnum):
+    """Per-sample outcome of :func:`newton` / :func:`minimize`, stored as int8 codes."""
+
+    CONVERGED = 0
+    MAX_ITER = 1  # the iteration budget ran out
+    SINGULAR = 2  # the (approximate) Jacobian / Hessian could not be factorised
+    NON_FINITE = 3  # phi or the iterate became inf/nan
+    LINE_SEARCH_FAILED = 4  # no step length in (0, 1] decreased the merit function
+    DIVERGED = 5  # the residual grew by more than ``divergence_ratio`` in one iteration
+
+
+@dataclass
+class NewtonResult:
+    """The result of :func:`newton`.
+
+    Attributes:
+        x: (*batch, n) final iterates (differentiable w.r.t. ``args``/``params`` by the IFT).
+        converged: (*batch,) bool, ``||phi(x)||_inf <= tol``.
+        status: (*batch,) int8 :class:`NewtonStatus` codes.
+        iterations: (*batch,) int64 Newton updates taken by each member.
+        residual_norms: (iters + 1, *batch) ``||phi||_inf`` before each iteration; a member that
+            has stopped keeps its final value.
+        step_sizes: (iters, *batch) step lengths ``t`` taken (1 for full steps, 0 once stopped).
+        n_phi_evals: batched evaluations of ``phi`` (line-search trials included).
+        n_jac_evals: batched Jacobian evaluations.
+        n_factorizations: batched LU factorisations.
+        factorization: ``(LU, pivots)`` of the last factorised matrix (reusable by passing
+            ``factorization=`` to a later simplified-Newton call), or None.
+        x_history: (iters + 1, *batch, n) iterates when ``return_history=True``, else None.
+        messages: one line per member that did not converge (the first few), naming its index.
+    """
+
+    x: torch.Tensor
+    converged: torch.Tensor
+    status: torch.Tensor
+    iterations: torch.Tensor
+    residual_norms: torch.Tensor
+    step_sizes: torch.Tensor
+    n_phi_evals: int = 0
+    n_jac_evals: int = 0
+    n_factorizations: int = 0
+    factorization: tuple[torch.Tensor, torch.Tensor] | None = None
+    x_history: torch.Tensor | None = None
+    messages: list[str] = field(default_factory=list)
+
+    @property
+    def contraction(self) -> torch.Tensor:
+        """(*batch,) last observed ratio ``||phi_{k+1}|| / ||phi_k||`` (linear rate, Thm. 6)."""
+        r = _informative_tail(self.residual_norms, self.iterations, 2)
+        return r[..., 1] / r[..., 0]
+
+    @property
+    def observed_order(self) -> torch.Tensor:
+        """(*batch,) estimate ``log(r_{k+1}/r_k) / log(r_k/r_{k-1})`` of the convergence order.
+
+        About 2 for exact Newton near a regular root (Theorem 3) and 1 for an approximate
+        Jacobian (Theorem 6); NaN for members with fewer than three residuals above the
+        rounding floor (e.g. linear problems solved in one step).
+        """
+        r = _informative_tail(self.residual_norms, self.iterations, 3)
+        return torch.log(r[..., 2] / r[..., 1]) / torch.log(r[..., 1] / r[..., 0])
+
+
+@dataclass
+class MinimizeResult:
+    """The result of :func:`minimize`.
+
+    Attributes:
+        theta: (*batch, n) minimisers.
+        converged: (*batch,) bool.
+        status: (*batch,) int8 :class:`NewtonStatus` codes.
+        iterations: (*batch,) int64.
+        loss: (*batch,) final loss (``0.5 ||r||^2`` for Gauss-Newton).
+        loss_history: (iters + 1, *batch) loss before each iteration.
+        grad: (*batch, n) gradient at ``theta``.
+        hessian: (*batch, n, n) the Hessian used at ``theta`` (exact, or ``J^T J`` for
+            Gauss-Newton, without regularisation).
+        J: (*batch, m, n) residual Jacobian at ``theta`` (Gauss-Newton only), e.g. for the
+            covariance ``sigma^2 (J^T J)^{-1}`` of a least-squares estimate.
+        residual: (*batch, m) residual at ``theta`` (Gauss-Newton only).
+        n_fun_evals: batched evaluations of the objective / residual.
+        messages: lines for members that did not converge.
+    """
+
+    theta: torch.Tensor
+    converged: torch.Tensor
+    status: torch.Tensor
+    iterations: torch.Tensor
+    loss: torch.Tensor
+    loss_history: torch.Tensor
+    grad: torch.Tensor
+    hessian: torch.Tensor
+    J: torch.Tensor | None = None
+    residual: torch.Tensor | None = None
+    n_fun_evals: int = 0
+    messages: list[str] = field(default_factory=list)
+
+
+# ----------------------------------------------------------------------------- helpers
+def _informative_tail(norms: torch.Tensor, iterations: torch.Tensor, k: int) -> torch.Tensor:
+    """The last ``k`` residual norms of each member above the rounding floor: (*batch, k)."""
+    eps = torch.finfo(norms.dtype).eps
+    floor = 100 * eps * torch.clamp(norms[0], min=1.0)
+    above = norms > floor  # (iters + 1, *batch)
+    steps = torch.arange(norms.shape[0], device=norms.device).view(-1, *([1] * iterations.dim()))
+    valid = above & (steps <= iterations)
+    last = torch.where(valid, steps, torch.full_like(steps, -1)).amax(dim=0)  # (*batch,)
+    idx = last.unsqueeze(0) - torch.arange(k - 1, -1, -1, device=norms.device).view(
+        -1, *([1] * iterations.dim())
+    )
+    vals = norms.gather(0, idx.clamp(min=0))
+    vals = torch.where(idx >= 0, vals, torch.full_like(vals, float("nan")))
+    return vals.movedim(0, -1)
+
+
+def batch_jacobian(fn: Callable, x: torch.Tensor, *args):
+    """Batched Jacobian of ``fn(x, *args) -> (*batch, m)`` w.r.t. ``x`` of shape (*batch, n).
+
+    Members of the batch must be independent (output member ``i`` depends only on input
+    member ``i``), and the output batch shape must equal that of ``x``. Uses ``m``
+    vector-Jacobian products run as one vmapped backward pass, or a loop over the ``m`` output
+    components (never over batch members) when ``fn`` uses an operation without a batching
+    rule.
+
+    Returns:
+        ``(y, J)`` detached: ``y = fn(x, *args)`` of shape (*batch, m) and ``J`` of shape
+        (*batch, m, n).
+    """
+    with torch.enable_grad():
+        xg = x.detach().requires_grad_(True)
+        y = fn(xg, *args)
+        m = y.shape[-1]
+        if not y.requires_grad:  # fn does not depend on x
+            return y.detach(), y.new_zeros(*y.shape, x.shape[-1])
+        basis = torch.eye(m, dtype=y.dtype, device=y.device)
+        basis = basis.view(m, *([1] * (y.dim() - 1)), m).expand(m, *y.shape)
+        try:
+            (rows,) = torch.autograd.grad(
+                y, xg, basis, retain_graph=True, is_grads_batched=True, allow_unused=True
+            )
+        except (RuntimeError, NotImplementedError):
+            rows = torch.stack([_grad_or_zeros(y[..., i].sum(), xg) for i in range(m)])
+    if rows is None:
+        rows = xg.new_zeros(m, *xg.shape)
+    return y.detach(), rows.movedim(0, -2).detach()
+
+
+def _grad_or_zeros(out, inp):
+    (g,) = torch.autograd.grad(out, inp, retain_graph=True, allow_unused=True)
+    return torch.zeros_like(inp) if g is None else g
+
+
+def _detach(args):
+    return tuple(a.detach() if isinstance(a, torch.Tensor) else a for a in args)
+
+
+def _default_tol(dtype) -> float:
+    return max(1e-10, 100 * torch.finfo(dtype).eps)
+
+
+def _lu(M: torch.Tensor):
+    LU, pivots, info = torch.linalg.lu_factor_ex(M)
+    finite = torch.isfinite(M).flatten(-2).all(-1)
+    ok = (info == 0) & finite
+    if bool(ok.any()):
+        diag = torch.diagonal(LU, dim1=-2, dim2=-1).abs()
+        scale = M.abs().flatten(-2).amax(-1).clamp(min=torch.finfo(M.dtype).tiny)
+        ok = ok & (diag.amin(-1) > M.shape[-1] * torch.finfo(M.dtype).eps * scale)
+    # keep the factors of failed members harmless (identity) so solves stay finite
+    eye = torch.eye(M.shape[-1], dtype=M.dtype, device=M.device).expand_as(M)
+    LU = torch.where(ok[..., None, None], LU, eye)
+    base = torch.arange(1, M.shape[-1] + 1, dtype=pivots.dtype, device=pivots.device)
+    pivots = torch.where(ok[..., None], pivots, base.expand_as(pivots))
+    return LU, pivots, ok
+
+
+def _lu_solve(LU, pivots, rhs):
+    return torch.linalg.lu_solve(LU, pivots, rhs.unsqueeze(-1)).squeeze(-1)
+
+
+def _describe(status, norms, label="residual") -> list[str]:
+    bad = torch.nonzero(status != NewtonStatus.CONVERGED).tolist()
+    lines = []
+    for idx in bad[:_MAX_SHOWN]:
+        code = NewtonStatus(int(status[tuple(idx)]))
+        lines.append(
+            f"sample {tuple(idx) if len(idx) != 1 else idx[0]}: {code.name.lower()}, "
+            f"{label} {float(norms[tuple(idx)]):.3e}"
+        )
+    if len(bad) > _MAX_SHOWN:
+        lines.append(f"... and {len(bad) - _MAX_SHOWN} more")
+    return lines
+
+
+# -------------------------------------------------------------------- implicit function
+class _ImplicitSolution(torch.autograd.Function):
+    """Attach IFT gradients (eq. 3.40) to a converged root ``x*`` of ``phi(x, *args) = 0``.
+
+    Backward: solve ``J(x*)^T lam = grad_x`` once with the exact Jacobian at ``x*``, then
+    ``grad_{args, params} = -(dphi/d(args, params))^T lam`` by one vector-Jacobian product.
+    """
+
+    @staticmethod
+    def forward(ctx, phi, x_star, n_args, *inputs):
+        ctx.phi, ctx.x_star, ctx.n_args, ctx.inputs = phi, x_star, n_args, inputs
+        return x_star.clone()
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_x):
+        frozen = _detach(ctx.inputs[: ctx.n_args])
+        _, J = batch_jacobian(lambda x: ctx.phi(x, *frozen), ctx.x_star)
+        LU, pivots, ok = _lu(J)
+        if not bool(ok.all()):
+            bad = torch.nonzero(~ok).tolist()[:_MAX_SHOWN]
+            raise SingularMatrixError(
+                "implicit-function gradient: the Jacobian dphi/dx is singular at the solution "
+                f"for sample(s) {bad}; the root is not regular (eq. 3.38), so x(args) is not "
+                "differentiable there."
+            )
+        lam = torch.linalg.lu_solve(LU, pivots, grad_x.unsqueeze(-1), adjoint=True).squeeze(-1)
+        inputs = list(ctx.inputs)
+        wanted = [
+            i for i, t in enumerate(inputs) if isinstance(t, torch.Tensor) and t.requires_grad
+        ]
+        with torch.enable_grad():
+            for i, t in enumerate(inputs[: ctx.n_args]):  # args become fresh graph leaves
+                if isinstance(t, torch.Tensor):
+                    inputs[i] = t.detach().requires_grad_(i in wanted)
+            y = ctx.phi(ctx.x_star, *inputs[: ctx.n_args])
+            targets = [inputs[i] for i in wanted]  # closure params are used as they are
+            grads = torch.autograd.grad(y, targets, -lam, allow_unused=True) if targets else ()
+        out = [None] * len(inputs)
+        for i, g in zip(wanted, grads, strict=True):
+            out[i] = torch.zeros_like(inputs[i]) if g is None else g
+        return (None, None, None, *out)
+
+
+# ------------------------------------------------------------------------------ newton
+def _validate_x0(x0) -> torch.Tensor:
+    if not isinstance(x0, torch.Tensor):
+        x0 = torch.as_tensor(x0, dtype=torch.get_default_dtype())
+    if not x0.is_floating_point():
+        x0 = x0.to(torch.get_default_dtype())
+    if x0.dim() == 0 or x0.shape[-1] == 0:
+        raise InputValidationError(
+            f"newton: x0 must have shape (*batch, n) with n >= 1, got {tuple(x0.shape)}; "
+            "wrap a scalar unknown as x0[..., None]."
+        )
+    if not bool(torch.isfinite(x0).all()):
+        bad = torch.nonzero(~torch.isfinite(x0).all(-1)).tolist()[:_MAX_SHOWN]
+        raise InputValidationError(f"newton: x0 contains non-finite entries in sample(s) {bad}.")
+    return x0.detach()
+
+
+def _evaluate(phi, x, args, shape, what):
+    y = phi(x, *args)
+    if not isinstance(y, torch.Tensor) or y.shape != shape:
+        got = tuple(y.shape) if isinstance(y, torch.Tensor) else type(y).__name__
+        raise InputValidationError(
+            f"newton: phi must return a tensor shaped like x {tuple(shape)}, got {got} {what}."
+        )
+    return y
+
+
+def newton(
+    phi: Callable,
+    x0,
+    *args,
+    jacobian: Callable | torch.Tensor | None = None,
+    method: str = "full",
+    tol: float | None = None,
+    xtol: float = 0.0,
+    max_iter: int = 50,
+    factorization: tuple[torch.Tensor, torch.Tensor] | None = None,
+    divergence_ratio: float | None = None,
+    params: Sequence[torch.Tensor] = (),
+    raise_on_failure: bool = False,
+    return_history: bool = False,
+) -> NewtonResult:
+    """Solve ``phi(x, *args) = 0`` for every member of a batch (notes §3).
+
+    Args:
+        phi: ``phi(x, *args) -> (*batch, n)`` for ``x`` of shape (*batch, n); members must be
+            independent (row ``i`` of the output depends only on row ``i`` of ``x``).
+        x0: (*batch, n) initial guess (or broadcastable to phi's output; detached: it gets no
+            gradient).
+        *args: extra arguments of ``phi``; tensors among them that require grad receive
+            implicit-function-theorem gradients (eq. 3.40).
+        jacobian: None (exact Jacobian by batched autograd), a callable
+            ``jacobian(x, *args) -> (*batch, n, n)`` (exact or approximate), or a fixed matrix
+            (n, n) / (*batch, n, n) used as ``M`` in ``dx = -M^{-1} phi`` (eq. 3.44) and
+            factorised only once.
+        method: "full" (eq. 3.5-3.9), "damped" (Armijo backtracking on ``||phi||^2``, Theorem
+            4, eq. 3.33-3.35) or "simplified" (Jacobian evaluated and factorised once at
+            ``x0``, or taken from ``factorization``, then reused: Theorem 6).
+        tol: convergence when ``||phi(x)||_inf <= tol`` (the notes' test). Default
+            ``max(1e-10, 100 eps)`` of the dtype.
+        xtol: also converge when ``||dx||_inf <= xtol * (1 + ||x||_inf)`` (0 disables).
+        max_iter: iteration budget per member.
+        factorization: ``(LU, pivots)`` from ``torch.linalg.lu_factor`` of an approximate
+            Jacobian to reuse (simplified Newton only), e.g. ``result.factorization``.
+        divergence_ratio: stop a member (status DIVERGED) when its residual grows by more than
+            this factor in one iteration; None disables.
+        params: tensors that ``phi`` reads from its closure (e.g. ``module.parameters()``) and
+            that should also receive IFT gradients.
+        raise_on_failure: raise :class:`ConvergenceError` naming the failed members instead of
+            only flagging them.
+        return_history: keep every iterate in ``result.x_history``.
+
+    Returns:
+        :class:`NewtonResult`. Members that have stopped keep their iterate; ``converged``
+        and ``status`` say why each stopped.
+
+    Raises:
+        InputValidationError: bad shapes, non-finite ``x0``, unknown method.
+        ConvergenceError: with ``raise_on_failure=True`` when any member failed.
+    """
+    if method not in ("full", "damped", "simplified"):
+        raise InputValidationError(
+            f"newton: unknown method {method!r}; use 'full', 'damped' or 'simplified'."
+        )
+    if factorization is not None and method != "simplified":
+        raise InputValidationError("newton: factorization= is only used by method='simplified'.")
+    x = _validate_x0(x0)
+    frozen = _detach(args)
+    params = tuple(params)
+    with torch.no_grad():
+        fx = phi(x, *frozen)
+    if not isinstance(fx, torch.Tensor):
+        raise InputValidationError(f"newton: phi must return a tensor, got {type(fx).__name__}.")
+    if fx.shape != x.shape:
+        try:
+            x = x.expand(fx.shape).clone()
+        except RuntimeError as exc:
+            raise InputValidationError(
+                f"newton: phi returned shape {tuple(fx.shape)} for x0 of shape "
+                f"{tuple(x.shape)}; phi must map (*batch, n) to (*batch, n)."
+            ) from exc
+    x = x.to(fx.dtype)
+    tol = _default_tol(x.dtype) if tol is None else float(tol)
+    batch = x.shape[:-1]
+    dev = x.device
+    counts = {"phi": 1, "jac": 0, "lu": 0}
+
+    def residual(z):
+        counts["phi"] += 1
+        return _evaluate(phi, z, frozen, x.shape, "during the iteration")
+
+    def iteration_matrix(z):
+        counts["jac"] += 1
+        if jacobian is None:
+            _, J = batch_jacobian(phi, z, *frozen)
+            counts["phi"] += 1
+            return J
+        if isinstance(jacobian, torch.Tensor):
+            return jacobian.detach().to(dtype=x.dtype, device=dev).expand(*batch, *x.shape[-1:] * 2)
+        J = jacobian(z, *frozen)
+        if not isinstance(J, torch.Tensor) or J.shape[-2:] != (x.shape[-1],) * 2:
+            raise InputValidationError(
+                f"newton: jacobian must return (*batch, {x.shape[-1]}, {x.shape[-1]}), got "
+                f"{tuple(J.shape) if isinstance(J, torch.Tensor) else type(J).__name__}."
+            )
+        return J.detach().expand(*batch, *J.shape[-2:])
+
+    def factorise(z):
+        counts["lu"] += 1
+        return _lu(iteration_matrix(z))
+
+    with torch.no_grad():
+        status = torch.full(batch, NewtonStatus.MAX_ITER, dtype=torch.int8, device=dev)
+        iterations = torch.zeros(batch, dtype=torch.int64, device=dev)
+        norm = fx.abs().amax(-1)
+        active = torch.ones(batch, dtype=torch.bool, device=dev)
+        nonfinite = ~torch.isfinite(fx).all(-1)
+        status[nonfinite] = NewtonStatus.NON_FINITE
+        done = norm <= tol
+        status[done] = NewtonStatus.CONVERGED
+        active &= ~(done | nonfinite)
+        norms, steps, history = [norm], [], [x.clone()] if return_history else None
+        LU = pivots = None
+        frozen_matrix = method == "simplified" or isinstance(jacobian, torch.Tensor)
+        if frozen_matrix:
+            if factorization is not None:
+                LU, pivots = (f.detach() for f in factorization)
+                LU = LU.to(dtype=x.dtype).expand(*batch, *LU.shape[-2:])
+                pivots = pivots.expand(*batch, pivots.shape[-1])
+                ok = torch.ones(batch, dtype=torch.bool, device=dev)
+            else:
+                LU, pivots, ok = factorise(x)
+            status[active & ~ok] = NewtonStatus.SINGULAR
+            active &= ok
+        for _ in range(max_iter):
+            if not bool(active.any()):
+                break
+            if not frozen_matrix:
+                LU, pivots, ok = factorise(x)
+                status[active & ~ok] = NewtonStatus.SINGULAR
+                active &= ok
+            dx = -_lu_solve(LU, pivots, fx)
+            t = torch.ones(batch, dtype=x.dtype, device=dev)
+            x_new = x + dx
+            f_new = residual(x_new)
+            if method == "damped":
+                merit = (fx * fx).sum(-1)
+                for attempt in range(_MAX_BACKTRACKS + 1):
+                    f_ok = torch.isfinite(f_new).all(-1)
+                    accept = f_ok & ((f_new * f_new).sum(-1) <= (1 - 2 * _ARMIJO * t) * merit)
+                    retry = active & ~accept
+                    if not bool(retry.any()):
+                        break
+                    if attempt == _MAX_BACKTRACKS:
+                        status[retry] = NewtonStatus.LINE_SEARCH_FAILED
+                        active &= ~retry
+                        break
+                    t = torch.where(retry, t / 2, t)
+                    x_try = x + t[..., None] * dx
+                    f_try = residual(x_try)
+                    x_new = torch.where(retry[..., None], x_try, x_new)
+                    f_new = torch.where(retry[..., None], f_try, f_new)
+            upd = active[..., None]
+            x = torch.where(upd, x_new, x)
+            fx = torch.where(upd, f_new, fx)
+            iterations += active.to(torch.int64)
+            steps.append(torch.where(active, t, torch.zeros_like(t)))
+            new_norm = torch.where(active, fx.abs().amax(-1), norm)
+            bad = active & ~(torch.isfinite(fx).all(-1) & torch.isfinite(x).all(-1))
+            status[bad] = NewtonStatus.NON_FINITE
+            active &= ~bad
+            small_step = (t[..., None] * dx).abs().amax(-1) <= xtol * (1 + x.abs().amax(-1))
+            done = active & ((new_norm <= tol) | small_step)
+            status[done] = NewtonStatus.CONVERGED
+            active &= ~done
+            if divergence_ratio is not None:
+                grew = active & (new_norm > divergence_ratio * norm)
+                status[grew] = NewtonStatus.DIVERGED
+                active &= ~grew
+            norm = new_norm
+            norms.append(norm)
+            if return_history:
+                history.append(x.clone())
+
+    converged = status == NewtonStatus.CONVERGED
+    messages = _describe(status, norm)
+    if raise_on_failure and not bool(converged.all()):
+        raise ConvergenceError(
+            f"newton ({method}) failed for {int((~converged).sum())} of {converged.numel()} "
+            f"sample(s) after at most {max_iter} iterations (tol {tol:.1e}): "
+            + "; ".join(messages)
+            + ". Try a better initial guess, method='damped', a larger max_iter, or check "
+            "that the Jacobian is non-singular at the solution."
+        )
+    wanted = [a for a in (*args, *params) if isinstance(a, torch.Tensor) and a.requires_grad]
+    if wanted and torch.is_grad_enabled():
+        x = _ImplicitSolution.apply(phi, x, len(args), *args, *params)
+    return NewtonResult(
+        x=x,
+        converged=converged,
+        status=status,
+        iterations=iterations,
+        residual_norms=torch.stack(norms),
+        step_sizes=torch.stack(steps) if steps else x.new_zeros((0, *batch)),
+        n_phi_evals=counts["phi"],
+        n_jac_evals=counts["jac"],
+        n_factorizations=counts["lu"],
+        factorization=None if LU is None else (LU, pivots),
+        x_history=torch.stack(history) if return_history else None,
+        messages=messages,
+    )
+
+
+# ---------------------------------------------------------------------------- minimize
+def _loss_derivatives(fun, theta, args, method, jacobian=None):
+    """(loss, grad, H, J, r) at ``theta`` for exact Newton or Gauss-Newton (eq. 3.58-3.60)."""
+    batch = theta.shape[:-1]
+    if method == "gauss_newton":
+        if jacobian is None:
+            r, J = batch_jacobian(fun, theta, *args)
+        else:
+            r, J = (v.detach() for v in jacobian(theta, *args))
+            if J.shape != (*r.shape, theta.shape[-1]):
+                raise InputValidationError(
+                    f"minimize: jacobian must return r (*batch, m) and J (*batch, m, n), got "
+                    f"{tuple(r.shape)} and {tuple(J.shape)}."
+                )
+        if r.dim() < 1 or r.shape[:-1] != batch:
+            raise InputValidationError(
+                f"minimize: the residual must have shape (*batch, m) with batch {tuple(batch)}, "
+                f"got {tuple(r.shape)}."
+            )
+        loss = 0.5 * (r * r).sum(-1)
+        grad = (J.transpose(-1, -2) @ r.unsqueeze(-1)).squeeze(-1)
+        return loss, grad, J.transpose(-1, -2) @ J, J, r
+    store = {}
+
+    def gradient(z):
+        value = fun(z, *args)
+        if not isinstance(value, torch.Tensor) or value.shape != batch:
+            got = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+            raise InputValidationError(
+                f"minimize: the objective must return one loss per problem, shape "
+                f"{tuple(batch)}, got {got}."
+            )
+        store["loss"] = value.detach()
+        (g,) = torch.autograd.grad(value.sum(), z, create_graph=True)
+        return g
+
+    grad, H = batch_jacobian(gradient, theta)
+    return store["loss"], grad, 0.5 * (H + H.transpose(-1, -2)), None, None
+
+
+def _shifted_cholesky(H, alpha):
+    """Cholesky factor of ``H + shift I`` with the smallest per-member shift >= alpha found by
+    doubling that makes the matrix positive definite (Theorem 7 needs M > 0)."""
+    n = H.shape[-1]
+    eye = torch.eye(n, dtype=H.dtype, device=H.device)
+    scale = H.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp(min=1.0)
+    shift = torch.full(H.shape[:-2], float(alpha), dtype=H.dtype, device=H.device)
+    L, info = torch.linalg.cholesky_ex(H + shift[..., None, None] * eye)
+    for _ in range(60):
+        bad = (info != 0) | ~torch.isfinite(L).flatten(-2).all(-1)
+        if not bool(bad.any()):
+            break
+        shift = torch.where(bad, torch.clamp(2 * shift, min=1e-10 * scale), shift)
+        L_new, info_new = torch.linalg.cholesky_ex(H + shift[..., None, None] * eye)
+        L = torch.where(bad[..., None, None], L_new, L)
+        info = torch.where(bad, info_new, info)
+    ok = (info == 0) & torch.isfinite(L).flatten(-2).all(-1)
+    return torch.where(ok[..., None, None], L, eye.expand_as(L)), ok
+
+
+def minimize(
+    fun: Callable,
+    theta0,
+    *args,
+    method: str = "newton",
+    regularization: float = 0.0,
+    line_search: bool = True,
+    tol: float | None = None,
+    xtol: float = 1e-10,
+    max_iter: int = 100,
+    raise_on_failure: bool = False,
+    jacobian: Callable | None = None,
+) -> MinimizeResult:
+    """Batched unconstrained minimisation by Newton-type steps (notes §3.5).
+
+    Each iteration solves ``(H + alpha I) dtheta = -grad`` and takes ``theta + t dtheta`` with
+    ``t`` from Armijo backtracking on the loss (Theorem 7) when ``line_search`` is on.
+
+    Args:
+        fun: for ``method="newton"``, the objective ``fun(theta, *args) -> (*batch,)`` with the
+            exact Hessian from autograd (eq. 3.50-3.51); for ``method="gauss_newton"``, the
+            residual ``fun(theta, *args) -> (*batch, m)`` of ``0.5 ||r||^2`` with the
+            Gauss-Newton Hessian ``J^T J`` (eq. 3.60). Problems in the batch must be
+            independent.
+        theta0: (*batch, n) initial parameters (detached).
+        *args: extra arguments of ``fun`` (not differentiated).
+        method: "newton" or "gauss_newton".
+        regularization: ``alpha >= 0`` of eq. 3.61 (Levenberg-Marquardt-style). Whenever
+            ``H + alpha I`` is not positive definite the shift is doubled per problem until it
+            is, so every step is a descent direction.
+        line_search: Armijo backtracking (else full steps).
+        tol: converged when ``||grad||_inf <= tol`` (eq. 3.49); default ``max(1e-8, 1000 eps)``.
+        xtol: also converged when an accepted step satisfies
+            ``||t dtheta||_inf <= xtol (1 + ||theta||_inf)``, or when the predicted decrease is
+            at the rounding level of the loss.
+        max_iter: iteration budget.
+        raise_on_failure: raise :class:`ConvergenceError` naming the failed problems.
+        jacobian: Gauss-Newton only: ``jacobian(theta, *args) -> (r, J)`` with ``J`` of shape
+            (*batch, m, n), replacing the reverse-mode autograd Jacobian; e.g. forward
+            sensitivities of a simulation (:func:`integrators.sensitivities`), which cost
+            ``n`` directions instead of ``m`` reverse passes when ``m >> n``.
+
+    Returns:
+        :class:`MinimizeResult` with the estimate, the loss history, the gradient, the Hessian
+        (``J^T J`` for Gauss-Newton) and, for Gauss-Newton, ``J`` and the residual at the
+        solution (e.g. for the covariance ``sigma^2 (J^T J)^{-1}``).
+    """
+    if method not in ("newton", "gauss_newton"):
+        raise InputValidationError(
+            f"minimize: unknown method {method!r}; use 'newton' or 'gauss_newton'."
+        )
+    if regularization < 0:
+        raise InputValidationError(f"minimize: regularization must be >= 0, got {regularization}.")
+    if jacobian is not None and method != "gauss_newton":
+        raise InputValidationError("minimize: jacobian= is only used by method='gauss_newton'.")
+    theta = _validate_x0(theta0)
+    frozen = _detach(args)
+    tol = max(1e-8, 1e3 * torch.finfo(theta.dtype).eps) if tol is None else float(tol)
+    batch, dev = theta.shape[:-1], theta.device
+    eps = torch.finfo(theta.dtype).eps
+    n_evals = 1
+    loss, grad, H, J, r = _loss_derivatives(fun, theta, frozen, method, jacobian)
+    with torch.no_grad():
+        status = torch.full(batch, NewtonStatus.MAX_ITER, dtype=torch.int8, device=dev)
+        iterations = torch.zeros(batch, dtype=torch.int64, device=dev)
+        active = torch.ones(batch, dtype=torch.bool, device=dev)
+        history = [loss]
+        for _ in range(max_iter + 1):
+            nonfinite = active & ~(torch.isfinite(loss) & torch.isfinite(grad).all(-1))
+            status[nonfinite] = NewtonStatus.NON_FINITE
+            done = active & ~nonfinite & (grad.abs().amax(-1) <= tol)
+            status[done] = NewtonStatus.CONVERGED
+            active &= ~(done | nonfinite)
+            if not bool(active.any()) or int(iterations.max()) >= max_iter:
+                break
+            Lc, ok = _shifted_cholesky(torch.nan_to_num(H), regularization)
+            status[active & ~ok] = NewtonStatus.SINGULAR
+            active &= ok
+            step = -torch.cholesky_solve(grad.unsqueeze(-1), Lc).squeeze(-1)
+            slope = (grad * step).sum(-1)  # < 0: descent direction (Theorem 7)
+            t = torch.ones(batch, dtype=theta.dtype, device=dev)
+            trial_loss = _loss_only(fun, theta + step, frozen, method)
+            n_evals += 1
+            if line_search:
+                for attempt in range(_MAX_BACKTRACKS + 1):
+                    accept = torch.isfinite(trial_loss) & (trial_loss <= loss + _ARMIJO * t * slope)
+                    retry = active & ~accept
+                    if not bool(retry.any()):
+                        break
+                    if attempt == _MAX_BACKTRACKS:
+                        # no decrease found: converged if the predicted decrease is at the
+                        # rounding level of the loss, else a genuine failure
+                        flat = retry & (-slope <= 10 * eps * loss.abs().clamp(min=eps))
+                        status[flat] = NewtonStatus.CONVERGED
+                        status[retry & ~flat] = NewtonStatus.LINE_SEARCH_FAILED
+                        active &= ~retry
+                        break
+                    t = torch.where(retry, t / 2, t)
+                    trial_loss = torch.where(
+                        retry,
+                        _loss_only(fun, theta + t[..., None] * step, frozen, method),
+                        trial_loss,
+                    )
+                    n_evals += 1
+            move = active[..., None]
+            small = (t[..., None] * step).abs().amax(-1) <= xtol * (1 + theta.abs().amax(-1))
+            theta = torch.where(move, theta + t[..., None] * step, theta)
+            iterations += active.to(torch.int64)
+            new = _loss_derivatives(fun, theta, frozen, method, jacobian)
+            n_evals += 1
+            keep = ~active
+            loss, grad, H = (
+                torch.where(keep, loss, new[0]),
+                torch.where(keep[..., None], grad, new[1]),
+                torch.where(keep[..., None, None], H, new[2]),
+            )
+            if method == "gauss_newton":
+                J = torch.where(keep[..., None, None], J, new[3])
+                r = torch.where(keep[..., None], r, new[4])
+            history.append(loss)
+            stalled = active & small & torch.isfinite(loss)
+            status[stalled] = NewtonStatus.CONVERGED
+            active &= ~stalled
+    converged = status == NewtonStatus.CONVERGED
+    messages = _describe(status, grad.abs().amax(-1), label="gradient norm")
+    if raise_on_failure and not bool(converged.all()):
+        raise ConvergenceError(
+            f"minimize ({method}) failed for {int((~converged).sum())} of {converged.numel()} "
+            f"problem(s): " + "; ".join(messages) + ". Try a better initial guess, a larger "
+            "max_iter or regularization, or check that the problem is identifiable."
+        )
+    return MinimizeResult(
+        theta=theta,
+        converged=converged,
+        status=status,
+        iterations=iterations,
+        loss=loss,
+        loss_history=torch.stack(history),
+        grad=grad,
+        hessian=H,
+        J=J,
+        residual=r,
+        n_fun_evals=n_evals,
+        messages=messages,
+    )
+
+
+def _loss_only(fun, theta, args, method):
+    value = fun(theta, *args)
+    return 0.5 * (value * value).sum(-1) if method == "gauss_newton" else value

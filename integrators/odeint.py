@@ -1,0 +1,295 @@
+"""``odeint``: validate, bind the input, dispatch to a solver (contract C4).
+
+Dispatch:
+
+* an explicit tableau without ``b_err`` (``"euler"`` ... ``"rk38"``), or any explicit tableau
+  with ``adaptive=False``: fixed-step explicit RK (:func:`integrators.explicit.solve_explicit`);
+* ``"dopri5"`` or any explicit tableau with ``b_err``: adaptive step control
+  (``integrators.adaptive.solve_adaptive``, contract C2);
+* ``"gauss_legendre"``, ``"radau_iia"`` (with ``stages=``), ``"implicit_euler"``,
+  ``"implicit_midpoint"`` or an implicit tableau: ``integrators.implicit.solve_implicit_ode``
+  (contract C3);
+* ``"auto"``: ``integrators.auto.choose_method`` picks one of the above; the choice is recorded
+  in ``sol.stats.extra["auto"]``.
+
+The adaptive, implicit and automatic solvers are imported only when used.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .errors import InputValidationError, TableauError
+from .explicit import solve_explicit
+from .inputs import bind_rhs, check_finite
+from .solution import Solution
+from .tableau import TABLEAU_NAMES, ButcherTableau, tableau
+
+COLLOCATION_METHODS = ("gauss_legendre", "radau_iia")
+METHOD_NAMES = TABLEAU_NAMES + COLLOCATION_METHODS + ("auto",)
+
+
+def odeint(
+    f,
+    x0,
+    t,
+    *,
+    method="rk4",
+    u=None,
+    interpolation="zoh",
+    substeps=1,
+    rtol=1e-6,
+    atol=1e-9,
+    controller=None,
+    dt0=None,
+    max_steps=100_000,
+    stages=None,
+    compile="auto",
+    **kwargs,
+) -> Solution:
+    """Simulate ``x' = f(t, x[, u])`` from ``x0`` and report the states at the times ``t``.
+
+    Args:
+        f: ``f(t, x) -> (*batch, nx)`` when ``u is None``, else ``f(t, x, u)``. ``t`` is a
+            0-dim tensor (fixed-step solvers) or a (*batch, 1) tensor (adaptive solvers).
+            An ``nn.Module`` works directly; its parameters receive gradients. If ``f``
+            broadcasts ``x0`` to a larger batch (e.g. a parameter of shape (B, 1)), ``x0``
+            is expanded to that batch.
+        x0: (*batch, nx) initial states; array-likes become float64 tensors.
+        t: (T,) strictly increasing output times, T >= 2 (converted to x0's dtype/device).
+        method: a name from :data:`METHOD_NAMES` or a :class:`ButcherTableau`.
+        u: None, a callable ``u(t)``, or samples (T, nu) / (*batch, T, nu) on ``t``
+            (see :func:`integrators.inputs.bind_rhs`).
+        interpolation: ``"zoh"`` (notes eq. 8.34) or ``"linear"`` for sampled ``u``.
+        substeps: fixed-step methods: integer number of steps per output interval.
+        rtol, atol: tolerances of adaptive methods.
+        controller, dt0, max_steps: adaptive step control (contract C2).
+        stages: number of stages of ``"gauss_legendre"`` / ``"radau_iia"``.
+        compile: fixed-step explicit methods: ``True``, ``False`` or ``"auto"`` (see
+            :func:`integrators.explicit.solve_explicit`).
+        **kwargs: ``adaptive=False`` runs an embedded pair (e.g. dopri5) at fixed step;
+            other keywords go to the implicit solver (Newton options).
+
+    Returns:
+        :class:`Solution` with ``x`` of shape (*batch, T, nx), per-sample status, stats.
+
+    Raises:
+        InputValidationError: wrong shapes of ``x0``, ``t``, ``u`` or of ``f``'s output;
+            non-finite ``x0``, ``t``, ``u`` or ``f(t0, x0)``; ``t`` not strictly increasing;
+            bad ``substeps``/tolerances; unexpected keywords.
+        TableauError: unknown method name; ``adaptive=True`` without an embedded pair.
+    """
+    x0 = _validate_x0(x0)
+    t = _validate_t(t, x0)
+    _validate_options(substeps, rtol, atol, max_steps)
+    rhs = bind_rhs(f, u, t, interpolation=interpolation)
+    if rhs.samples is not None:
+        try:
+            torch.broadcast_shapes(rhs.samples.shape[:-2], x0.shape[:-1])
+        except RuntimeError as exc:
+            raise InputValidationError(
+                f"the batch shape {tuple(rhs.samples.shape[:-2])} of the sampled input u does not "
+                f"broadcast with the batch shape {tuple(x0.shape[:-1])} of x0."
+            ) from exc
+    x0 = _probe_rhs(rhs, x0, t, u is not None)
+    adaptive = kwargs.pop("adaptive", None)
+    options = dict(
+        substeps=substeps,
+        rtol=rtol,
+        atol=atol,
+        controller=controller,
+        dt0=dt0,
+        max_steps=max_steps,
+        stages=stages,
+        compile=compile,
+        adaptive=adaptive,
+    )
+    if isinstance(method, str) and method == "auto":
+        from .auto import choose_method
+
+        name, info = choose_method(rhs, x0, t)
+        sol = _dispatch(rhs, x0, t, name, options, kwargs)
+        sol.stats.extra["auto"] = {"method": name, **dict(info)}
+        return sol
+    return _dispatch(rhs, x0, t, method, options, kwargs)
+
+
+def _dispatch(rhs, x0, t, method, options, kwargs) -> Solution:
+    """Run the solver that ``method`` names (see the module docstring)."""
+    if isinstance(method, str) and method in COLLOCATION_METHODS:
+        return _implicit(rhs, x0, t, method, options, kwargs)
+    tab = _resolve_tableau(method)
+    if not tab.is_explicit:
+        return _implicit(rhs, x0, t, tab, options, kwargs)
+    adaptive = options["adaptive"]
+    if adaptive is None:
+        adaptive = tab.b_err is not None
+    if kwargs:
+        raise InputValidationError(
+            f"unexpected keyword argument(s) {sorted(kwargs)} for the explicit method "
+            f"{tab.name!r}; see the odeint docstring for the accepted options."
+        )
+    if adaptive:
+        if tab.b_err is None:
+            raise TableauError(
+                f"tableau {tab.name!r} has no embedded weights b_err, so it cannot control its "
+                "step size; use 'dopri5' or pass adaptive=False."
+            )
+        from .adaptive import solve_adaptive
+
+        return solve_adaptive(
+            rhs,
+            x0,
+            t,
+            tab,
+            rtol=options["rtol"],
+            atol=options["atol"],
+            controller=options["controller"],
+            dt0=options["dt0"],
+            max_steps=options["max_steps"],
+        )
+    return solve_explicit(rhs, x0, t, tab, substeps=options["substeps"], compile=options["compile"])
+
+
+def _implicit(rhs, x0, t, method, options, kwargs) -> Solution:
+    from .implicit import solve_implicit_ode
+
+    if options["dt0"] is not None:
+        kwargs = {"dt0": options["dt0"], **kwargs}
+
+    return solve_implicit_ode(
+        rhs,
+        x0,
+        t,
+        method,
+        stages=options["stages"],
+        adaptive=options["adaptive"],
+        rtol=options["rtol"],
+        atol=options["atol"],
+        substeps=options["substeps"],
+        max_steps=options["max_steps"],
+        **kwargs,
+    )
+
+
+def _resolve_tableau(method) -> ButcherTableau:
+    if isinstance(method, ButcherTableau):
+        return method
+    if isinstance(method, str) and method in TABLEAU_NAMES:
+        return tableau(method)
+    raise TableauError(
+        f"unknown method {method!r}; use a ButcherTableau or one of {', '.join(METHOD_NAMES)}."
+    )
+
+
+def _validate_x0(x0) -> torch.Tensor:
+    if not isinstance(x0, torch.Tensor):
+        try:
+            x0 = torch.as_tensor(x0, dtype=torch.float64)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise InputValidationError(f"x0 is not numeric: {exc}") from exc
+    if x0.is_complex() or x0.dtype == torch.bool:
+        raise InputValidationError(f"x0 must be real floating point, got dtype {x0.dtype}.")
+    if not x0.is_floating_point():
+        x0 = x0.to(torch.float64)
+    if x0.dim() == 0 or x0.shape[-1] == 0:
+        raise InputValidationError(
+            f"x0 must have shape (*batch, nx) with nx >= 1, got shape {tuple(x0.shape)}; "
+            "for a scalar ODE use x0 of shape (1,) or (batch, 1)."
+        )
+    bad = ~torch.isfinite(x0.detach())
+    if bool(bad.any()):
+        first = tuple(torch.nonzero(bad)[0].tolist())
+        sample = first[:-1] if len(first) > 1 else "(unbatched)"
+        raise InputValidationError(
+            f"x0 contains a non-finite value at sample index {sample}, state {first[-1]}."
+        )
+    return x0
+
+
+def _validate_t(t, x0) -> torch.Tensor:
+    if isinstance(t, torch.Tensor):
+        t = t.to(dtype=x0.dtype, device=x0.device)
+    else:
+        try:
+            t = torch.as_tensor(t, dtype=x0.dtype, device=x0.device)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise InputValidationError(f"t is not numeric: {exc}") from exc
+    if t.dim() != 1 or t.shape[0] < 2:
+        raise InputValidationError(
+            f"t must be a 1-D tensor of T >= 2 output times, got shape {tuple(t.shape)}."
+        )
+    check_finite(t, "t")
+    steps = (t[1:] - t[:-1]).detach()
+    if bool((steps <= 0).any()):
+        k = int(torch.nonzero(steps <= 0)[0])
+        raise InputValidationError(
+            f"t must be strictly increasing, but t[{k + 1}] = {float(t[k + 1])} <= t[{k}] = "
+            f"{float(t[k])}. To integrate backwards in time, substitute s = -t "
+            "(x'(s) = -f(-s, x))."
+        )
+    return t
+
+
+def _validate_options(substeps, rtol, atol, max_steps) -> None:
+    if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
+        raise InputValidationError(f"substeps must be an integer >= 1, got {substeps!r}.")
+    for name, value in (("rtol", rtol), ("atol", atol)):
+        try:
+            if isinstance(value, (int, float)):
+                ok = value >= 0  # false for nan
+            else:
+                ok = bool(torch.all(torch.as_tensor(value) >= 0))
+        except (TypeError, ValueError, RuntimeError):
+            ok = False
+        if not ok or isinstance(value, bool):
+            raise InputValidationError(
+                f"{name} must be a non-negative number or tensor, got {value!r}."
+            )
+    if isinstance(rtol, (int, float)) and isinstance(atol, (int, float)):
+        positive = rtol + atol > 0
+    else:
+        positive = bool(torch.any(torch.as_tensor(rtol) + torch.as_tensor(atol) > 0))
+    if not positive:
+        raise InputValidationError("rtol and atol cannot both be zero.")
+    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
+        raise InputValidationError(f"max_steps must be an integer >= 1, got {max_steps!r}.")
+
+
+def _probe_rhs(rhs, x0, t, with_input) -> torch.Tensor:
+    """Evaluate f once at (t0, x0) to check its output; returns x0 (possibly expanded)."""
+    signature = "f(t, x, u)" if with_input else "f(t, x)"
+    try:
+        with torch.no_grad():
+            dx = rhs(t[0], x0)
+    except TypeError as exc:
+        raise InputValidationError(
+            f"calling the model as {signature} failed: {exc}. The model is called with an "
+            "input u only when odeint receives u."
+        ) from exc
+    if not isinstance(dx, torch.Tensor):
+        raise InputValidationError(f"{signature} must return a tensor, got {type(dx).__name__}.")
+    if dx.shape != x0.shape:
+        try:
+            grown = torch.broadcast_shapes(dx.shape, x0.shape) == dx.shape
+        except RuntimeError:
+            grown = False
+        if not grown or dx.shape[-1] != x0.shape[-1]:
+            raise InputValidationError(
+                f"{signature} returned shape {tuple(dx.shape)} for x0 of shape "
+                f"{tuple(x0.shape)}; it must return the state derivative, shape (*batch, nx)."
+            )
+        x0 = x0.expand(dx.shape).clone()
+    if dx.dtype != x0.dtype:
+        raise InputValidationError(
+            f"{signature} returned dtype {dx.dtype} for x0 of dtype {x0.dtype}; create the "
+            "model's tensors (parameters) in the state's dtype."
+        )
+    bad = ~torch.isfinite(dx)
+    if bool(bad.any()):
+        first = tuple(torch.nonzero(bad)[0].tolist())
+        raise InputValidationError(
+            f"{signature} is non-finite at the initial time t = {float(t[0])} for sample "
+            f"{first[:-1]}, state {first[-1]}; check the model and x0."
+        )
+    return x0

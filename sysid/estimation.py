@@ -1,0 +1,973 @@
+"""Parameter estimation for the polynomial model structures (notes §4.2–4.6).
+
+:func:`fit` is the single entry point (model → data → estimate → :class:`FitResult`):
+
+* ``method="lls"`` (FIR, ARX): the prediction-error method is a linear least-squares problem,
+  ``theta = argmin 1/2 ||M theta - y||^2`` with the regressor ``M`` of eq. 4.111 (eq. 4.112),
+  solved by :func:`sysid.lls.lls` with covariance ``sigma^2 (M'M)^{-1}`` (eq. 4.101 form).
+* ``method="iv"`` (ARX structure): instrumental variables. The instruments are the regressors
+  built from the noise-free simulated output ``x = B/A u`` of a previous estimate instead of
+  the measured ``y``, so they are uncorrelated with coloured equation errors; the estimate is
+  consistent where least squares is biased (e.g. white output noise).
+* ``method="gauss_newton"``: batched Levenberg–Marquardt (Gauss–Newton with the
+  regularisation ``alpha I`` of eq. 3.61 and an Armijo line search) on the prediction errors
+  (eq. 4.130–4.132; for OE these are the simulation errors, eq. 4.133). Jacobians by
+  forward-mode autograd, all parameter directions in one pass; per-data-set damping,
+  step acceptance and convergence. Steps that make the predictor unstable are rejected.
+  Asymptotic covariance ``sigma^2 (J'J)^{-1}``.
+* ``method="mle"``: maximum likelihood for a noise model: ``loss="gaussian"`` (weighted least
+  squares, eq. 4.64; known per-sample variances via ``weights = 1/sigma_k^2``), ``"fair"``
+  (eq. 4.73) or ``"laplace"`` (least absolute deviations). Linear-in-theta models use the
+  regression form, the others the prediction errors; the same Levenberg–Marquardt engine
+  minimises the sum of the per-sample losses with curvature weights (see ``_Loss``).
+
+On the fair loss (checked): the density (4.71) ``p(x) ∝ exp(-x^2 / (2 sigma^2 (1 + alpha|x|)))``
+gives, by ``-log``, the criterion (4.73) ``sum r_k^2 / (1 + alpha |r_k|) / (2 sigma^2)``
+(correct). Eq. (4.74) then drops a square: with ``||x||_Fair`` defined as the square root in
+(4.75), the criterion is ``||r||_Fair^2 / (2 sigma^2)`` (typo in the notes). The minimiser does
+not depend on ``sigma`` but does on ``alpha`` (units 1/output). ``rho(r) = r^2 / (1 + alpha|r|)``
+is convex (``rho'' = 2 / (1 + alpha|r|)^3 > 0``) and grows like ``|r| / alpha``: Gaussian near 0,
+Laplace-like tails, so a Newton iteration with line search finds the unique minimiser of the
+linear-in-theta problem. (It is not the "Fair" function of robust statistics,
+``c^2 (|r|/c - log(1 + |r|/c))``, although both are quadratic near 0 and linear in the tails.)
+
+On the Laplace loss: ``sum |r_k|`` is not differentiable where a residual is zero, which is
+exactly where the optimum of a least-absolute-deviations problem sits (it interpolates ``p``
+samples). We minimise the smoothed ``sum sqrt(r_k^2 + eps^2)`` by iteratively reweighted
+least squares: the weights ``1/sqrt(r_k^2 + eps^2)`` give the majorising quadratic of the
+smoothed loss at the current point, so each full step decreases it (a majorise–minimise
+iteration, monotone and globally convergent for the convex linear-in-theta problem), and its
+minimiser is within ``N eps`` in loss of the exact LAD optimum. ``eps`` is ``1e-4`` times a
+robust scale of the initial residuals.
+
+For a linear-in-theta model with uniform noise on ``[-a, a]`` (eq. 4.43–4.45) the maximum-
+likelihood estimates form a polytope (eq. 4.58); :func:`uniform_noise_mle_set` returns it with
+per-parameter bounds from linear programs.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.optimize
+import scipy.stats
+import torch
+import torch.autograd.forward_ad as fwAD
+
+from integrators.errors import (
+    InputValidationError,
+    PoorExcitationWarning,
+    SingularMatrixError,
+)
+
+from .data import IOData
+from .lls import lls
+from .models import OE, PolynomialModel
+
+__all__ = [
+    "FitResult",
+    "UniformNoiseSet",
+    "fit",
+    "uniform_noise_mle_set",
+]
+
+METHODS = ("lls", "gauss_newton", "mle", "iv")
+LOSSES = ("gaussian", "fair", "laplace")
+
+
+# ---------------------------------------------------------------------------- losses
+class _Loss:
+    """Per-sample loss ``rho(r)`` (``~ r^2 / 2`` near 0), ``psi = rho'`` and curvature weights.
+
+    ``curvature(r)`` are the weights ``c_k`` of the quadratic model
+    ``sum c_k (r_k + J_k d)^2 / 2`` used for the step: ``1`` (Gauss–Newton) for the Gaussian
+    loss, ``rho''`` (Newton for linear models) for the fair loss, and the IRLS/majorising
+    weights ``psi(r)/r`` for the smoothed Laplace loss.
+    """
+
+    def __init__(
+        self, name: str, alpha: torch.Tensor | None = None, eps: torch.Tensor | None = None
+    ):
+        self.name, self.alpha, self.eps = name, alpha, eps
+
+    def rho(self, r):
+        if self.name == "gaussian":
+            return 0.5 * r * r
+        if self.name == "fair":
+            return 0.5 * r * r / (1 + self.alpha * r.abs())
+        return torch.sqrt(r * r + self.eps**2) - self.eps
+
+    def psi(self, r):
+        if self.name == "gaussian":
+            return r
+        if self.name == "fair":
+            s = self.alpha * r.abs()
+            return 0.5 * r * (2 + s) / (1 + s) ** 2
+        return r / torch.sqrt(r * r + self.eps**2)
+
+    def curvature(self, r):
+        if self.name == "gaussian":
+            return torch.ones_like(r)
+        if self.name == "fair":
+            return 1.0 / (1 + self.alpha * r.abs()) ** 3
+        return 1.0 / torch.sqrt(r * r + self.eps**2)
+
+
+def _robust_scale(r: torch.Tensor) -> torch.Tensor:
+    """``1.4826 * median(|r - median r|)`` along the last dim (the std for Gaussian data)."""
+    med = r.median(dim=-1, keepdim=True).values
+    return 1.4826 * (r - med).abs().median(dim=-1).values
+
+
+# ---------------------------------------------------------------------------- result
+@dataclass
+class FitResult:
+    """Estimate of :func:`fit` for a (batch of) data set(s).
+
+    Attributes:
+        theta: estimate, ``(*batch, p)`` (ordered as ``parameter_names``).
+        covariance: asymptotic covariance of ``theta``, ``(*batch, p, p)``.
+        standard_errors: ``sqrt(diag(covariance))``, ``(*batch, p)``.
+        sigma2: noise variance estimate ``sum r^2 / (N - p)``, ``(*batch,)``.
+        loss_history: criterion value per iteration, ``(n_iter + 1, *batch)`` (the value
+            ``sum rho(r_k)``, e.g. ``1/2 ||r||^2`` for the Gaussian loss).
+        iterations: iterations used per data set, ``(*batch,)`` int64.
+        converged: per data set, ``(*batch,)`` bool.
+        method, loss: as requested.
+        parameter_names: names of the entries of ``theta``.
+        n_samples: number of residuals in the criterion.
+        residuals: final residuals (prediction errors or regression residuals),
+            ``(*batch, n_samples)``.
+        model: the fitted model (the input model updated in place, or a batched copy when
+            the model had no batch dimension and the data had one).
+        info: extra per-method statistics (condition numbers, damping, ...).
+    """
+
+    theta: torch.Tensor
+    covariance: torch.Tensor
+    standard_errors: torch.Tensor
+    sigma2: torch.Tensor
+    loss_history: torch.Tensor
+    iterations: torch.Tensor
+    converged: torch.Tensor
+    method: str
+    loss: str
+    parameter_names: list[str]
+    n_samples: int
+    residuals: torch.Tensor
+    model: PolynomialModel | None = None
+    info: dict = field(default_factory=dict)
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        return self.theta.shape[:-1]
+
+    def summary(self, index: int | tuple[int, ...] | None = None, level: float = 0.95) -> str:
+        """A statsmodels-like text table for one data set of the batch.
+
+        Args:
+            index: batch index (default: the first data set).
+            level: confidence level of the intervals (normal approximation).
+        """
+        if index is None:
+            index = (0,) * len(self.batch_shape)
+        index = index if isinstance(index, tuple) else (index,)
+        th = self.theta[index].detach().cpu().double()
+        se = self.standard_errors[index].detach().cpu().double()
+        z = th / se
+        p = 2 * scipy.stats.norm.sf(np.abs(z.numpy()))
+        q = scipy.stats.norm.ppf(0.5 + level / 2)
+        lo, hi = th - q * se, th + q * se
+        title = f"{type(self.model).__name__ if self.model is not None else 'Model'} fit"
+        width = 78
+        lines = [
+            title.center(width),
+            "=" * width,
+            f"{'Method:':<16}{self.method:<23}{'Loss:':<16}{self.loss}",
+            f"{'Samples:':<16}{self.n_samples:<23}{'Parameters:':<16}{len(self.parameter_names)}",
+            f"{'Criterion:':<16}{float(self.loss_history[-1][index]):<23.6g}"
+            f"{'sigma^2:':<16}{float(self.sigma2[index]):.6g}",
+            f"{'Iterations:':<16}{int(self.iterations[index]):<23}"
+            f"{'Converged:':<16}{bool(self.converged[index])}",
+            f"{'Batch index:':<16}{str(index):<23}{'Batch shape:':<16}{tuple(self.batch_shape)}",
+            "-" * width,
+            f"{'':<10}{'coef':>11}{'std err':>11}{'z':>9}{'P>|z|':>9}"
+            f"{f'[{(1 - level) / 2:.3f}':>13}{f'{(1 + level) / 2:.3f}]':>13}",
+            "-" * width,
+        ]
+        for j, name in enumerate(self.parameter_names):
+            lines.append(
+                f"{name:<10}{th[j].item():>11.4g}{se[j].item():>11.4g}{z[j].item():>9.3f}"
+                f"{p[j]:>9.3f}{lo[j].item():>13.4g}{hi[j].item():>13.4g}"
+            )
+        lines.append("=" * width)
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        return (
+            f"FitResult(method={self.method!r}, loss={self.loss!r}, batch_shape="
+            f"{tuple(self.batch_shape)}, p={len(self.parameter_names)}, converged="
+            f"{int(self.converged.sum())}/{self.converged.numel()})"
+        )
+
+
+# ---------------------------------------------------------------------------- helpers
+def _batched_model(model: PolynomialModel, batch_shape: torch.Size) -> PolynomialModel:
+    """``model`` itself when its batch matches the data, else a batched copy of an unbatched one."""
+    if model.batch_shape == batch_shape:
+        return model
+    if model.batch_shape != torch.Size([]):
+        raise InputValidationError(
+            f"the model's batch shape {tuple(model.batch_shape)} does not match the data's "
+            f"{tuple(batch_shape)}; build the model with batch_shape={tuple(batch_shape)} or "
+            "without a batch shape."
+        )
+    new = _copy_model(model, batch_shape)
+    new.set_parameter_vector(model.parameter_vector().detach())
+    return new
+
+
+def _groups(model: PolynomialModel) -> dict[str, list[list[int]]]:
+    """Indices into ``theta`` of each polynomial, by letter (one list per input for b, f)."""
+    out: dict[str, list[list[int]]] = {}
+    for j, name in enumerate(model.parameter_names()):
+        letter = name[0]
+        suffix = name.split("_")[1] if "_" in name else ""
+        key = letter + suffix
+        out.setdefault(key, []).append(j)
+    grouped: dict[str, list[list[int]]] = {k: [] for k in "abcdf"}
+    for key, idx in out.items():
+        grouped[key[0]].append(idx)
+    return grouped
+
+
+def _max_root_modulus(theta: torch.Tensor, blocks: list[list[int]]) -> torch.Tensor:
+    """Largest root modulus of the monic polynomials ``1 + t_1 z^-1 + ...`` (``(*batch,)``)."""
+    out = torch.zeros(theta.shape[:-1], dtype=theta.dtype, device=theta.device)
+    for idx in blocks:  # loop over polynomials (a handful), never over samples
+        n = len(idx)
+        tail = theta[..., idx]
+        comp = torch.zeros(*theta.shape[:-1], n, n, dtype=theta.dtype, device=theta.device)
+        comp[..., 0, :] = -tail
+        if n > 1:
+            k = torch.arange(n - 1, device=theta.device)
+            comp[..., k + 1, k] = 1.0
+        out = torch.maximum(out, torch.linalg.eigvals(comp).abs().amax(dim=-1))
+    return out
+
+
+def _jacobian(residual_fn, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Residuals ``(*batch, M)`` and Jacobian ``(*batch, M, p)`` by forward-mode autograd.
+
+    The ``p`` tangent directions are stacked as a leading batch dimension, so one dual pass
+    through the (batched) model gives every column; batch members never mix.
+    """
+    p = theta.shape[-1]
+    eye = torch.eye(p, dtype=theta.dtype, device=theta.device)
+    tangent = eye.reshape(p, *([1] * (theta.dim() - 1)), p).expand(p, *theta.shape).clone()
+    primal = theta.detach().unsqueeze(0).expand(p, *theta.shape).clone()
+    with fwAD.dual_level():
+        out = residual_fn(fwAD.make_dual(primal, tangent))
+        unpacked = fwAD.unpack_dual(out)
+        r, jt = unpacked.primal, unpacked.tangent
+    if jt is None:
+        jt = torch.zeros_like(r)
+    return r[0].detach(), jt.movedim(0, -1).detach()
+
+
+@dataclass
+class _LMResult:
+    theta: torch.Tensor
+    history: torch.Tensor
+    iterations: torch.Tensor
+    converged: torch.Tensor
+    residuals: torch.Tensor
+    jacobian: torch.Tensor
+    damping: torch.Tensor
+
+
+def _levenberg_marquardt(
+    residual_fn,
+    theta0: torch.Tensor,
+    loss: _Loss,
+    *,
+    admissible=None,
+    jacobian_fn=None,
+    max_iter: int = 100,
+    xtol: float = 1e-8,
+    ftol: float = 1e-10,
+    gtol: float = 1e-12,
+    max_backtracks: int = 12,
+) -> _LMResult:
+    """Batched Levenberg–Marquardt / Gauss–Newton with Armijo backtracking.
+
+    Minimises ``sum_k rho(r_k(theta))`` per batch member. Step:
+    ``(J' C J + alpha I) d = -J' psi(r)`` with the curvature weights ``C = loss.curvature(r)``
+    and ``alpha = lam * trace(J'CJ) / p`` (eq. 3.61, scaled to the curvature); then
+    ``t = 1, 1/2, ...`` until ``f(theta + t d) <= f(theta) + 1e-4 t g'd`` and the candidate is
+    admissible (e.g. a stable predictor). ``lam`` shrinks after full steps and grows after
+    shortened or failed ones, per batch member; converged members are frozen.
+
+    Args:
+        residual_fn: ``theta (*batch, p) -> r (*batch, M)``; must accept dual tensors (forward
+            AD) unless ``jacobian_fn`` is given.
+        theta0: start, ``(*batch, p)``.
+        admissible: optional ``theta -> (*batch,) bool``; inadmissible candidates are rejected.
+        jacobian_fn: optional ``theta -> (r, J)``.
+    """
+    theta = theta0.detach().clone()
+    batch = theta.shape[:-1]
+    p = theta.shape[-1]
+    dtype, device = theta.dtype, theta.device
+    eps = torch.finfo(dtype).eps
+    xtol, ftol = max(xtol, 10 * eps), max(ftol, 10 * eps)  # reachable in float32 too
+    lam = torch.full(batch, 1e-6, dtype=dtype, device=device)
+    converged = torch.zeros(batch, dtype=torch.bool, device=device)
+    iterations = torch.zeros(batch, dtype=torch.int64, device=device)
+    eye = torch.eye(p, dtype=dtype, device=device)
+
+    def evaluate(th):
+        with torch.no_grad():
+            r = residual_fn(th)
+            f = loss.rho(r).sum(-1)
+        f = torch.where(torch.isfinite(f), f, torch.full_like(f, math.inf))
+        if admissible is not None:
+            f = torch.where(admissible(th), f, torch.full_like(f, math.inf))
+        return f
+
+    def linearise(th):
+        return jacobian_fn(th) if jacobian_fn is not None else _jacobian(residual_fn, th)
+
+    failed = torch.zeros(batch, dtype=torch.bool, device=device)
+    r, J = linearise(theta)
+    f = loss.rho(r).sum(-1)
+    if bool((~torch.isfinite(f)).any()):
+        raise InputValidationError(
+            "the criterion is not finite at the initial parameters (unstable initial model or "
+            "non-finite data); start from a stable model."
+        )
+    history = [f.clone()]
+    for _ in range(max_iter):
+        active = ~(converged | failed)
+        if not bool(active.any()):
+            break
+        c = loss.curvature(r)
+        H = J.transpose(-1, -2) @ (J * c.unsqueeze(-1))
+        g = (J.transpose(-1, -2) @ loss.psi(r).unsqueeze(-1)).squeeze(-1)
+        scale = (torch.diagonal(H, dim1=-2, dim2=-1).sum(-1) / p).clamp_min(torch.finfo(dtype).tiny)
+        small_grad = g.abs().amax(-1) <= gtol * (1 + f) * scale.sqrt()
+        L, info = torch.linalg.cholesky_ex(H + (lam * scale)[..., None, None] * eye)
+        for _ in range(30):  # numerically indefinite: damp those members more
+            if not bool((info != 0).any()):
+                break
+            lam = torch.where(info != 0, lam * 10, lam)
+            L, info = torch.linalg.cholesky_ex(H + (lam * scale)[..., None, None] * eye)
+        step = -torch.cholesky_solve(g.unsqueeze(-1), L).squeeze(-1)
+        slope = (g * step).sum(-1)
+        t = torch.ones(batch, dtype=dtype, device=device)
+        accepted = torch.zeros(batch, dtype=torch.bool, device=device)
+        f_new = f.clone()
+        pending = active & ~small_grad
+        for _ls in range(max_backtracks):
+            if not bool(pending.any()):
+                break
+            fc = evaluate(theta + t.unsqueeze(-1) * step)
+            ok = pending & (fc <= f + 1e-4 * t * slope)
+            accepted |= ok
+            f_new = torch.where(ok, fc, f_new)
+            pending = pending & ~ok
+            t = torch.where(pending, 0.5 * t, t)
+        full = accepted & (t == 1)
+        lam = torch.where(full, (lam / 10).clamp_min(1e-12), lam)
+        lam = torch.where(accepted & ~full, lam * 2, lam)
+        lam = torch.where(active & ~accepted & ~small_grad, lam * 10, lam)
+        move = active & accepted
+        dtheta = torch.where(move.unsqueeze(-1), t.unsqueeze(-1) * step, 0.0)
+        step_small = dtheta.norm(dim=-1) <= xtol * (xtol + theta.norm(dim=-1))
+        f_small = (f - f_new) <= ftol * f
+        theta = theta + dtheta
+        f = torch.where(move, f_new, f)
+        iterations = iterations + active.to(torch.int64)
+        converged = converged | (active & (small_grad | (accepted & (step_small | f_small))))
+        failed = failed | (active & ~accepted & ~small_grad & (lam > 1e10))
+        history.append(f.clone())
+        r, J = linearise(theta)
+    return _LMResult(
+        theta=theta,
+        history=torch.stack(history),
+        iterations=iterations,
+        converged=converged,
+        residuals=r,
+        jacobian=J,
+        damping=lam,
+    )
+
+
+# ---------------------------------------------------------------------------- covariance
+def _inverse_normal_matrix(J: torch.Tensor) -> torch.Tensor:
+    """``(J'J)^{-1}`` via Cholesky of the equilibrated ``J'J``; ``inf`` where singular."""
+    H = J.transpose(-1, -2) @ J
+    d = torch.diagonal(H, dim1=-2, dim2=-1).clamp_min(torch.finfo(J.dtype).tiny).rsqrt()
+    Hs = H * d.unsqueeze(-1) * d.unsqueeze(-2)
+    L, info = torch.linalg.cholesky_ex(Hs)
+    eye = torch.eye(H.shape[-1], dtype=J.dtype, device=J.device).expand_as(H)
+    P = torch.cholesky_solve(eye, L) * d.unsqueeze(-1) * d.unsqueeze(-2)
+    ev = torch.linalg.eigvalsh(Hs)
+    singular = (info != 0) | (ev[..., 0] <= ev[..., -1] * torch.finfo(J.dtype).eps * J.shape[-2])
+    if bool(singular.any()):
+        idx = tuple(int(i) for i in torch.nonzero(singular)[0]) if singular.dim() else ()
+        warnings.warn(
+            f"the Jacobian is rank deficient at batch index {idx} ({int(singular.sum())} data "
+            "sets): some parameters are not identifiable from these data (poor excitation or "
+            "pole-zero cancellation); their covariance is reported as inf. Lower the orders "
+            "or use a richer input.",
+            PoorExcitationWarning,
+            stacklevel=3,
+        )
+        P = torch.where(singular[..., None, None], torch.full_like(P, math.inf), P)
+    return P
+
+
+def _covariance(J: torch.Tensor, r: torch.Tensor, loss: _Loss) -> tuple[torch.Tensor, torch.Tensor]:
+    """Asymptotic covariance of an M-estimate and the residual variance ``sum r^2/(M - p)``.
+
+    Gaussian: ``sigma^2 (J'J)^{-1}``. Fair: Huber's sandwich
+    ``E[psi^2] / E[psi']^2 (J'J)^{-1}`` with sample moments. Laplace: the least-absolute-
+    deviations law ``(J'J)^{-1} / (4 f(0)^2)`` with the residual density at 0 from a Gaussian
+    kernel estimate (Silverman bandwidth).
+    """
+    M, p = J.shape[-2], J.shape[-1]
+    sigma2 = (r * r).sum(-1) / (M - p)
+    P = _inverse_normal_matrix(J)
+    if loss.name == "gaussian":
+        factor = sigma2
+    elif loss.name == "fair":
+        psi = loss.psi(r)
+        s = loss.alpha * r.abs()
+        dpsi = (1.0 / (1 + s) ** 3).mean(-1)  # psi' of rho = r^2 / (2 (1 + alpha|r|))
+        factor = (psi * psi).sum(-1) / (M - p) / dpsi**2
+    else:
+        std = r.std(dim=-1)
+        iqr = (r.quantile(0.75, dim=-1) - r.quantile(0.25, dim=-1)) / 1.349
+        h = 0.9 * torch.minimum(std, iqr) * M ** (-0.2)
+        f0 = torch.exp(-0.5 * (r / h.unsqueeze(-1)) ** 2).mean(-1) / (h * math.sqrt(2 * math.pi))
+        factor = 1.0 / (4 * f0 * f0)
+    return factor[..., None, None] * P, sigma2
+
+
+# ---------------------------------------------------------------------------- data plumbing
+def _with_outputs(data: IOData, y: torch.Tensor) -> IOData:
+    """Same inputs and experiment split as ``data`` but outputs ``y`` (``(*batch, N, 1)``)."""
+    if data.n_experiments == 1:
+        return IOData(data.u, y, data.Ts)
+    parts, start = [], 0
+    for part in data.experiment_list:
+        parts.append(IOData(part.u, y[..., start : start + part.N, :], data.Ts))
+        start += part.N
+    return IOData.experiments(parts)
+
+
+def _regression_rows(data: IOData, M: int) -> list[slice]:
+    """Slices of the concatenated samples used by a regression with ``M`` rows in all."""
+    skip = (data.N - M) // data.n_experiments
+    rows, start = [], 0
+    for part in data.experiment_list:
+        rows.append(slice(start + skip, start + part.N))
+        start += part.N
+    return rows
+
+
+def _weights(weights, data: IOData) -> torch.Tensor | None:
+    if weights is None:
+        return None
+    w = torch.as_tensor(weights, dtype=data.dtype, device=data.device)
+    if w.dim() >= 2 and w.shape[-1] == 1 and w.shape[-2] == data.N:
+        w = w[..., 0]
+    if w.shape[-1] != data.N:
+        raise InputValidationError(
+            f"weights must have shape (*batch, N) with N = {data.N} samples; got {tuple(w.shape)}."
+        )
+    if bool((~torch.isfinite(w) | (w <= 0)).any()):
+        raise InputValidationError("weights must be finite and positive (1 / noise variance).")
+    return w.expand(*data.batch_shape, data.N)
+
+
+# ---------------------------------------------------------------------------- initial values
+def _aux_arx(model: PolynomialModel, na: int, nb, nk, batch) -> PolynomialModel:
+    from .models import ARX
+
+    return ARX(
+        na,
+        nb,
+        nk,
+        n_inputs=model.n_inputs,
+        batch_shape=batch,
+        dtype=model.a.dtype,
+        device=model.a.device,
+        Ts=model.Ts,
+    )
+
+
+def _stable_denominator(b_parts: list[torch.Tensor], a: torch.Tensor, model, batch) -> torch.Tensor:
+    """``a`` with roots outside the unit circle reflected inside (via an OE model)."""
+    na = a.shape[-1]
+    if na == 0:
+        return a
+    oe = OE(
+        [bp.shape[-1] for bp in b_parts],
+        [na] * len(b_parts),
+        model.nk,
+        n_inputs=model.n_inputs,
+        batch_shape=batch,
+        dtype=a.dtype,
+        device=a.device,
+    )
+    oe.set_parameter_vector(torch.cat([*b_parts, *([a] * len(b_parts))], dim=-1))
+    oe.stabilize()
+    return oe.parameter_vector()[..., -na:].detach()
+
+
+def _instrumental_variables(aux: PolynomialModel, data: IOData, n_iter: int = 2):
+    """ARX estimate by instrumental variables; returns ``(theta, Z, Phi, target)``.
+
+    Start: least squares. Then ``n_iter`` times: simulate the noise-free output ``x = B/A u``
+    of the current (stabilised) estimate, build the instruments ``Z`` = the ARX regressors with
+    ``x`` in place of ``y``, and solve ``(Z'Phi) theta = Z' target``.
+    """
+    Phi, target = aux.regression(data)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PoorExcitationWarning)
+        theta = lls(Phi, target).theta
+    if aux.na == 0:
+        return theta, Phi, Phi, target
+    batch = theta.shape[:-1]
+    na = aux.na
+    Z = Phi
+    for _ in range(n_iter):
+        b_parts = list(torch.split(theta[..., na:], aux.nb, dim=-1))
+        a = _stable_denominator(b_parts, theta[..., :na], aux, batch)
+        x = aux.simulate(data, theta=torch.cat([a, theta[..., na:]], dim=-1))
+        Z, _ = aux.regression(_with_outputs(data, x))
+        ZtPhi = Z.transpose(-1, -2) @ Phi
+        sol, info = torch.linalg.solve_ex(ZtPhi, (Z.transpose(-1, -2) @ target.unsqueeze(-1)))
+        if bool((info != 0).any()):
+            idx = tuple(int(i) for i in torch.nonzero(info)[0])
+            raise SingularMatrixError(
+                f"instrumental variables: Z'Phi is singular at batch index {idx}; the input "
+                "does not excite the model (or the orders are too high)."
+            )
+        theta = sol.squeeze(-1)
+    return theta, Z, Phi, target
+
+
+def _initial_estimate(model: PolynomialModel, data: IOData) -> torch.Tensor:
+    """A stable, consistent-ish starting point (never zero for OE/BJ/ARMAX).
+
+    ARX/FIR: least squares. OE and the G-part of BJ: an ARX model with ``na = nf`` fitted by
+    instrumental variables (``F = A``). ARMAX: A, B by instrumental variables, ``C = 1``.
+    BJ: then ``D`` from an AR(nd) least-squares fit to the residual ``y - B/F u``, ``C = 1``.
+    Finally roots of C, D, F outside the unit circle are reflected inside.
+    """
+    batch = data.batch_shape
+    g = _groups(model)
+    theta0 = torch.zeros(*batch, model.n_params, dtype=data.dtype, device=data.device)
+    has_f = any(len(ix) for ix in g["f"])
+    if model.na and has_f:
+        return model.parameter_vector().detach().expand(*batch, model.n_params).clone()
+    if model.is_linear_in_parameters:
+        Phi, target = model.regression(data)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PoorExcitationWarning)
+            return lls(Phi, target).theta
+    nb = [len(ix) for ix in g["b"]]
+    if not any(nb):
+        return theta0
+    na_aux = model.na if model.na else max(model.nf)
+    aux = _aux_arx(model, na_aux, nb, model.nk, batch)
+    th_aux, *_ = _instrumental_variables(aux, data)
+    a_aux, b_aux = th_aux[..., :na_aux], th_aux[..., na_aux:]
+    if model.na:
+        theta0[..., g["a"][0]] = a_aux
+    for ix, bpart in zip(g["b"], torch.split(b_aux, nb, dim=-1), strict=True):
+        theta0[..., ix] = bpart
+    for ix in g["f"]:
+        theta0[..., ix] = a_aux[..., : len(ix)]
+    if g["d"] and len(g["d"][0]):
+        nd = len(g["d"][0])
+        v = data.y - model.simulate(data, theta=theta0)
+        ar = _aux_arx(model, nd, 0, 0, batch)
+        ar_data = _with_outputs(data, v)
+        Phi, target = ar.regression(ar_data)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PoorExcitationWarning)
+            theta0[..., g["d"][0]] = lls(Phi, target).theta[..., :nd]
+    holder = _copy_model(model, batch)
+    holder.set_parameter_vector(theta0)
+    holder.stabilize()
+    return holder.parameter_vector().detach()
+
+
+def _copy_model(model: PolynomialModel, batch) -> PolynomialModel:
+    new = PolynomialModel(
+        model.na,
+        model.nb,
+        model.nc,
+        model.nd,
+        model.nf,
+        model.nk,
+        n_inputs=model.n_inputs,
+        batch_shape=batch,
+        dtype=model.a.dtype,
+        device=model.a.device,
+        Ts=model.Ts,
+    )
+    new.__class__ = model.__class__
+    return new
+
+
+# ---------------------------------------------------------------------------- fit
+def _admissible_fn(model: PolynomialModel, criterion: str):
+    """Candidates must give a stable predictor: roots of C and F_i (prediction errors,
+    eq. 4.132 divides by C F) or of A and F_i (simulation errors) inside the unit circle."""
+    g = _groups(model)
+    letters = ("c", "f") if criterion == "prediction" else ("a", "f")
+    blocks = [ix for letter in letters for ix in g[letter] if len(ix)]
+    if not blocks:
+        return None
+    return lambda th: _max_root_modulus(th, blocks) < 1.0
+
+
+def fit(
+    model: PolynomialModel,
+    data: IOData,
+    method: str | None = None,
+    loss: str = "gaussian",
+    *,
+    alpha: float | None = None,
+    weights=None,
+    criterion: str = "prediction",
+    init=None,
+    max_iter: int = 100,
+    xtol: float = 1e-8,
+    ftol: float = 1e-10,
+    iv_iterations: int = 2,
+) -> FitResult:
+    """Estimate the parameters of ``model`` from ``data`` (batched over data sets).
+
+    Args:
+        model: FIR, ARX, OE, ARMAX, BJ or a general :class:`PolynomialModel`. Its batch shape
+            must equal the data's, or be empty (a batched copy is then fitted and returned in
+            ``result.model``); otherwise the model is updated in place.
+        data: :class:`IOData` (one output), ``(*batch, N, nu)`` / ``(*batch, N, 1)``.
+        method: ``"lls"`` (FIR/ARX, eq. 4.111–4.112), ``"iv"`` (ARX structure),
+            ``"gauss_newton"`` (Levenberg–Marquardt on prediction errors) or ``"mle"`` (with
+            ``loss``). Default: ``"lls"`` for FIR/ARX, ``"gauss_newton"`` otherwise, and
+            ``"mle"`` whenever ``loss`` is not Gaussian.
+        loss: noise model of ``"mle"``: ``"gaussian"`` (weighted LS, eq. 4.64), ``"fair"``
+            (eq. 4.73) or ``"laplace"``.
+        alpha: the fair loss' ``alpha`` (1/output units); default ``1 / s`` with ``s`` a
+            robust (MAD) scale of the least-squares residuals.
+        weights: per-sample weights ``1/sigma_k^2`` of the Gaussian loss, ``(*batch, N)``.
+        criterion: ``"prediction"`` (one-step prediction errors, eq. 4.130; the simulation
+            error for OE) or ``"simulation"`` (free-run errors for any structure).
+        init: starting parameters ``(*batch, p)``, ``"model"`` (the model's current values) or
+            ``None`` (automatic: ARX least squares / instrumental variables, stabilised).
+        max_iter, xtol, ftol: iteration limit and step/relative-decrease tolerances.
+        iv_iterations: instrument refinements of ``"iv"`` (and of the automatic start).
+
+    Returns:
+        :class:`FitResult` (the model's parameters are set to the estimate).
+    """
+    if not isinstance(model, PolynomialModel):
+        raise InputValidationError(f"model must be a sysid model, got {type(model).__name__}.")
+    if not isinstance(data, IOData):
+        raise InputValidationError(f"data must be IOData, got {type(data).__name__}.")
+    if loss not in LOSSES:
+        raise InputValidationError(f"loss must be one of {LOSSES}, got {loss!r}.")
+    if criterion not in ("prediction", "simulation"):
+        raise InputValidationError(
+            f"criterion must be 'prediction' or 'simulation', got {criterion!r}."
+        )
+    linear = model.is_linear_in_parameters and criterion == "prediction"
+    if method is None:
+        method = "mle" if loss != "gaussian" else ("lls" if linear else "gauss_newton")
+    if method not in METHODS:
+        raise InputValidationError(f"method must be one of {METHODS}, got {method!r}.")
+    if method in ("lls", "iv", "gauss_newton") and loss != "gaussian":
+        raise InputValidationError(
+            f"method {method!r} minimises squared errors; use method='mle' for loss={loss!r}."
+        )
+    if method in ("lls", "iv") and not model.is_linear_in_parameters:
+        raise InputValidationError(
+            f"method {method!r} needs a model linear in its parameters (FIR, ARX); "
+            f"{type(model).__name__} is not: use method='gauss_newton'."
+        )
+    data = model._check_data(data)  # one output, matching number of inputs
+    if data.dtype != model.a.dtype:
+        data = data.to(dtype=model.a.dtype)
+    batch = data.batch_shape
+    model = _batched_model(model, batch)
+    w = _weights(weights, data)
+    names = model.parameter_names()
+
+    if method == "lls" or (method == "mle" and linear and loss == "gaussian"):
+        result = _fit_lls(model, data, w, method)
+    elif method == "iv":
+        result = _fit_iv(model, data, iv_iterations)
+    else:
+        result = _fit_iterative(
+            model, data, method, loss, alpha, w, criterion, init, linear, max_iter, xtol, ftol
+        )
+    result.parameter_names = names
+    model.set_parameter_vector(result.theta)
+    result.model = model
+    return result
+
+
+def _fit_lls(model, data, w, method) -> FitResult:
+    Phi, target = model.regression(data)
+    W = None
+    if w is not None:
+        W = torch.cat([w[..., sl] for sl in _regression_rows(data, target.shape[-1])], dim=-1)
+    res = lls(Phi, target, W=W)
+    batch = res.theta.shape[:-1]
+    f = 0.5 * (res.residuals**2 * (1 if W is None else W)).sum(-1)
+    return FitResult(
+        theta=res.theta,
+        covariance=res.covariance,
+        standard_errors=res.standard_errors,
+        sigma2=res.sigma2,
+        loss_history=f.unsqueeze(0),
+        iterations=torch.zeros(batch, dtype=torch.int64, device=f.device),
+        converged=torch.ones(batch, dtype=torch.bool, device=f.device),
+        method=method,
+        loss="gaussian",
+        parameter_names=[],
+        n_samples=target.shape[-1],
+        residuals=res.residuals,
+        info={
+            "condition_number": res.condition_number,
+            "scaled_condition_number": res.scaled_condition_number,
+        },
+    )
+
+
+def _fit_iv(model, data, iv_iterations) -> FitResult:
+    theta, Z, Phi, target = _instrumental_variables(model, data, max(1, iv_iterations))
+    r = target - (Phi @ theta.unsqueeze(-1)).squeeze(-1)
+    M, p = Phi.shape[-2], Phi.shape[-1]
+    sigma2 = (r * r).sum(-1) / (M - p)
+    ZtPhi = Z.transpose(-1, -2) @ Phi
+    # (Z'Phi)^{-1} Z'Z (Z'Phi)^{-T} by two solves
+    left = torch.linalg.solve(ZtPhi, Z.transpose(-1, -2) @ Z)
+    cov = sigma2[..., None, None] * torch.linalg.solve(ZtPhi, left.transpose(-1, -2))
+    cov = 0.5 * (cov + cov.transpose(-1, -2))
+    batch = theta.shape[:-1]
+    return FitResult(
+        theta=theta,
+        covariance=cov,
+        standard_errors=torch.diagonal(cov, dim1=-2, dim2=-1).clamp_min(0).sqrt(),
+        sigma2=sigma2,
+        loss_history=(0.5 * (r * r).sum(-1)).unsqueeze(0),
+        iterations=torch.full(batch, max(1, iv_iterations), dtype=torch.int64, device=r.device),
+        converged=torch.ones(batch, dtype=torch.bool, device=r.device),
+        method="iv",
+        loss="gaussian",
+        parameter_names=[],
+        n_samples=M,
+        residuals=r,
+    )
+
+
+def _fit_iterative(
+    model, data, method, loss, alpha, w, criterion, init, linear, max_iter, xtol, ftol
+) -> FitResult:
+    batch = data.batch_shape
+    p = model.n_params
+    sw = None if w is None else w.sqrt()
+    if linear:
+        Phi, target = model.regression(data)
+        if sw is not None:
+            rows = _regression_rows(data, target.shape[-1])
+            swr = torch.cat([sw[..., sl] for sl in rows], dim=-1)
+            Phi, target = Phi * swr.unsqueeze(-1), target * swr
+
+        def residual_fn(th):
+            return target - (Phi @ th.unsqueeze(-1)).squeeze(-1)
+
+        def jacobian_fn(th):
+            return residual_fn(th), (-Phi).expand(*th.shape[:-1], *Phi.shape[-2:])
+
+        admissible = None
+    else:
+        errors = model.prediction_errors if criterion == "prediction" else model.simulation_errors
+
+        def residual_fn(th):
+            e = errors(data, theta=th)[..., 0]
+            return e if sw is None else e * sw
+
+        jacobian_fn = None
+        admissible = _admissible_fn(model, criterion)
+
+    if init is None and linear:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PoorExcitationWarning)
+            theta0 = lls(Phi, target).theta
+    elif init is None:
+        theta0 = _initial_estimate(model, data)
+    elif isinstance(init, str) and init == "model":
+        theta0 = model.parameter_vector().detach().expand(*batch, p).clone()
+    else:
+        theta0 = torch.as_tensor(init, dtype=data.dtype, device=data.device)
+        theta0 = theta0.expand(*batch, p).clone()
+    if admissible is not None and not bool(admissible(theta0).all()):
+        idx = tuple(int(i) for i in torch.nonzero(~admissible(theta0))[0])
+        raise InputValidationError(
+            f"the initial model gives an unstable predictor at batch index {idx}; start from a "
+            "stable model (e.g. init=None for the automatic start)."
+        )
+    kwargs = dict(max_iter=max_iter, xtol=xtol, ftol=ftol, admissible=admissible)
+    gauss = _Loss("gaussian")
+    lm = _levenberg_marquardt(residual_fn, theta0, gauss, jacobian_fn=jacobian_fn, **kwargs)
+    history, iterations = lm.history, lm.iterations
+    the_loss = gauss
+    if loss != "gaussian":
+        scale = _robust_scale(lm.residuals).clamp_min(torch.finfo(data.dtype).tiny)
+        if loss == "fair":
+            a = (1.0 / scale) if alpha is None else torch.as_tensor(alpha, dtype=data.dtype)
+            the_loss = _Loss(
+                "fair", alpha=torch.as_tensor(a).unsqueeze(-1) if torch.as_tensor(a).dim() else a
+            )
+        else:
+            the_loss = _Loss("laplace", eps=(1e-4 * scale).unsqueeze(-1))
+        lm = _levenberg_marquardt(
+            residual_fn,
+            lm.theta,
+            the_loss,
+            jacobian_fn=jacobian_fn,
+            **{**kwargs, "max_iter": max(max_iter, 500) if loss == "laplace" else max_iter},
+        )
+        history = lm.history
+        iterations = iterations + lm.iterations
+    cov, sigma2 = _covariance(lm.jacobian, lm.residuals, the_loss)
+    return FitResult(
+        theta=lm.theta,
+        covariance=cov,
+        standard_errors=torch.diagonal(cov, dim1=-2, dim2=-1).clamp_min(0).sqrt(),
+        sigma2=sigma2,
+        loss_history=history,
+        iterations=iterations,
+        converged=lm.converged,
+        method=method,
+        loss=loss,
+        parameter_names=[],
+        n_samples=lm.residuals.shape[-1],
+        residuals=lm.residuals,
+        info={"damping": lm.damping, "initial_theta": theta0},
+    )
+
+
+# ---------------------------------------------------------------------------- uniform noise
+@dataclass
+class UniformNoiseSet:
+    """The maximum-likelihood set ``{theta : |y - A theta| <= a}`` (eq. 4.58) of a linear model.
+
+    Attributes:
+        A, y, a: the problem (``(*batch, M, p)``, ``(*batch, M)``, noise bound).
+        lower, upper: per-parameter bounds of the polytope, ``(*batch, p)`` (``+-inf`` where
+            unbounded, ``nan`` only for an empty set).
+        feasible: whether the set is non-empty, ``(*batch,)`` bool (empty: every theta has
+            likelihood 0, so every theta is an MLE, eq. 4.58 remark).
+        center: Chebyshev centre (centre of the largest inscribed ball), ``(*batch, p)``.
+        radius: radius of that ball, ``(*batch,)``.
+    """
+
+    A: torch.Tensor
+    y: torch.Tensor
+    a: float
+    lower: torch.Tensor
+    upper: torch.Tensor
+    feasible: torch.Tensor
+    center: torch.Tensor
+    radius: torch.Tensor
+
+    def contains(self, theta: torch.Tensor, tol: float = 1e-9) -> torch.Tensor:
+        """Whether ``theta`` (``(*batch, p)``) lies in the set (``(*batch,)`` bool)."""
+        theta = torch.as_tensor(theta, dtype=self.A.dtype, device=self.A.device)
+        r = self.y - (self.A @ theta.unsqueeze(-1)).squeeze(-1)
+        return (r.abs() <= self.a * (1 + tol) + tol).all(dim=-1)
+
+
+def uniform_noise_mle_set(A: torch.Tensor, y: torch.Tensor, a: float) -> UniformNoiseSet:
+    """Set of maximum-likelihood estimates for ``y = A theta + e``, ``e ~ U[-a, a]`` i.i.d.
+
+    The likelihood (eq. 4.44–4.45, scaled to ``[-a, a]``) is ``(2a)^-M`` where every residual
+    satisfies ``|y_k - A_k theta| <= a`` and 0 elsewhere, so its maximisers form the polytope
+    ``{theta : -a <= y - A theta <= a}`` (eq. 4.58). Each bound ``min/max theta_j`` over the
+    polytope is one linear program (scipy HiGHS); the Chebyshev centre is one more.
+
+    Args:
+        A: ``(*batch, M, p)`` regressors; y: ``(*batch, M)``; a: noise half-width (> 0).
+
+    Returns:
+        :class:`UniformNoiseSet`.
+    """
+    if not a > 0:
+        raise InputValidationError(f"the noise half-width a must be > 0, got {a}.")
+    A = torch.as_tensor(A)
+    y = torch.as_tensor(y, dtype=A.dtype, device=A.device)
+    if A.dim() < 2 or y.shape[-1] != A.shape[-2]:
+        raise InputValidationError(
+            f"A must be (*batch, M, p) and y (*batch, M); got {tuple(A.shape)}, {tuple(y.shape)}."
+        )
+    batch = torch.broadcast_shapes(A.shape[:-2], y.shape[:-1])
+    M, p = A.shape[-2:]
+    An = A.expand(*batch, M, p).detach().cpu().double().numpy().reshape(-1, M, p)
+    yn = y.expand(*batch, M).detach().cpu().double().numpy().reshape(-1, M)
+    lower = np.full((len(An), p), np.nan)
+    upper = np.full((len(An), p), np.nan)
+    center = np.full((len(An), p), np.nan)
+    radius = np.full(len(An), np.nan)
+    feasible = np.zeros(len(An), dtype=bool)
+    free = [(None, None)] * p
+    for b in range(len(An)):  # one small LP per data set and bound (scipy has no batch)
+        G = np.vstack([An[b], -An[b]])
+        h = np.concatenate([yn[b] + a, a - yn[b]])
+        norms = np.linalg.norm(G, axis=1, keepdims=True)
+        cheb = scipy.optimize.linprog(
+            np.r_[np.zeros(p), -1.0],
+            A_ub=np.hstack([G, norms]),
+            b_ub=h,
+            bounds=free + [(0, None)],
+            method="highs",
+        )
+        if cheb.status == 2:  # infeasible
+            continue
+        feasible[b] = True
+        if cheb.status == 0:
+            center[b], radius[b] = cheb.x[:p], cheb.x[p]
+        else:
+            radius[b] = np.inf
+        for j in range(p):
+            for sign, store in ((1.0, lower), (-1.0, upper)):
+                c = np.zeros(p)
+                c[j] = sign
+                res = scipy.optimize.linprog(c, A_ub=G, b_ub=h, bounds=free, method="highs")
+                if res.status == 3:
+                    store[b, j] = -sign * np.inf
+                else:
+                    store[b, j] = res.x[j]
+    to = dict(dtype=A.dtype, device=A.device)
+    return UniformNoiseSet(
+        A=A,
+        y=y,
+        a=float(a),
+        lower=torch.as_tensor(lower, **to).reshape(*batch, p),
+        upper=torch.as_tensor(upper, **to).reshape(*batch, p),
+        feasible=torch.as_tensor(feasible, device=A.device).reshape(batch),
+        center=torch.as_tensor(center, **to).reshape(*batch, p),
+        radius=torch.as_tensor(radius, **to).reshape(batch),
+    )

@@ -1,0 +1,148 @@
+"""Linearisation of nonlinear state-space models and exact discretisation of LTI systems.
+
+- :func:`linearize`: A, B, C, D of xdot = f(t, x, u), y = h(x, u) (eq. 1.33-1.35) at a batch
+  of points (e.g. the samples of a trajectory, batched over time), by forward-mode autograd;
+- :func:`steady_state`: batched Newton on f(x, u) = 0 (eq. 1.36);
+- :func:`zoh_discretize`: exact zero-order-hold discretisation of xdot = A x + B u over a
+  step dt by the matrix exponential of the augmented matrix [[A, B], [0, 0]] dt, which is
+  eq. (1.55) with u held constant over the step;
+- :func:`simulate_lti_zoh`: the resulting exact reference simulator for piecewise-constant u.
+"""
+
+import torch
+
+from integrators.errors import ConvergenceError, InputValidationError, SingularMatrixError
+
+
+def _call(f, t, x, u):
+    return f(t, x) if u is None else f(t, x, u)
+
+
+def _jacobian_rows(out, inputs, create):
+    """Per-sample Jacobians d out / d input for each input, (*batch, n_out, n_in), by n_out
+    reverse passes on the batch (samples are independent)."""
+    if not out.requires_grad:  # out does not depend on any input
+        return [x.new_zeros(*x.shape[:-1], out.shape[-1], x.shape[-1]) for x in inputs]
+    rows = [[] for _ in inputs]
+    for i in range(out.shape[-1]):
+        grads = torch.autograd.grad(
+            out[..., i].sum(), inputs, create_graph=create, retain_graph=True, allow_unused=True
+        )
+        for k, g in enumerate(grads):
+            rows[k].append(torch.zeros_like(inputs[k]) if g is None else g)
+    return [torch.stack(r, -2) for r in rows]
+
+
+def linearize(f, x, u=None, h=None, t=None):
+    """Jacobians A = df/dx, B = df/du, C = dh/dx, D = dh/du (eq. 1.35) at every point.
+
+    f(t, x[, u]) -> (*batch, nx) (called with u only when u is given); h(x[, u]) -> (*batch, ny)
+    or None; x (*batch, nx), e.g. the samples of a trajectory (batched over time); u
+    (*batch, nu) or None; t a scalar (default 0). Returns A (*batch, nx, nx), B (*batch, nx, nu)
+    (nu = 0 without u), C (*batch, ny, nx) and D (*batch, ny, nu) (None without h). The
+    Jacobians are differentiable (autograd graphs) when grad mode is on and x, u or the
+    parameters of f require grad. Samples of the batch must not interact in f and h.
+    """
+    x = torch.as_tensor(x)
+    t = torch.as_tensor(0.0 if t is None else t, dtype=x.dtype, device=x.device)
+    nx = x.shape[-1]
+    if u is not None:
+        u = torch.as_tensor(u, dtype=x.dtype, device=x.device).expand(*x.shape[:-1], -1)
+    create = torch.is_grad_enabled() and (
+        x.requires_grad
+        or (u is not None and u.requires_grad)
+        or any(p.requires_grad for p in getattr(f, "parameters", lambda: [])())
+    )
+    with torch.enable_grad():
+        xl = x if (x.requires_grad and create) else x.detach().requires_grad_(True)
+        ul = None
+        if u is not None:
+            ul = u if (u.requires_grad and create) else u.detach().requires_grad_(True)
+        inputs = (xl,) if u is None else (xl, ul)
+        fx = _call(f, t, xl, ul)
+        jac = _jacobian_rows(fx, inputs, create)
+        a = jac[0]
+        b = jac[1] if u is not None else x.new_zeros(*x.shape[:-1], nx, 0)
+        c = d = None
+        if h is not None:
+            hx = h(xl) if u is None else h(xl, ul)
+            jac_h = _jacobian_rows(hx, inputs, create)
+            c = jac_h[0]
+            d = jac_h[1] if u is not None else x.new_zeros(*x.shape[:-1], hx.shape[-1], 0)
+    if not create:
+        a, b = a.detach(), b.detach()
+        c = None if c is None else c.detach()
+        d = None if d is None else d.detach()
+    return a, b, c, d
+
+
+def steady_state(f, x0, u=None, *, tol=1e-10, max_iter=50, t=None):
+    """Solve f(t, x, u) = 0 for x by batched Newton from x0 (*batch, nx) (eq. 1.36).
+
+    Returns x (*batch, nx). Raises SingularMatrixError where df/dx is singular and
+    ConvergenceError (naming the samples) when |f| > tol after max_iter iterations.
+    """
+    x = torch.as_tensor(x0).clone()
+    for _ in range(max_iter):
+        with torch.no_grad():
+            res = _call(f, torch.as_tensor(0.0 if t is None else t, dtype=x.dtype), x, u)
+        if float(res.abs().max()) <= tol:
+            return x
+        a = linearize(f, x, u, t=t)[0].detach()
+        step, info = torch.linalg.solve_ex(a, res.unsqueeze(-1))
+        if bool((info != 0).any()):
+            bad = torch.nonzero(info != 0)[:5].tolist()
+            raise SingularMatrixError(
+                f"steady_state: df/dx is singular at batch indices {bad}; the equilibrium "
+                "is not isolated there, try another initial guess"
+            )
+        x = x - step.squeeze(-1)
+    res = _call(f, torch.as_tensor(0.0 if t is None else t, dtype=x.dtype), x, u)
+    bad = torch.nonzero(res.abs().amax(-1) > tol)[:5].tolist()
+    raise ConvergenceError(
+        f"steady_state: |f(x, u)| > {tol:g} after {max_iter} Newton iterations at batch indices "
+        f"{bad}; try a better initial guess x0"
+    )
+
+
+def zoh_discretize(a, b, dt):
+    """Exact ZOH discretisation (eq. 1.55 with u constant over a step).
+
+    a (*batch, n, n), b (*batch, n, m), dt a float or tensor broadcasting against *batch.
+    Returns (Ad, Bd) = (e^{A dt}, int_0^dt e^{A s} ds B) from one matrix exponential of the
+    augmented matrix [[A, B], [0, 0]] dt.
+    """
+    a, b = torch.as_tensor(a), torch.as_tensor(b)
+    if a.shape[-1] != a.shape[-2] or b.shape[-2] != a.shape[-1]:
+        raise InputValidationError(
+            f"zoh_discretize: A must be (*, n, n) and B (*, n, m), got {tuple(a.shape)}, "
+            f"{tuple(b.shape)}"
+        )
+    n, m = b.shape[-2], b.shape[-1]
+    batch = torch.broadcast_shapes(a.shape[:-2], b.shape[:-2])
+    a, b = a.expand(*batch, n, n), b.expand(*batch, n, m)
+    top = torch.cat([a, b], -1)
+    aug = torch.cat([top, a.new_zeros(*batch, m, n + m)], -2)
+    dt = torch.as_tensor(dt, dtype=a.dtype, device=a.device)
+    phi = torch.linalg.matrix_exp(aug * dt[..., None, None])
+    return phi[..., :n, :n], phi[..., :n, n:]
+
+
+def simulate_lti_zoh(a, b, x0, u, dt, c=None, d=None):
+    """Exact samples of xdot = A x + B u with u held constant over each step (reference).
+
+    x0 (*batch, n), u (*batch, T, m) or (T, m): returns x (*batch, T + 1, n) (x_0 .. x_T) and,
+    when c is given, y_k = C x_k + D u_k (*batch, T, p).
+    """
+    ad, bd = zoh_discretize(a, b, dt)
+    u = torch.as_tensor(u, dtype=ad.dtype)
+    xs = [x0]
+    for k in range(u.shape[-2]):
+        xs.append((ad @ xs[-1].unsqueeze(-1) + bd @ u[..., k, :].unsqueeze(-1)).squeeze(-1))
+    x = torch.stack(xs, -2)
+    if c is None:
+        return x
+    y = (c @ x[..., :-1, :].unsqueeze(-1)).squeeze(-1)
+    if d is not None:
+        y = y + (d @ u.unsqueeze(-1)).squeeze(-1)
+    return x, y

@@ -1,0 +1,663 @@
+"""Lagrangian mechanics by autograd (notes chapter 2).
+
+:class:`LagrangianSystem` turns a description of a mechanical system (kinetic energy, potential
+energy, external forces, holonomic constraints) into the model equations of the notes, with
+every derivative taken by autograd and no symbolic inversion:
+
+- kinetic energy from point masses m_i at positions p_i(q) (eq. 2.3-2.6), from distributed
+  bodies by Gauss-Legendre quadrature (eq. 2.17-2.20, :func:`distributed_body`), from a
+  function T(q, qdot), or a constant diagonal mass matrix (Cartesian coordinates, eq. 2.85,
+  2.92); W(q) = d^2 T / d qdot^2 (eq. 2.61);
+- potential V(q) (gravity from the point masses, eq. 2.21, plus a user potential; springs with
+  rest length via :func:`spring_potential`, eq. 2.31);
+- generalised forces Q = sum_i (dp_i/dq)^T F_i of forces F_i acting at points p_i(q)
+  (eq. 2.115), plus any direct generalised force (torques, friction);
+- constraints c(q) = 0 with multipliers z (Lagrange function eq. 2.125).
+
+Model forms: explicit ODE (eq. 2.42 / 2.131) by a batched linear solve, the implicit ODE
+residual (eq. 7.47), the index-3 DAE (eq. 2.126), the index-1 DAE with the KKT matrix
+M(q) = [[W, a^T], [a, 0]] (eq. 2.168) and optional Baumgarte stabilisation (eq. 2.186),
+consistency conditions (eq. 2.182) and their projection, drift monitors and energy.
+
+Speed: everything is batched reverse-mode autograd on the whole batch at once (samples are
+independent, so gradients of batch sums are per-sample gradients), with as few passes as the
+structure allows:
+
+- constant diagonal W (Cartesian coordinates): one reverse pass through V;
+- point masses: the d'Alembert form W = sum m_i J_i^T J_i, convective term
+  sum m_i J_i^T (dJ_i/dt) qdot, from nq + 4 reverse passes through the positions p_i(q) only;
+- a general T(q, qdot): one reverse pass gives grad L and W qdot, nq more give W and the
+  convective term (d(W qdot)/dq) qdot together.
+
+Public methods localise inputs that carry a long autograd history (see :func:`_local_graph`),
+so evaluating the model inside a differentiated simulation costs O(1), not O(steps).
+
+Shapes: q, qdot (*batch, nq); the state of the first-order form is x = [q, qdot]
+(*batch, 2 nq); inputs u (*batch, nu); multipliers z (*batch, nc). User callables must accept
+arbitrary leading batch dimensions, and samples must not interact.
+"""
+
+import contextlib
+import threading
+from collections.abc import Callable
+
+import numpy as np
+import torch
+from torch import nn
+
+from integrators.errors import ConvergenceError, InputValidationError, SingularMatrixError
+
+
+def spring_potential(p_a, p_b, stiffness, rest_length=0.0):
+    """Energy 1/2 k (||p_b - p_a|| - L0)^2 of a spring (eq. 2.31; eq. 2.32 when L0 = 0).
+
+    p_a, p_b: (..., D); stiffness, rest_length broadcast against (...,). Returns (...,).
+    With L0 = 0 the norm is never formed, so the energy is smooth at p_a = p_b.
+    """
+    delta = p_b - p_a
+    sq = (delta * delta).sum(-1)
+    if isinstance(rest_length, (int, float)) and rest_length == 0:
+        return 0.5 * stiffness * sq
+    return 0.5 * stiffness * (torch.sqrt(sq) - rest_length) ** 2
+
+
+def distributed_body(mass, position: Callable, n_nodes: int = 4):
+    """Point-mass quadrature of a body with uniformly distributed mass (eq. 2.17-2.20, 2.24).
+
+    ``position(q, s)`` gives the material point at body coordinate s in [0, 1] with shape
+    (..., D) for q (..., nq) and s broadcast against (...,). Gauss-Legendre with ``n_nodes``
+    nodes integrates T and V exactly when |pdot(s)|^2 and p(s) are polynomials of degree
+    <= 2 n_nodes - 1 in s (a straight rod needs 2 nodes).
+
+    Returns (masses (n_nodes,), positions(q) -> (..., n_nodes, D)) to be combined with the
+    other point masses of a LagrangianSystem.
+    """
+    nodes, weights = np.polynomial.legendre.leggauss(n_nodes)
+    s = torch.as_tensor((nodes + 1) / 2, dtype=torch.float64)
+    w = torch.as_tensor(weights / 2, dtype=torch.float64)
+    masses = mass * w.to(mass.dtype if isinstance(mass, torch.Tensor) else torch.float64)
+
+    def positions(q):
+        return torch.stack([position(q, float(sk)) for sk in s], dim=-2)
+
+    return masses, positions
+
+
+class _AttachInputs(torch.autograd.Function):
+    """Zeros whose vector-Jacobian product is that of ``local_outputs`` w.r.t. ``local_inputs``.
+
+    Adding it to outputs computed from detached leaf copies of inputs that carry a long
+    history (e.g. a state inside a simulation being differentiated) reconnects them to that
+    history, while the many local reverse passes of the Lagrange terms only traverse the small
+    local graph (the autograd engine visits every node reachable from the root, so working on
+    the original inputs would make each evaluation cost O(length of the simulation)).
+    """
+
+    @staticmethod
+    def forward(ctx, n_in, *tensors):
+        ctx.n_in = n_in
+        ctx.local_in = tensors[n_in : 2 * n_in]
+        ctx.local_out = tensors[2 * n_in :]
+        return tuple(torch.zeros_like(t) for t in ctx.local_out)
+
+    @staticmethod
+    def backward(ctx, *grad_out):
+        grads = torch.autograd.grad(
+            ctx.local_out,
+            ctx.local_in,
+            grad_out,
+            retain_graph=True,
+            create_graph=torch.is_grad_enabled(),
+            allow_unused=True,
+        )
+        return (None, *grads, *([None] * (len(ctx.local_in) + len(ctx.local_out))))
+
+
+_STATE = threading.local()
+
+
+def _local_graph(method):
+    """Public entry points run on detached leaf copies of the tensor arguments that carry a
+    history (reconnected by :class:`_AttachInputs`); without grad mode on detached copies.
+
+    Only the outermost call localises (nested calls see the local leaves and build ordinary
+    graphs), so all derivatives inside one call are exact to any order. Across the boundary the
+    reconnection is first order in those arguments: gradients w.r.t. them and w.r.t. the
+    parameters are exact, second derivatives w.r.t. a state with history are not propagated.
+    """
+
+    def wrapper(self, *args, **kwargs):
+        if getattr(_STATE, "depth", 0) > 0:
+            return method(self, *args, **kwargs)
+        if not torch.is_grad_enabled():
+            local = [a.detach() if isinstance(a, torch.Tensor) else a for a in args]
+            return _nested(method, self, local, kwargs)
+        idx = [
+            i for i, a in enumerate(args) if isinstance(a, torch.Tensor) and a.grad_fn is not None
+        ]
+        if not idx:
+            return _nested(method, self, args, kwargs)
+        local = list(args)
+        for i in idx:
+            local[i] = args[i].detach().requires_grad_(True)
+        out = _nested(method, self, local, kwargs)
+        single = isinstance(out, torch.Tensor)
+        outs = (out,) if single else tuple(out)
+        zeros = _AttachInputs.apply(
+            len(idx), *[args[i] for i in idx], *[local[i] for i in idx], *outs
+        )
+        joined = tuple(o + z for o, z in zip(outs, zeros, strict=True))
+        return joined[0] if single else joined
+
+    wrapper.__name__, wrapper.__doc__ = method.__name__, method.__doc__
+    return wrapper
+
+
+@contextlib.contextmanager
+def exact_higher_derivatives():
+    """Within this context, public methods of LagrangianSystem do not localise their inputs,
+    so derivatives of any order w.r.t. states with a history are exact (used by the DAE tools,
+    which differentiate the model equations several times at a point)."""
+    _STATE.depth = getattr(_STATE, "depth", 0) + 1
+    try:
+        yield
+    finally:
+        _STATE.depth -= 1
+
+
+def _nested(method, self, args, kwargs):
+    _STATE.depth = getattr(_STATE, "depth", 0) + 1
+    try:
+        return method(self, *args, **kwargs)
+    finally:
+        _STATE.depth -= 1
+
+
+def _solve(matrix: torch.Tensor, rhs: torch.Tensor, what: str) -> torch.Tensor:
+    """Batched solve of matrix @ sol = rhs (rhs (..., n)); SingularMatrixError names a sample."""
+    sol, info = torch.linalg.solve_ex(matrix, rhs.unsqueeze(-1))
+    if bool((info != 0).any()) or not bool(torch.isfinite(sol).all()):
+        bad = torch.nonzero((info != 0) | ~torch.isfinite(sol).all(-1).all(-1))
+        idx = bad[0].tolist() if bad.numel() else "?"
+        raise SingularMatrixError(
+            f"{what} is singular at batch index {idx}; check the configuration (e.g. a "
+            "degenerate constraint gradient or a zero mass) or project the initial conditions"
+        )
+    return sol.squeeze(-1)
+
+
+class LagrangianSystem(nn.Module):
+    """A mechanical system in generalised coordinates q (notes chapter 2).
+
+    Give the kinetic energy in one of three ways (subclasses may instead override the hook
+    methods of the same names):
+
+    - ``diagonal_mass``: tensor (nq,) or callable () -> (nq,): T = 1/2 sum_k w_k qdot_k^2 with a
+      constant diagonal W (Cartesian coordinates, eq. 2.85, 2.92); fastest path;
+    - ``point_masses`` (n_p,) and ``positions(q) -> (*batch, n_p, D)``: T = 1/2 sum m_i |pdot_i|^2
+      (eq. 2.3), pdot_i = J_i qdot by autograd (eq. 2.4);
+    - ``kinetic_energy(q, qdot) -> (*batch,)``: any T, quadratic in qdot (eq. 2.7).
+
+    Further arguments: ``potential(q) -> (*batch,)``; ``gravity`` (D,) field acceleration,
+    e.g. (0, -9.81) with the vertical axis up, giving V = -sum m_i g . p_i (eq. 2.21, needs
+    point masses); ``generalized_force(q, qdot, u) -> (*batch, nq)``; forces at points:
+    ``force_points(q) -> (*batch, n_f, D)`` with ``point_forces(q, qdot, u) -> (*batch, n_f,
+    D)`` (eq. 2.115); ``constraints(q) -> (*batch, nc)``; ``baumgarte`` alpha > 0 (eq. 2.186)
+    used by the index-1 forms unless overridden per call (a float, or a tensor (*batch, 1)
+    broadcasting against the batch, e.g. several stabilisation gains in one simulation).
+
+    ``forward(t, x, u=None)`` is the explicit first-order ODE xdot = [qdot, qddot] (the KKT
+    index-1 form for a constrained system), usable directly as ``f`` in ``odeint``.
+    """
+
+    def __init__(
+        self,
+        nq: int,
+        *,
+        nu: int = 0,
+        diagonal_mass=None,
+        point_masses=None,
+        positions: Callable | None = None,
+        kinetic_energy: Callable | None = None,
+        potential: Callable | None = None,
+        gravity=None,
+        generalized_force: Callable | None = None,
+        force_points: Callable | None = None,
+        point_forces: Callable | None = None,
+        constraints: Callable | None = None,
+        baumgarte: float | None = None,
+    ):
+        super().__init__()
+        self.nq = int(nq)
+        self.nu = int(nu)
+        self._diagonal_mass = diagonal_mass
+        self._point_masses = point_masses
+        self._positions = positions
+        self._kinetic = kinetic_energy
+        self._potential = potential
+        self._gravity = gravity
+        self._generalized_force = generalized_force
+        self._force_points = force_points
+        self._point_forces = point_forces
+        self._constraints = constraints
+        self.baumgarte = baumgarte
+        if (force_points is None) != (point_forces is None):
+            raise InputValidationError("give both force_points and point_forces, or neither")
+
+    # ------------------------------------------------------------------ hooks (overridable)
+    def diagonal_mass(self):
+        """Constant diagonal of W, (nq,), or None (then W depends on q)."""
+        m = self._diagonal_mass
+        return m() if callable(m) else m
+
+    def point_masses(self):
+        """Masses of the point masses, (n_p,), or None."""
+        m = self._point_masses
+        return m() if callable(m) else m
+
+    def positions(self, q):
+        """Positions of the point masses, (*batch, n_p, D), or None."""
+        return None if self._positions is None else self._positions(q)
+
+    def gravity(self):
+        """Field acceleration vector (D,) acting on the point masses, or None."""
+        g = self._gravity
+        return g() if callable(g) else g
+
+    def potential(self, q):
+        """User potential V(q), (*batch,), or None (gravity of point masses is added apart)."""
+        return None if self._potential is None else self._potential(q)
+
+    def generalized_force(self, q, qdot, u):
+        """Direct generalised force (*batch, nq) or None."""
+        return None if self._generalized_force is None else self._generalized_force(q, qdot, u)
+
+    def force_points(self, q):
+        """Points (*batch, n_f, D) where the forces of ``point_forces`` act, or None."""
+        return None if self._force_points is None else self._force_points(q)
+
+    def point_forces(self, q, qdot, u):
+        """Forces (*batch, n_f, D) acting at ``force_points(q)``, or None."""
+        return None if self._point_forces is None else self._point_forces(q, qdot, u)
+
+    def constraints(self, q):
+        """Holonomic constraints c(q), (*batch, nc), or None."""
+        return None if self._constraints is None else self._constraints(q)
+
+    # ------------------------------------------------------------------ energies
+    def _cast(self, value, like):
+        return torch.as_tensor(value, dtype=like.dtype, device=like.device)
+
+    @property
+    def is_constrained(self) -> bool:
+        return self.constraints(torch.zeros(1, self.nq, dtype=torch.float64)) is not None
+
+    @_local_graph
+    def kinetic_energy(self, q, qdot):
+        """T(q, qdot), (*batch,) (eq. 2.3 / 2.7)."""
+        if self._kinetic is not None:
+            return self._kinetic(q, qdot)
+        w = self.diagonal_mass()
+        if w is not None:
+            return 0.5 * (self._cast(w, q) * qdot * qdot).sum(-1)
+        masses = self.point_masses()
+        if masses is None:
+            raise InputValidationError(
+                "LagrangianSystem needs diagonal_mass, point_masses with positions, or "
+                "kinetic_energy"
+            )
+        pdot = self.point_velocities(q, qdot)
+        return 0.5 * (self._cast(masses, q) * (pdot * pdot).sum(-1)).sum(-1)
+
+    @_local_graph
+    def point_velocities(self, q, qdot):
+        """pdot_i = (dp_i/dq) qdot (eq. 2.4), (*batch, n_p, D), by two reverse passes (the
+        Jacobian-vector product as the derivative of a vector-Jacobian product), which keeps
+        the whole computation in plain batched autograd."""
+        with torch.enable_grad():
+            qq = self._leaf(q)
+            p = self.positions(qq)
+            probe = torch.zeros_like(p, requires_grad=True)
+            (jt_probe,) = torch.autograd.grad(p, qq, probe, create_graph=True)
+            (pdot,) = torch.autograd.grad(jt_probe, probe, qdot, create_graph=True)
+        return pdot
+
+    @_local_graph
+    def potential_energy(self, q):
+        """V(q) = user potential + gravity of the point masses (eq. 2.21), (*batch,)."""
+        v = self.potential(q)
+        v = torch.zeros(q.shape[:-1], dtype=q.dtype, device=q.device) if v is None else v
+        g = self.gravity()
+        if g is not None:
+            masses, p = self.point_masses(), self.positions(q)
+            if masses is None or p is None:
+                raise InputValidationError("gravity needs point_masses and positions")
+            height = (p * self._cast(g, q)).sum(-1)  # g . p_i
+            v = v - (self._cast(masses, q) * height).sum(-1)
+        return v
+
+    @_local_graph
+    def energy(self, q, qdot):
+        """Total energy T + V, (*batch,); conserved by unforced, undamped systems."""
+        return self.kinetic_energy(q, qdot) + self.potential_energy(q)
+
+    def lagrangian(self, q, qdot):
+        """L = T - V (eq. 2.33), (*batch,)."""
+        return self.kinetic_energy(q, qdot) - self.potential_energy(q)
+
+    # ------------------------------------------------------------------ Lagrange equation terms
+    @_local_graph
+    def generalized_forces(self, q, qdot, u=None):
+        """Q = generalized_force + sum_i (dp_i/dq)^T F_i (eq. 2.115), (*batch, nq); None when
+        the system has no external forces."""
+        total = self.generalized_force(q, qdot, u)
+        forces = self.point_forces(q, qdot, u)
+        if forces is not None:
+            create = self._needs_graph(q, qdot, forces)
+            with torch.enable_grad():
+                qq = self._leaf(q)
+                (q_force,) = torch.autograd.grad(
+                    self.force_points(qq), qq, forces, create_graph=create
+                )  # per-sample J^T F: the points of different samples are independent
+            q_force = q_force if create else q_force.detach()
+            total = q_force if total is None else total + q_force
+        return total
+
+    def _needs_graph(self, *tensors) -> bool:
+        """Whether results must stay differentiable (grad mode on and something requires grad)."""
+        if not torch.is_grad_enabled():
+            return False
+        return any(t.requires_grad for t in tensors) or any(
+            p.requires_grad for p in self.parameters()
+        )
+
+    @staticmethod
+    def _leaf(x):
+        return x if x.requires_grad else x.detach().requires_grad_(True)
+
+    def _terms_general(self, q, qdot):
+        """grad_q L, W and (d(W qdot)/dq) qdot (eq. 2.40) by batched reverse-mode autograd.
+
+        One reverse pass gives (grad_q L, grad_qdot L = W qdot) for the whole batch (samples
+        are independent, so the gradient of the summed Lagrangian is per-sample); nq further
+        reverse passes through grad_qdot L give the rows of W (d/dqdot) and of d(W qdot)/dq,
+        contracted with qdot on the fly.
+        """
+        n = self.nq
+        create = self._needs_graph(q, qdot)
+        with torch.enable_grad():
+            qq, qdd = self._leaf(q), self._leaf(qdot)
+            lag = self.lagrangian(qq, qdd).sum()
+            grad_l, momentum = torch.autograd.grad(lag, (qq, qdd), create_graph=True)
+            rows, convective = [], []
+            for j in range(n):
+                d_q, d_qd = torch.autograd.grad(
+                    momentum[..., j].sum(),
+                    (qq, qdd),
+                    create_graph=create,
+                    allow_unused=True,
+                    retain_graph=True,
+                )
+                rows.append(torch.zeros_like(q) if d_qd is None else d_qd)
+                convective.append(
+                    torch.zeros_like(q[..., 0]) if d_q is None else (d_q * qdot).sum(-1)
+                )
+        mass, convective = torch.stack(rows, -2), torch.stack(convective, -1)
+        if not create:
+            return grad_l.detach(), mass.detach(), convective.detach()
+        return grad_l, mass, convective
+
+    def _uses_point_masses(self) -> bool:
+        return (
+            self._kinetic is None
+            and type(self).kinetic_energy is LagrangianSystem.kinetic_energy
+            and self.diagonal_mass() is None
+            and self.point_masses() is not None
+        )
+
+    def _terms_points(self, q, qdot):
+        """W and grad_q T - (d(W qdot)/dq) qdot for point masses, d'Alembert form (eq. 2.5-2.6):
+        W = sum_i m_i J_i^T J_i and the convective term sum_i m_i J_i^T (dJ_i/dt qdot), with
+        the Jacobians J_i = dp_i/dq (nq directional derivatives) and the second directional
+        derivatives of p_i along qdot, all by reverse passes through the positions only."""
+        n = self.nq
+        create = self._needs_graph(q, qdot)
+        with torch.enable_grad():
+            qq = self._leaf(q)
+            p = self.positions(qq)
+            flat = p.reshape(*p.shape[:-2], -1)
+            probe = torch.zeros_like(flat, requires_grad=True)
+            (jt_probe,) = torch.autograd.grad(flat, qq, probe, create_graph=True)
+            eye = torch.eye(n, dtype=q.dtype, device=q.device)
+            columns = [
+                torch.autograd.grad(
+                    jt_probe, probe, eye[j].expand_as(q), create_graph=create, retain_graph=True
+                )[0]
+                for j in range(n)
+            ]
+            (pdot,) = torch.autograd.grad(jt_probe, probe, qdot, create_graph=True)
+            probe2 = torch.zeros_like(pdot, requires_grad=True)
+            (jt2,) = torch.autograd.grad(pdot, qq, probe2, create_graph=True, allow_unused=True)
+            if jt2 is None:
+                accel = torch.zeros_like(pdot)
+            else:
+                (accel,) = torch.autograd.grad(jt2, probe2, qdot, create_graph=create)
+        jac = torch.stack(columns, -1)  # (*batch, n_p * D, nq)
+        masses = self._cast(self.point_masses(), q)
+        dim = p.shape[-1]
+        weights = masses.repeat_interleave(dim)  # per coordinate of flat
+        mass = jac.transpose(-1, -2) @ (weights.unsqueeze(-1) * jac)
+        convective = (jac.transpose(-1, -2) @ (weights * accel).unsqueeze(-1)).squeeze(-1)
+        if not create:
+            mass, convective = mass.detach(), convective.detach()
+        return mass, -convective
+
+    def _grad_potential(self, q):
+        """grad V by one reverse pass on the batch (V of different samples are independent)."""
+        create = self._needs_graph(q)
+        with torch.enable_grad():
+            qq = self._leaf(q)
+            v = self.potential_energy(qq)
+            if v.grad_fn is None:
+                return torch.zeros_like(q)
+            (g,) = torch.autograd.grad(v, qq, torch.ones_like(v), create_graph=create)
+        return g if create else g.detach()
+
+    @_local_graph
+    def mass_matrix(self, q, qdot=None):
+        """W(q) = d^2 T / d qdot^2 (eq. 2.61), (*batch, nq, nq)."""
+        w = self.diagonal_mass()
+        if w is not None:
+            return torch.diag_embed(self._cast(w, q).expand(q.shape))
+        qdot = torch.zeros_like(q) if qdot is None else qdot
+        if self._uses_point_masses():
+            return self._terms_points(q, qdot)[0]
+        return self._terms_general(q, qdot)[1]
+
+    @_local_graph
+    def lagrange_terms(self, q, qdot, u=None):
+        """(W, r) with W qddot = r the unconstrained Lagrange equation (eq. 2.40 with Q, 2.112):
+        r = Q + grad_q L - (d(W qdot)/dq) qdot. W is (*batch, nq) (its diagonal) when the mass
+        matrix is constant and diagonal, else (*batch, nq, nq)."""
+        force = self.generalized_forces(q, qdot, u)
+        w = self.diagonal_mass()
+        if w is not None:
+            rhs = -self._grad_potential(q)
+            return self._cast(w, q).expand(q.shape), rhs if force is None else rhs + force
+        if self._uses_point_masses():
+            mass, rhs = self._terms_points(q, qdot)
+            rhs = rhs - self._grad_potential(q)
+        else:
+            grad_l, mass, convective = self._terms_general(q, qdot)
+            rhs = grad_l - convective
+        return mass, rhs if force is None else rhs + force
+
+    @_local_graph
+    def accelerations(self, q, qdot, u=None):
+        """qddot of the unconstrained system by a batched linear solve (eq. 2.42)."""
+        mass, rhs = self.lagrange_terms(q, qdot, u)
+        if mass.dim() == rhs.dim():
+            return rhs / mass
+        return _solve(mass, rhs, "the mass matrix W(q)")
+
+    # ------------------------------------------------------------------ constraints
+    @_local_graph
+    def constraint_terms(self, q, qdot):
+        """(c, a, cdot, curvature): c (*batch, nc), a = dc/dq (*batch, nc, nq), cdot = a qdot
+        (eq. 2.165a), curvature = (d(a qdot)/dq) qdot (eq. 2.165b); 2 nc reverse passes."""
+        create = self._needs_graph(q, qdot)
+        with torch.enable_grad():
+            qq = self._leaf(q)
+            c = self.constraints(qq)
+            rows, curvature = [], []
+            for i in range(c.shape[-1]):
+                (a_i,) = torch.autograd.grad(c[..., i].sum(), qq, create_graph=True)
+                cdot_i = (a_i * qdot).sum(-1)
+                (d_q,) = torch.autograd.grad(
+                    cdot_i.sum(), qq, create_graph=create, allow_unused=True
+                )
+                rows.append(a_i)
+                curvature.append(torch.zeros_like(cdot_i) if d_q is None else (d_q * qdot).sum(-1))
+            a = torch.stack(rows, -2)
+            curvature = torch.stack(curvature, -1)
+        cdot = (a @ qdot.unsqueeze(-1)).squeeze(-1)
+        if not create:
+            return c.detach(), a.detach(), cdot.detach(), curvature.detach()
+        return c, a, cdot, curvature
+
+    @_local_graph
+    def consistency(self, q, qdot):
+        """C(q, qdot) = [c(q); cdot(q, qdot)] (eq. 2.182), (*batch, 2 nc)."""
+        c, _, cdot, _ = self.constraint_terms(q, qdot)
+        return torch.cat([c, cdot], -1)
+
+    @_local_graph
+    def drift(self, x):
+        """Drift monitors (c(q(t)), cdot(t)) along states x (*batch, T, 2 nq) or (*batch, 2 nq)."""
+        q, qdot = x[..., : self.nq], x[..., self.nq :]
+        c, _, cdot, _ = self.constraint_terms(q, qdot)
+        return c, cdot
+
+    @_local_graph
+    def kkt_matrix(self, q):
+        """M(q) = [[W, a^T], [a, 0]] (eq. 2.168), (*batch, nq + nc, nq + nc)."""
+        qdot = torch.zeros_like(q)
+        mass = self.mass_matrix(q, qdot)
+        _, a, _, _ = self.constraint_terms(q, qdot)
+        nc = a.shape[-2]
+        top = torch.cat([mass, a.transpose(-1, -2)], -1)
+        bottom = torch.cat([a, a.new_zeros(*a.shape[:-2], nc, nc)], -1)
+        return torch.cat([top, bottom], -2)
+
+    @_local_graph
+    def kkt_solve(self, q, qdot, u=None, baumgarte: float | None = None):
+        """(qddot, z) of the index-1 form (eq. 2.168) with cddot + 2 alpha cdot + alpha^2 c = 0
+        (eq. 2.186) when alpha = ``baumgarte`` (default ``self.baumgarte``; None: cddot = 0)."""
+        alpha = self.baumgarte if baumgarte is None else baumgarte
+        mass, rhs = self.lagrange_terms(q, qdot, u)
+        c, a, cdot, curv = self.constraint_terms(q, qdot)
+        b = -curv
+        if alpha is not None:
+            b = b - 2 * alpha * cdot - alpha**2 * c
+        if mass.dim() == rhs.dim():  # diagonal W: Schur complement on the multipliers
+            a_winv = a / mass.unsqueeze(-2)
+            schur = a_winv @ a.transpose(-1, -2)
+            z = _solve(schur, (a_winv @ rhs.unsqueeze(-1)).squeeze(-1) - b, "a W^-1 a^T")
+            qddot = (rhs - (a.transpose(-1, -2) @ z.unsqueeze(-1)).squeeze(-1)) / mass
+            return qddot, z
+        nc = a.shape[-2]
+        top = torch.cat([mass, a.transpose(-1, -2)], -1)
+        bottom = torch.cat([a, a.new_zeros(*a.shape[:-2], nc, nc)], -1)
+        sol = _solve(torch.cat([top, bottom], -2), torch.cat([rhs, b], -1), "the KKT matrix M(q)")
+        return sol[..., : self.nq], sol[..., self.nq :]
+
+    # ------------------------------------------------------------------ model forms
+    @_local_graph
+    def forward(self, t, x, u=None):
+        """Explicit first-order ODE xdot = [qdot, qddot], x = [q, qdot] (*batch, 2 nq)."""
+        q, qdot = x[..., : self.nq], x[..., self.nq :]
+        if self.is_constrained:
+            qddot, _ = self.kkt_solve(q, qdot, u)
+        else:
+            qddot = self.accelerations(q, qdot, u)
+        return torch.cat([qdot, qddot], -1)
+
+    @_local_graph
+    def implicit_residual(self, t, xdot, x, u=None):
+        """F(t, xdot, x, u) of eq. (7.47): [qdot' - v; W(q) v' - r(q, v, u)] (unconstrained)."""
+        q, v = x[..., : self.nq], x[..., self.nq :]
+        mass, rhs = self.lagrange_terms(q, v, u)
+        vdot = xdot[..., self.nq :]
+        wv = mass * vdot if mass.dim() == rhs.dim() else (mass @ vdot.unsqueeze(-1)).squeeze(-1)
+        return torch.cat([xdot[..., : self.nq] - v, wv - rhs], -1)
+
+    @_local_graph
+    def _f_with_multipliers(self, t, x, z, u=None):
+        q, v = x[..., : self.nq], x[..., self.nq :]
+        mass, rhs = self.lagrange_terms(q, v, u)
+        _, a, _, _ = self.constraint_terms(q, v)
+        rhs = rhs - (a.transpose(-1, -2) @ z.unsqueeze(-1)).squeeze(-1)
+        vdot = rhs / mass if mass.dim() == rhs.dim() else _solve(mass, rhs, "W(q)")
+        return torch.cat([v, vdot], -1)
+
+    def index3_dae(self):
+        """Semi-explicit index-3 DAE (eq. 2.126): returns (f, g) with xdot = f(t, x, z, u) =
+        [v, W^-1 (r - a^T z)] and 0 = g(t, x, z, u) = c(q)."""
+
+        def g(t, x, z, u=None):
+            return self.constraints(x[..., : self.nq])
+
+        return self._f_with_multipliers, g
+
+    def index1_dae(self, baumgarte: float | None = None):
+        """Semi-explicit index-1 DAE (eq. 2.166-2.168, 2.187): (f, g) with the same f as
+        :meth:`index3_dae` and g = a vdot + (d(a v)/dq) v + 2 alpha cdot + alpha^2 c."""
+        alpha = self.baumgarte if baumgarte is None else baumgarte
+
+        def g(t, x, z, u=None):
+            q, v = x[..., : self.nq], x[..., self.nq :]
+            vdot = self._f_with_multipliers(t, x, z, u)[..., self.nq :]
+            c, a, cdot, curv = self.constraint_terms(q, v)
+            res = (a @ vdot.unsqueeze(-1)).squeeze(-1) + curv
+            if alpha is not None:
+                res = res + 2 * alpha * cdot + alpha**2 * c
+            return res
+
+        return self._f_with_multipliers, g
+
+    def project_consistent(self, q, qdot, tol: float = 1e-12, max_iter: int = 50):
+        """Least-norm projection of (q, qdot) onto C(q, qdot) = 0 (eq. 2.182).
+
+        Gauss-Newton steps q <- q - a^T (a a^T)^-1 c(q) until |c| <= tol, then
+        qdot <- qdot - a^T (a a^T)^-1 a qdot (the velocity made tangent, Fig. 2.9).
+        Raises ConvergenceError naming the samples that did not converge.
+        """
+        zero = torch.zeros_like(qdot)
+        for _ in range(max_iter):
+            c, a, _, _ = self.constraint_terms(q, zero)
+            if float(c.detach().abs().max()) <= tol:
+                break
+            gram = a @ a.transpose(-1, -2)
+            step = _solve(gram, c, "a a^T (constraint gradients are dependent)")
+            q = q - (a.transpose(-1, -2) @ step.unsqueeze(-1)).squeeze(-1)
+        else:
+            c, a, _, _ = self.constraint_terms(q, zero)
+            if float(c.detach().abs().max()) > tol:
+                bad = torch.nonzero(c.abs().amax(-1) > tol)[:5].tolist()
+                raise ConvergenceError(
+                    f"project_consistent: |c(q)| > {tol:g} after {max_iter} Newton steps at "
+                    f"batch indices {bad}; start closer to the constraint manifold"
+                )
+        gram = a @ a.transpose(-1, -2)
+        cdot = (a @ qdot.unsqueeze(-1)).squeeze(-1)
+        step = _solve(gram, cdot, "a a^T")
+        qdot = qdot - (a.transpose(-1, -2) @ step.unsqueeze(-1)).squeeze(-1)
+        return q, qdot
+
+    def linearize(self, q_eq, u_eq=None):
+        """A, B of xdot = f(x, u) at an equilibrium (q_eq, qdot = 0, u_eq) (eq. 1.35)."""
+        from .linearize import linearize
+
+        x = torch.cat([q_eq, torch.zeros_like(q_eq)], -1)
+        a, b, _, _ = linearize(self, x, u_eq)
+        return a, b

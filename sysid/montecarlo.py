@@ -1,0 +1,294 @@
+"""Monte-Carlo helpers: batched experiment generation and summaries of estimator statistics.
+
+A Monte-Carlo study is one batched call: :func:`input_signal` draws ``(*batch, N, nu)``
+inputs, :func:`simulate_data` runs a known system on them and adds noise (white output noise,
+or noise shaped by the model's own noise model ``H = C/(A D)``, e.g. the equation error
+``1/A`` of ARX), and :func:`summarize_estimates` compares the spread of the estimates with
+the covariance the theory predicts (bias, standard deviation, empirical covariance, relative
+Frobenius error, coverage of confidence intervals). All randomness comes from a
+``torch.Generator`` (or a seed).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from integrators.errors import InputValidationError
+
+from .data import IOData
+from .filters import iir_filter, poly_mul
+from .models import PolynomialModel
+
+__all__ = [
+    "INPUT_KINDS",
+    "NOISE_KINDS",
+    "MonteCarloSummary",
+    "fir_regressor",
+    "input_signal",
+    "noise_signal",
+    "simulate_data",
+    "summarize_estimates",
+]
+
+INPUT_KINDS = ("white", "prbs", "step", "sinusoid")
+NOISE_KINDS = ("gaussian", "student_t", "laplace", "uniform", "contaminated")
+
+
+def _generator(generator, seed, device) -> torch.Generator:
+    if generator is not None:
+        return generator
+    g = torch.Generator(device=device if device is not None else "cpu")
+    g.manual_seed(0 if seed is None else int(seed))
+    return g
+
+
+def input_signal(
+    kind: str,
+    N: int,
+    batch_shape=(),
+    *,
+    n_inputs: int = 1,
+    amplitude: float = 1.0,
+    omega: float = 0.3,
+    hold: int = 1,
+    generator: torch.Generator | None = None,
+    seed: int | None = None,
+    dtype=torch.float64,
+    device=None,
+) -> torch.Tensor:
+    """Excitation signals of shape ``(*batch_shape, N, n_inputs)``.
+
+    Args:
+        kind: ``"white"`` (Gaussian, standard deviation ``amplitude``), ``"prbs"`` (random
+            binary ``+-amplitude``, each level held ``hold`` samples: a pseudo-random binary
+            signal whose spectrum is white for ``hold = 1``), ``"step"`` (``amplitude`` from
+            sample 0 on, system at rest before) or ``"sinusoid"``
+            (``amplitude sin(omega k + phase)`` with a random phase per data set).
+        N: number of samples.
+        batch_shape: leading batch shape (one signal per data set).
+        omega: sinusoid frequency in rad/sample.
+        generator, seed: randomness (a generator wins over a seed).
+    """
+    if kind not in INPUT_KINDS:
+        raise InputValidationError(f"kind must be one of {INPUT_KINDS}, got {kind!r}.")
+    if N < 1 or hold < 1:
+        raise InputValidationError(f"need N >= 1 and hold >= 1, got N = {N}, hold = {hold}.")
+    batch_shape = torch.Size((batch_shape,) if isinstance(batch_shape, int) else batch_shape)
+    shape = (*batch_shape, N, n_inputs)
+    g = _generator(generator, seed, device)
+    to = dict(dtype=dtype, device=device)
+    if kind == "white":
+        return amplitude * torch.randn(shape, generator=g, **to)
+    if kind == "prbs":
+        n_levels = -(-N // hold)
+        levels = torch.randint(0, 2, (*batch_shape, n_levels, n_inputs), generator=g, device=device)
+        levels = (2 * levels - 1).to(dtype)
+        return amplitude * levels.repeat_interleave(hold, dim=-2)[..., :N, :]
+    if kind == "step":
+        return torch.full(shape, float(amplitude), **to)
+    phase = 2 * math.pi * torch.rand((*batch_shape, 1, n_inputs), generator=g, **to)
+    k = torch.arange(N, **to).reshape(N, 1)
+    return amplitude * torch.sin(omega * k + phase)
+
+
+def noise_signal(
+    shape,
+    kind: str = "gaussian",
+    *,
+    std: float = 1.0,
+    df: int = 3,
+    contamination: float = 0.1,
+    outlier_scale: float = 10.0,
+    generator: torch.Generator | None = None,
+    seed: int | None = None,
+    dtype=torch.float64,
+    device=None,
+) -> torch.Tensor:
+    """I.i.d. zero-mean noise with standard deviation ``std`` (scale for heavy tails).
+
+    Args:
+        kind: ``"gaussian"``; ``"student_t"`` (``df`` integer degrees of freedom, scaled to
+            ``std`` when ``df > 2``); ``"laplace"``; ``"uniform"`` on ``[-a, a]`` with
+            ``a = sqrt(3) std``; ``"contaminated"``: Gaussian with probability
+            ``1 - contamination`` and Gaussian ``outlier_scale`` times wider otherwise
+            (scaled so the inlier standard deviation is ``std``).
+    """
+    if kind not in NOISE_KINDS:
+        raise InputValidationError(f"noise kind must be one of {NOISE_KINDS}, got {kind!r}.")
+    g = _generator(generator, seed, device)
+    to = dict(dtype=dtype, device=device)
+    shape = tuple(shape)
+    if kind == "gaussian":
+        return std * torch.randn(shape, generator=g, **to)
+    if kind == "student_t":
+        if int(df) != df or df < 1:
+            raise InputValidationError(f"df must be a positive integer, got {df}.")
+        z = torch.randn(shape, generator=g, **to)
+        chi2 = (torch.randn((*shape, int(df)), generator=g, **to) ** 2).sum(-1)
+        t = z / torch.sqrt(chi2 / df)
+        return std * t * (math.sqrt((df - 2) / df) if df > 2 else 1.0)
+    if kind == "laplace":
+        v = torch.rand(shape, generator=g, **to) - 0.5
+        e = -torch.sign(v) * torch.log1p(-2 * v.abs())
+        return std * e / math.sqrt(2.0)
+    if kind == "uniform":
+        return std * math.sqrt(3.0) * (2 * torch.rand(shape, generator=g, **to) - 1)
+    outlier = torch.rand(shape, generator=g, **to) < contamination
+    z = torch.randn(shape, generator=g, **to)
+    return std * torch.where(outlier, outlier_scale * z, z)
+
+
+def fir_regressor(u: torch.Tensor, nb: int, nk: int = 0) -> torch.Tensor:
+    """FIR regressor ``U`` of eq. 4.8 from rest: ``U[k, i] = u_{k - nk - i}`` (0 for negative
+    times), shape ``(*batch, N, nb)`` for ``u`` of shape ``(*batch, N)``.
+
+    Unlike :meth:`sysid.FIR.regression`, which keeps only the rows whose lags are all inside
+    the record, this uses every sample and the knowledge that the system was at rest before
+    sample 0 (as in :func:`simulate_data`), as the notes do for Fig. 4.1.
+    """
+    padded = torch.nn.functional.pad(u, (nb - 1 + nk, 0))[..., : u.shape[-1] + nb - 1]
+    return padded.unfold(-1, nb, 1).flip(-1)
+
+
+def _noise_polynomials(model: PolynomialModel, theta: torch.Tensor):
+    """Numerator ``C`` and denominator tail of ``A D`` for ``H = C / (A D)``."""
+    names = model.parameter_names()
+
+    def monic(letter):
+        idx = [j for j, n in enumerate(names) if n[0] == letter]
+        one = torch.ones(*theta.shape[:-1], 1, dtype=theta.dtype, device=theta.device)
+        return torch.cat([one, theta[..., idx]], dim=-1)
+
+    AD = poly_mul(monic("a"), monic("d"))
+    return monic("c"), AD[..., 1:]
+
+
+def simulate_data(
+    model: PolynomialModel,
+    u: torch.Tensor,
+    *,
+    noise_std: float = 0.0,
+    noise: str = "output",
+    noise_kind: str = "gaussian",
+    theta: torch.Tensor | None = None,
+    generator: torch.Generator | None = None,
+    seed: int | None = None,
+    Ts: float | None = None,
+    **noise_options,
+) -> IOData:
+    """Data sets of a known system: ``y = G u + v`` with ``v = e`` or ``v = H e``.
+
+    Args:
+        model: the true system (its parameters, or ``theta``).
+        u: inputs ``(*batch, N, nu)``.
+        noise_std: standard deviation of the white noise ``e``.
+        noise: ``"output"`` (``v = e``: white measurement noise, the OE assumption) or
+            ``"model"`` (``v = C/(A D) e``: the model's own noise model; for ARX the equation
+            error ``A y = B u + e``, eq. 4.117–4.120).
+        noise_kind: distribution of ``e`` (see :func:`noise_signal`).
+        theta: true parameters ``(*batch, p)`` or ``(p,)`` (default: the model's).
+        generator, seed: randomness of ``e``.
+        Ts: sample time of the data (default: the model's).
+        **noise_options: passed to :func:`noise_signal` (``df``, ``contamination``, ...).
+
+    Returns:
+        :class:`IOData` with the broadcast batch shape.
+    """
+    if noise not in ("output", "model"):
+        raise InputValidationError(f"noise must be 'output' or 'model', got {noise!r}.")
+    th = model.parameter_vector().detach() if theta is None else torch.as_tensor(theta)
+    th = th.to(dtype=u.dtype, device=u.device)
+    y = model.simulate(u, theta=th)
+    if noise_std > 0:
+        e = noise_signal(
+            y.shape[:-1],
+            noise_kind,
+            std=noise_std,
+            generator=_generator(generator, seed, u.device),
+            dtype=y.dtype,
+            device=y.device,
+            **noise_options,
+        )
+        if noise == "model":
+            C, AD = _noise_polynomials(model, th)
+            e = iir_filter(C, AD, e)
+        y = y + e.unsqueeze(-1)
+    return IOData(u, y, model.Ts if Ts is None else Ts)
+
+
+@dataclass
+class MonteCarloSummary:
+    """Statistics of ``T`` estimates of a ``p``-vector (see :func:`summarize_estimates`).
+
+    Attributes:
+        mean, bias, std: ``(p,)``; ``bias = mean - truth``; ``std`` the sample standard
+            deviation.
+        bias_standard_error: ``std / sqrt(T)`` (is the bias significant?), ``(p,)``.
+        covariance: sample covariance about the mean, ``(p, p)``.
+        mse: mean squared error ``E ||theta_hat - truth||^2`` (scalar tensor).
+        predicted_covariance: the theoretical covariance passed in, or None.
+        relative_frobenius_error: ``||cov - predicted||_F / ||predicted||_F`` or None.
+        coverage: fraction of trials whose truth lies within ``k`` standard errors in every
+            parameter (when standard errors were given), or None.
+        n_trials: ``T``.
+    """
+
+    mean: torch.Tensor
+    bias: torch.Tensor
+    std: torch.Tensor
+    bias_standard_error: torch.Tensor
+    covariance: torch.Tensor
+    mse: torch.Tensor
+    n_trials: int
+    predicted_covariance: torch.Tensor | None = None
+    relative_frobenius_error: torch.Tensor | None = None
+    coverage: torch.Tensor | None = None
+
+
+def summarize_estimates(
+    estimates: torch.Tensor,
+    truth: torch.Tensor,
+    predicted_covariance: torch.Tensor | None = None,
+    standard_errors: torch.Tensor | None = None,
+    k: float = 3.0,
+) -> MonteCarloSummary:
+    """Bias, spread and covariance of Monte-Carlo estimates against theory.
+
+    Args:
+        estimates: ``(*trials, p)`` (all leading dimensions are trials).
+        truth: ``(p,)``.
+        predicted_covariance: e.g. ``sigma^2 (U'U)^{-1}`` (eq. 4.101), ``(p, p)``.
+        standard_errors: per-trial standard errors ``(*trials, p)`` for the coverage.
+        k: half-width of the coverage interval in standard errors.
+    """
+    est = estimates.detach().reshape(-1, estimates.shape[-1])
+    T = est.shape[0]
+    if T < 2:
+        raise InputValidationError("need at least 2 trials to summarise estimates.")
+    truth = torch.as_tensor(truth, dtype=est.dtype, device=est.device)
+    mean = est.mean(0)
+    dev = est - mean
+    cov = dev.T @ dev / (T - 1)
+    std = cov.diagonal().sqrt()
+    summary = MonteCarloSummary(
+        mean=mean,
+        bias=mean - truth,
+        std=std,
+        bias_standard_error=std / math.sqrt(T),
+        covariance=cov,
+        mse=((est - truth) ** 2).sum(-1).mean(),
+        n_trials=T,
+    )
+    if predicted_covariance is not None:
+        P = torch.as_tensor(predicted_covariance, dtype=est.dtype, device=est.device)
+        summary.predicted_covariance = P
+        summary.relative_frobenius_error = torch.linalg.matrix_norm(
+            cov - P
+        ) / torch.linalg.matrix_norm(P)
+    if standard_errors is not None:
+        se = standard_errors.detach().reshape(-1, est.shape[-1])
+        summary.coverage = ((est - truth).abs() <= k * se).all(-1).to(est.dtype).mean()
+    return summary

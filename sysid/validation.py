@@ -1,0 +1,413 @@
+"""Model validation: fit percentage, residual whiteness/independence tests, AIC, FPE.
+
+All functions take sequences in the project convention ``(*batch, N, channels)`` (a 1-D
+tensor is one single-channel sequence) and reduce over the time axis, so a Monte-Carlo
+batch of data sets is validated in one call.
+
+Formulas (``N`` samples, ``d`` estimated parameters, residuals ``e_k``,
+``V = (1/N) sum_k e_k^2`` the mean squared residual, i.e. the maximum-likelihood estimate of
+the noise variance):
+
+* ``fit_percent``: ``100 (1 - ||y - yhat|| / ||y - mean(y)||)`` per output channel (MATLAB's
+  ``compare``: 100 is a perfect fit, 0 is no better than the mean, negative is worse).
+* ``aic``: ``N log V + 2 d + N (log 2 pi + 1)`` = ``-2 log L + 2 d`` for Gaussian residuals
+  with the maximised log-likelihood ``log L = -N/2 (log(2 pi V) + 1)`` (Akaike 1974; the
+  constant term matches MATLAB's raw AIC for a single output).
+* ``fpe``: ``V (1 + d/N) / (1 - d/N)`` (Akaike's final prediction error).
+* ``residual_test``: sample autocorrelation ``rho_e(tau)`` of the (demeaned) residuals,
+  ``tau = 0..m``, and cross-correlation ``rho_eu(tau) = sum_k e_{k+tau} u_k / (N s_e s_u)``,
+  ``tau = -m..m``, with the band ``+/- z_{1-alpha/2} / sqrt(N)`` valid for white residuals;
+  the Ljung–Box statistic ``Q = N (N + 2) sum_{tau=1}^{m} rho_e(tau)^2 / (N - tau)``, which is
+  ``chi^2(m - n_params)`` for white residuals, and the independence statistic
+  ``S = N sum_{tau=0}^{m} rho_eu(tau)^2``, ``chi^2(m + 1)`` per input when the residuals are
+  white and independent of past inputs.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import scipy.stats
+import torch
+
+from integrators.errors import InputValidationError
+
+__all__ = [
+    "OrderSelection",
+    "ResidualTestResult",
+    "aic",
+    "fit_percent",
+    "fpe",
+    "residual_test",
+    "select_order",
+]
+
+
+def _as_sequences(x, name: str) -> torch.Tensor:
+    """Canonical ``(*batch, N, channels)`` view (1-D input becomes ``(N, 1)``)."""
+    x = torch.as_tensor(x)
+    if not x.is_floating_point():
+        x = x.to(torch.get_default_dtype())
+    if x.dim() == 0:
+        raise InputValidationError(
+            f"{name} must be a sequence (*batch, N, channels), got a scalar."
+        )
+    if x.dim() == 1:
+        x = x.unsqueeze(-1)
+    bad = ~torch.isfinite(x)
+    if bool(bad.any()):
+        idx = tuple(int(i) for i in torch.nonzero(bad)[0])
+        raise InputValidationError(
+            f"{name} contains a non-finite value at index {idx} (time index {idx[-2]})."
+        )
+    return x
+
+
+def fit_percent(y, yhat) -> torch.Tensor:
+    """MATLAB's fit: ``100 (1 - ||y - yhat|| / ||y - mean(y)||)`` per output channel.
+
+    Args:
+        y: measured outputs ``(*batch, N, ny)`` (or ``(N,)``).
+        yhat: model outputs (simulated or predicted), same shape as ``y`` (broadcastable).
+
+    Returns:
+        Fit in percent, shape ``(*batch, ny)``.
+
+    Raises:
+        InputValidationError: shapes do not match, non-finite values, or a constant ``y``
+            (the normalisation ``||y - mean(y)||`` is zero).
+    """
+    y = _as_sequences(y, "y")
+    yhat = _as_sequences(yhat, "yhat").to(dtype=y.dtype, device=y.device)
+    try:
+        torch.broadcast_shapes(y.shape, yhat.shape)
+    except RuntimeError as exc:
+        raise InputValidationError(
+            f"fit_percent: y {tuple(y.shape)} and yhat {tuple(yhat.shape)} do not match."
+        ) from exc
+    num = torch.linalg.vector_norm(y - yhat, dim=-2)
+    den = torch.linalg.vector_norm(y - y.mean(dim=-2, keepdim=True), dim=-2)
+    if bool((den == 0).any()):
+        raise InputValidationError(
+            "fit_percent: y is constant in time for some batch member/channel, so the fit "
+            "is undefined; compare on a data set with a varying output."
+        )
+    return 100.0 * (1.0 - num / den)
+
+
+def _loss_function(residuals) -> tuple[torch.Tensor, int]:
+    """``V = det(E'E / N)`` (the mean squared residual for one output) and ``N``."""
+    e = _as_sequences(residuals, "residuals")
+    N = e.shape[-2]
+    if e.shape[-1] == 1:
+        V = (e * e).mean(dim=(-2, -1))
+    else:
+        V = torch.linalg.det(e.transpose(-1, -2) @ e / N)
+    return V, N
+
+
+def aic(residuals, n_params: int) -> torch.Tensor:
+    """Akaike's information criterion ``N log V + 2 d + N ny (log 2 pi + 1)`` (Gaussian).
+
+    Args:
+        residuals: prediction errors ``(*batch, N, ny)`` of the model on the estimation data.
+        n_params: number ``d`` of estimated parameters.
+
+    Returns:
+        AIC, shape ``(*batch,)``; smaller is better.
+    """
+    V, N = _loss_function(residuals)
+    ny = _as_sequences(residuals, "residuals").shape[-1]
+    return N * torch.log(V) + 2 * n_params + N * ny * (math.log(2 * math.pi) + 1)
+
+
+def fpe(residuals, n_params: int) -> torch.Tensor:
+    """Akaike's final prediction error ``V (1 + d/N) / (1 - d/N)``.
+
+    Args:
+        residuals: prediction errors ``(*batch, N, ny)`` on the estimation data.
+        n_params: number ``d`` of estimated parameters (``d < N``).
+
+    Returns:
+        FPE, shape ``(*batch,)``; an estimate of the prediction-error variance on fresh data.
+    """
+    V, N = _loss_function(residuals)
+    if n_params >= N:
+        raise InputValidationError(f"fpe: need n_params < N, got d = {n_params}, N = {N}.")
+    return V * (1 + n_params / N) / (1 - n_params / N)
+
+
+def _correlate(a: torch.Tensor, b: torch.Tensor, max_lag: int) -> torch.Tensor:
+    """``c(tau) = sum_k a_{k+tau} b_k`` for ``tau = 0..max_lag`` along dim -1, via FFT."""
+    N = a.shape[-1]
+    n = 1 << (2 * N - 1).bit_length()
+    fa = torch.fft.rfft(a, n=n)
+    fb = torch.fft.rfft(b, n=n)
+    c = torch.fft.irfft(fa * fb.conj(), n=n)
+    return c[..., : max_lag + 1]
+
+
+@dataclass
+class ResidualTestResult:
+    """Result of :func:`residual_test` (batch dims ``*batch`` of the residuals).
+
+    Attributes:
+        lags: ``0..max_lag``.
+        autocorrelation: ``rho_e(tau)``, ``(*batch, max_lag + 1)`` (``rho_e(0) = 1``).
+        bound: half-width ``z_{1-alpha/2} / sqrt(N)`` of the confidence band.
+        whiteness_statistic: Ljung–Box ``Q``, ``(*batch,)``.
+        whiteness_dof: degrees of freedom of ``Q``'s chi-square law.
+        whiteness_pvalue: ``P[chi^2 >= Q]``, ``(*batch,)``.
+        white: ``whiteness_pvalue >= alpha``, ``(*batch,)`` bool.
+        fraction_outside: fraction of lags ``1..max_lag`` with ``|rho_e| > bound``.
+        cross_lags: ``-max_lag..max_lag`` (None without input).
+        cross_correlation: ``rho_eu(tau)``, ``(*batch, nu, 2 max_lag + 1)`` or None.
+        independence_statistic: ``S`` per input, ``(*batch, nu)`` or None.
+        independence_pvalue: ``P[chi^2(max_lag + 1) >= S]``, ``(*batch, nu)`` or None.
+        independent: all inputs pass, ``(*batch,)`` bool or None.
+        alpha: significance level used.
+    """
+
+    lags: torch.Tensor
+    autocorrelation: torch.Tensor
+    bound: float
+    whiteness_statistic: torch.Tensor
+    whiteness_dof: int
+    whiteness_pvalue: torch.Tensor
+    white: torch.Tensor
+    fraction_outside: torch.Tensor
+    alpha: float
+    cross_lags: torch.Tensor | None = None
+    cross_correlation: torch.Tensor | None = None
+    independence_statistic: torch.Tensor | None = None
+    independence_pvalue: torch.Tensor | None = None
+    independent: torch.Tensor | None = field(default=None)
+
+    @property
+    def passed(self) -> torch.Tensor:
+        """Whiteness passed and, when an input was given, independence passed too."""
+        if self.independent is None:
+            return self.white
+        return self.white & self.independent
+
+
+def residual_test(
+    residuals, u=None, max_lag: int = 25, alpha: float = 0.01, n_params: int = 0
+) -> ResidualTestResult:
+    """Whiteness of residuals and their independence from past inputs (MATLAB ``resid``).
+
+    Args:
+        residuals: prediction errors ``(*batch, N, 1)`` (or ``(N,)``); one output.
+        u: inputs ``(*batch, N, nu)`` of the same data set, or None.
+        max_lag: largest lag ``m`` (``1 <= m < N``).
+        alpha: significance level of the bands and tests.
+        n_params: number of noise-model parameters fitted to the residuals (reduces the
+            Ljung–Box degrees of freedom to ``m - n_params``; 0 for a plain whiteness test).
+
+    Returns:
+        :class:`ResidualTestResult`.
+    """
+    e = _as_sequences(residuals, "residuals")
+    if e.shape[-1] != 1:
+        raise InputValidationError(
+            f"residual_test: expected one output channel, got {e.shape[-1]}."
+        )
+    N = e.shape[-2]
+    if not 1 <= max_lag < N:
+        raise InputValidationError(f"residual_test: need 1 <= max_lag < N = {N}, got {max_lag}.")
+    if not 0 <= n_params < max_lag:
+        raise InputValidationError(
+            f"residual_test: need 0 <= n_params < max_lag, got {n_params} and {max_lag}."
+        )
+    x = e[..., 0]
+    x = x - x.mean(dim=-1, keepdim=True)
+    c = _correlate(x, x, max_lag)
+    if bool((c[..., 0] <= 0).any()):
+        raise InputValidationError("residual_test: residuals are identically zero.")
+    rho = c / c[..., :1]
+    z = float(scipy.stats.norm.ppf(1 - alpha / 2))
+    bound = z / math.sqrt(N)
+    taus = torch.arange(1, max_lag + 1, dtype=x.dtype, device=x.device)
+    Q = N * (N + 2) * (rho[..., 1:] ** 2 / (N - taus)).sum(-1)
+    dof = max_lag - n_params
+    pval = torch.as_tensor(
+        scipy.stats.chi2.sf(Q.detach().cpu().numpy(), dof), dtype=x.dtype, device=x.device
+    )
+    result = ResidualTestResult(
+        lags=torch.arange(max_lag + 1, device=x.device),
+        autocorrelation=rho,
+        bound=bound,
+        whiteness_statistic=Q,
+        whiteness_dof=dof,
+        whiteness_pvalue=pval,
+        white=pval >= alpha,
+        fraction_outside=(rho[..., 1:].abs() > bound).to(x.dtype).mean(-1),
+        alpha=alpha,
+    )
+    if u is None:
+        return result
+    uu = _as_sequences(u, "u").to(dtype=x.dtype, device=x.device)
+    if uu.shape[-2] != N:
+        raise InputValidationError(
+            f"residual_test: u has {uu.shape[-2]} samples but the residuals have {N}."
+        )
+    uu = uu.transpose(-1, -2)  # (*batch, nu, N)
+    uu = uu - uu.mean(dim=-1, keepdim=True)
+    su = torch.linalg.vector_norm(uu, dim=-1)
+    if bool((su == 0).any()):
+        raise InputValidationError("residual_test: an input channel is constant.")
+    xs = x.unsqueeze(-2)
+    scale = (su * c[..., :1].sqrt()).unsqueeze(-1)
+    pos = _correlate(xs, uu, max_lag) / scale  # e_{k+tau} u_k, tau >= 0
+    neg = _correlate(uu, xs, max_lag) / scale  # e_{k-tau} u_k
+    cross = torch.cat([neg[..., 1:].flip(-1), pos], dim=-1)
+    S = N * (pos**2).sum(-1)
+    ipval = torch.as_tensor(
+        scipy.stats.chi2.sf(S.detach().cpu().numpy(), max_lag + 1),
+        dtype=x.dtype,
+        device=x.device,
+    )
+    result.cross_lags = torch.arange(-max_lag, max_lag + 1, device=x.device)
+    result.cross_correlation = cross
+    result.independence_statistic = S
+    result.independence_pvalue = ipval
+    result.independent = (ipval >= alpha).all(dim=-1)
+    return result
+
+
+_STRUCTURES = {
+    "fir": (("nb",), [(nb,) for nb in range(1, 11)]),
+    "arx": (("na", "nb"), [(na, nb) for na in range(1, 5) for nb in range(1, 5)]),
+    "oe": (("nb", "nf"), [(nb, nf) for nb in range(1, 4) for nf in range(1, 4)]),
+    "armax": (("na", "nb", "nc"), [(n, n, c) for n in range(1, 4) for c in range(0, 3)]),
+}
+
+
+@dataclass
+class OrderSelection:
+    """Result of :func:`select_order`.
+
+    Attributes:
+        orders: the candidate orders (tuples, named by ``order_names``).
+        order_names: e.g. ``("na", "nb")``.
+        n_params: parameters per candidate.
+        aic, fpe: ``(n_candidates, *batch)`` criteria on the estimation data.
+        validation_loss: ``(n_candidates, *batch)`` mean squared one-step prediction error on
+            the validation data (None unless ``criterion="validation"``).
+        criterion: the criterion used.
+        best_index: ``(*batch,)`` index of the chosen candidate per data set.
+        best: chosen orders of the first data set (or of the only one).
+        table: one dict per candidate (criteria averaged over the batch), ready for
+            ``experiments._common.write_table``.
+    """
+
+    orders: list[tuple[int, ...]]
+    order_names: tuple[str, ...]
+    n_params: list[int]
+    aic: torch.Tensor
+    fpe: torch.Tensor
+    validation_loss: torch.Tensor | None
+    criterion: str
+    best_index: torch.Tensor
+    best: tuple[int, ...]
+    table: list[dict]
+
+
+def select_order(
+    data,
+    structure: str = "arx",
+    orders=None,
+    criterion: str = "aic",
+    *,
+    nk: int = 1,
+    validation_data=None,
+    tolerance: float = 0.01,
+) -> OrderSelection:
+    """Pick the smallest model structure the data support ("model only what is needed").
+
+    Every candidate is fitted with :func:`sysid.fit` (batched over the data sets) and scored
+    on one-step prediction errors over the same samples (the first ``max lag`` samples of
+    the largest candidate are left out for all, so every candidate sees the same ``N``).
+
+    * ``"aic"`` / ``"fpe"``: the minimum of the criterion (their ``2 d`` and
+      ``(1 + d/N)/(1 - d/N)`` penalties trade fit against size); ties go to fewer parameters.
+    * ``"validation"``: the mean squared one-step prediction error on ``validation_data``
+      (default: the second half of ``data``, the first half being used for estimation); the
+      smallest candidate within ``1 + tolerance`` of the best loss is chosen.
+
+    Args:
+        data: :class:`sysid.IOData` (one output; a batch of data sets is allowed).
+        structure: ``"fir"``, ``"arx"``, ``"oe"`` or ``"armax"``.
+        orders: candidate order tuples (``(nb,)``, ``(na, nb)``, ``(nb, nf)``,
+            ``(na, nb, nc)``); default: a small grid (see ``_STRUCTURES``).
+        criterion: ``"aic"``, ``"fpe"`` or ``"validation"``.
+        nk: input delay of every candidate.
+
+    Returns:
+        :class:`OrderSelection` with the table of criteria.
+    """
+    from . import models
+    from .estimation import fit
+
+    if structure not in _STRUCTURES:
+        raise InputValidationError(f"structure must be one of {tuple(_STRUCTURES)}.")
+    if criterion not in ("aic", "fpe", "validation"):
+        raise InputValidationError("criterion must be 'aic', 'fpe' or 'validation'.")
+    names, default = _STRUCTURES[structure]
+    orders = [tuple(int(v) for v in o) for o in (default if orders is None else orders)]
+    if not orders or any(len(o) != len(names) for o in orders):
+        raise InputValidationError(f"orders must be tuples {names} for structure {structure!r}.")
+    cls = {"fir": models.FIR, "arx": models.ARX, "oe": models.OE, "armax": models.ARMAX}[structure]
+    if criterion == "validation" and validation_data is None:
+        estimation, validation_data = data.split(0.5)
+    else:
+        estimation = data
+    skip = max(max(o) for o in orders) + nk
+    kw = dict(n_inputs=estimation.nu, dtype=estimation.dtype, device=estimation.device)
+    aics, fpes, vals, n_params = [], [], [], []
+    for order in orders:  # loop over candidate structures (each fit is batched)
+        model = cls(*order, nk=nk, **kw)
+        result = fit(model, estimation)
+        e = result.model.prediction_errors(estimation)[..., skip:, :]
+        d = result.model.n_params
+        n_params.append(d)
+        aics.append(aic(e, d))
+        fpes.append(fpe(e, d))
+        if criterion == "validation":
+            ev = result.model.prediction_errors(validation_data)[..., skip:, :]
+            vals.append((ev * ev).mean(dim=(-2, -1)))
+    A, Fp = torch.stack(aics), torch.stack(fpes)
+    V = torch.stack(vals) if vals else None
+    size = torch.tensor(n_params, dtype=A.dtype, device=A.device).reshape(
+        -1, *([1] * (A.dim() - 1))
+    )
+    if criterion == "validation":
+        ok = V <= V.min(dim=0).values * (1 + tolerance)
+    else:
+        score = A if criterion == "aic" else Fp
+        ok = score <= score.min(dim=0).values
+    # among acceptable candidates, the fewest parameters (then the first listed)
+    rank = torch.where(ok, size, torch.full_like(size.expand_as(ok), math.inf))
+    best_index = rank.argmin(dim=0)
+    table = []
+    for i, order in enumerate(orders):
+        row = dict(zip(names, order, strict=True))
+        row.update(n_params=n_params[i], aic=A[i].mean().item(), fpe=Fp[i].mean().item())
+        if V is not None:
+            row["validation_mse"] = V[i].mean().item()
+        row["chosen_fraction"] = (best_index == i).to(A.dtype).mean().item()
+        table.append(row)
+    first = int(best_index.reshape(-1)[0])
+    return OrderSelection(
+        orders=orders,
+        order_names=names,
+        n_params=n_params,
+        aic=A,
+        fpe=Fp,
+        validation_loss=V,
+        criterion=criterion,
+        best_index=best_index,
+        best=orders[first],
+        table=table,
+    )

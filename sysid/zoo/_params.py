@@ -1,0 +1,49 @@
+"""Helpers shared by the plants of the zoo: physical parameters as ``nn.Parameter``.
+
+A parameter is stored in float64 (or the floating dtype of a tensor handed in) and cast to the
+dtype and device of the state in ``forward``, so a float32 simulation of a float64 plant works
+and gradients still flow to the stored parameter. A tensor parameter broadcasts against the
+batch: ``mu`` of shape ``(256, 1)`` gives 256 plants for states of shape ``(256, n)``.
+"""
+
+import torch
+from torch import nn
+
+from integrators.errors import InputValidationError
+
+
+def as_parameter(value, name: str) -> nn.Parameter:
+    """Wrap a float, array or tensor as a float ``nn.Parameter`` (float64 unless a float tensor)."""
+    if isinstance(value, torch.Tensor):
+        tensor = value.detach().clone()
+        if not tensor.is_floating_point():
+            tensor = tensor.to(torch.float64)
+    else:
+        tensor = torch.as_tensor(value, dtype=torch.float64)
+    if not torch.isfinite(tensor).all():
+        raise InputValidationError(f"parameter {name!r} must be finite, got {value!r}")
+    return nn.Parameter(tensor)
+
+
+def like(param: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``param`` cast (differentiably) to the dtype and device of ``x``."""
+    return param.to(dtype=x.dtype, device=x.device)
+
+
+def check_state(x: torch.Tensor, n: int, plant: str) -> None:
+    """Raise InputValidationError unless ``x`` has shape ``(*batch, n)``."""
+    if not isinstance(x, torch.Tensor) or x.dim() < 1 or x.shape[-1] != n:
+        shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
+        raise InputValidationError(f"{plant}: state must have shape (*batch, {n}), got {shape}")
+
+
+def input_or_zero(u, x: torch.Tensor, nu: int) -> torch.Tensor:
+    """The input ``u`` as a tensor like ``x`` with last dimension ``nu`` (zeros when None)."""
+    if u is None:
+        return x.new_zeros((*x.shape[:-1], nu))
+    u = torch.as_tensor(u, dtype=x.dtype, device=x.device)
+    if u.dim() == 0:
+        u = u.expand(nu)
+    if u.shape[-1] != nu:
+        raise InputValidationError(f"input must have last dimension {nu}, got {tuple(u.shape)}")
+    return u

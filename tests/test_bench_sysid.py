@@ -1,0 +1,19 @@
+"""Run the estimator benchmark in --quick mode and check that the methods agree (not time)."""
+
+from experiments import bench_sysid
+
+
+def test_bench_sysid_quick_agreement(tmp_path):
+    rows = bench_sysid.main(["--quick", "--out", str(tmp_path)])
+    fir = [r for r in rows if r["task"].startswith("300 FIR")]
+    assert len(fir) == 3
+    assert all(r["max_param_diff_vs_numpy"] < 1e-10 for r in fir)
+    oe = {r["method"]: r for r in rows if r["task"].startswith("OE(4,4) fit")}
+    ours, scipy_fit = oe["sysid.fit gauss_newton"], oe["scipy least_squares (trf, 2-point)"]
+    # both reach the same least-squares optimum (cost and parameters)
+    assert abs(ours["final_cost"] - scipy_fit["final_cost"]) < 1e-6 * scipy_fit["final_cost"]
+    assert abs(ours["param_error_vs_truth"] - scipy_fit["param_error_vs_truth"]) < 2e-3
+    assert ours["param_error_vs_truth"] < 0.05
+    grads = [r for r in rows if "gradient" in r["task"]]
+    assert all(r["grad_rel_diff"] < 1e-10 for r in grads)
+    assert (tmp_path / "bench_sysid.md").exists()

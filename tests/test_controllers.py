@@ -1,0 +1,114 @@
+"""Step-size controllers, error norm and initial step (notes §6.5), checked against the
+formulas written out by hand."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from integrators import IController, InputValidationError, PIController
+from integrators.controllers import error_norm, initial_step
+
+torch.set_default_dtype(torch.float64)
+
+
+def test_error_norm_is_hairers_weighted_rms():
+    rng = np.random.default_rng(1)
+    err, xo, xn = (rng.normal(size=(5, 3)) for _ in range(3))
+    rtol, atol = 1e-3, 1e-6
+    expected = np.sqrt(np.mean((err / (atol + rtol * np.maximum(abs(xo), abs(xn)))) ** 2, -1))
+    got = error_norm(*(torch.tensor(a) for a in (err, xo, xn)), rtol, atol)
+    np.testing.assert_allclose(got.numpy(), expected, rtol=1e-13)
+    # per-component tolerances broadcast
+    atol_vec = torch.tensor([1e-6, 1e-3, 1.0])
+    got = error_norm(*(torch.tensor(a) for a in (err, xo, xn)), rtol, atol_vec)
+    expected = np.sqrt(
+        np.mean((err / (atol_vec.numpy() + rtol * np.maximum(abs(xo), abs(xn)))) ** 2, -1)
+    )
+    np.testing.assert_allclose(got.numpy(), expected, rtol=1e-13)
+
+
+def test_i_controller_formula_bounds_and_rejection():
+    ctrl = IController(safety=0.9, min_factor=0.2, max_factor=10.0)
+    err = torch.tensor([0.5, 2.0, 1e-30, math.nan, math.inf, 1.0])
+    dt = torch.full((6,), 0.1)
+    accept, new = ctrl.propose(err, torch.ones(6), dt, order=4)
+    assert accept.tolist() == [True, False, True, False, False, True]
+    expected = [
+        0.1 * 0.9 * 0.5**-0.2,
+        0.1 * 0.9 * 2.0**-0.2,
+        0.1 * 10.0,  # capped by max_factor
+        0.1 * 0.2,  # non-finite trial: maximal shrink
+        0.1 * 0.2,
+        0.1 * 0.9,
+    ]
+    np.testing.assert_allclose(new.numpy(), expected, rtol=1e-14)
+    # right after a rejection the step may not grow
+    _, new = ctrl.propose(
+        torch.tensor([1e-6]),
+        torch.ones(1),
+        torch.tensor([0.1]),
+        4,
+        after_reject=torch.tensor([True]),
+    )
+    assert float(new[0]) == pytest.approx(0.1)
+
+
+def test_pi_controller_formula():
+    ctrl = PIController(beta1=0.7, beta2=-0.4, safety=0.9)
+    err = torch.tensor([0.3, 3.0])
+    prev = torch.tensor([0.8, 0.8])
+    accept, new = ctrl.propose(err, prev, torch.tensor([1.0, 1.0]), order=4)
+    assert accept.tolist() == [True, False]
+    # accepted: safety * err^(-beta1/k) * prev^(-beta2/k), k = 5; rejected: I formula
+    assert float(new[0]) == pytest.approx(0.9 * 0.3 ** (-0.7 / 5) * 0.8 ** (0.4 / 5), rel=1e-14)
+    assert float(new[1]) == pytest.approx(0.9 * 3.0 ** (-1 / 5), rel=1e-14)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    err=st.floats(1e-8, 1e3),
+    prev=st.floats(1e-6, 1.0),
+    dt=st.floats(1e-6, 1e2),
+    order=st.integers(1, 8),
+)
+def test_pi_with_beta_1_0_is_the_i_controller(err, prev, dt, order):
+    args = (torch.tensor([err]), torch.tensor([prev]), torch.tensor([dt]), order)
+    a_i, h_i = IController().propose(*args)
+    a_pi, h_pi = PIController(beta1=1.0, beta2=0.0).propose(*args)
+    assert bool(a_i[0]) == bool(a_pi[0]) == (err <= 1.0)
+    assert float(h_pi[0]) == pytest.approx(float(h_i[0]), rel=1e-12)
+    assert 0.2 * dt * (1 - 1e-12) <= float(h_i[0]) <= 10.0 * dt * (1 + 1e-12)
+
+
+def test_initial_step_on_linear_equation_by_hand():
+    """x' = lam x: d0 = |x0|/sc, d1 = |lam| d0, h0 = 0.01/|lam|, d2 = lam^2 d0,
+    h1 = (0.01 / max(d1, d2))^(1/5), h = min(100 h0, h1)."""
+    lam = torch.tensor([[-2.0], [-50.0], [0.0]])
+    x0 = torch.tensor([[1.0], [3.0], [1.0]])
+
+    def rhs(t, x):
+        return lam * x
+
+    h = initial_step(rhs, torch.zeros(3), x0, rhs(None, x0), 4, 1e-6, 1e-9, span=10.0)
+    for i in range(2):
+        a, x = abs(float(lam[i, 0])), float(x0[i, 0])
+        d0 = x / (1e-9 + 1e-6 * x)
+        h0 = 0.01 * d0 / (a * d0)
+        d2 = a * a * d0
+        h1 = (0.01 / max(a * d0, d2)) ** 0.2
+        assert float(h[i]) == pytest.approx(min(100 * h0, h1), rel=1e-12)
+    # f(x0) = 0: the probe is h0 = 1e-6 and there is no curvature, so h1 = max(1e-6, 1e-3 h0)
+    assert float(h[2]) == pytest.approx(1e-6)
+
+
+def test_controller_arguments_are_validated():
+    with pytest.raises(InputValidationError):
+        IController(safety=0.0)
+    with pytest.raises(InputValidationError):
+        IController(min_factor=2.0)
+    with pytest.raises(InputValidationError):
+        PIController(beta1=-1.0)

@@ -1,0 +1,278 @@
+"""Implicit ODEs and index-1 DAEs with daeint (notes §5.1-5.4, §7.5-7.6): reduced-ODE
+closed forms, Tikhonov limit, index checks, consistent initialisation, IFT gradients."""
+
+import math
+import warnings
+
+import pytest
+import torch
+
+from integrators import (
+    DAELayer,
+    HighIndexError,
+    HighIndexWarning,
+    ImplicitDAE,
+    ImplicitODE,
+    InputValidationError,
+    SemiExplicitDAE,
+    Status,
+    daeint,
+    solve_implicit_ode,
+)
+
+torch.set_default_dtype(torch.float64)
+
+A_COEF = 2.0
+U = 1.0
+
+
+def eq537():
+    """Notes eq. 5.37: x1' = -x1 + x2, 0 = x1 - a x2 + u (x = x1, z = x2)."""
+    return SemiExplicitDAE(lambda t, x, z, u: -x + z, lambda t, x, z, u: x - A_COEF * z + u)
+
+
+def eq537_exact(t, x0):
+    """Reduced ODE eq. 5.38: x1' = (1/a - 1) x1 + u/a, x2 = (x1 + u)/a."""
+    lam = 1 / A_COEF - 1
+    x_inf = -(U / A_COEF) / lam
+    x1 = x_inf + (x0 - x_inf) * torch.exp(lam * t)
+    return x1, (x1 + U) / A_COEF
+
+
+@pytest.mark.parametrize("adaptive", [True, False])
+def test_semi_explicit_dae_537_matches_reduced_ode_538(adaptive):
+    x0 = torch.tensor([[1.0], [0.5]])
+    z0 = torch.tensor([[0.75], [0.75]])  # consistent: (x0 + u) / a
+    t = torch.linspace(0, 2, 11)
+    sol = daeint(
+        eq537(),
+        x0,
+        z0,
+        t,
+        u=lambda tt: torch.full((1,), U),
+        adaptive=adaptive,
+        rtol=1e-8,
+        atol=1e-10,
+        substeps=5,
+    )
+    x1, x2 = eq537_exact(t, x0)
+    assert sol.success
+    assert float((sol.x[..., 0] - x1).abs().max()) < 1e-7
+    assert float((sol.z[..., 0] - x2).abs().max()) < 1e-7
+    assert float(sol.stats.extra["z0_correction"][1]) == pytest.approx(0.0, abs=1e-14)
+
+
+def test_tikhonov_limit_of_536_approaches_dae_537():
+    """Theorem 8: the stiff ODE eq. 5.36 (eps x2' = x1 - a x2 + u) tends to the DAE eq. 5.37;
+    away from the initial layer the difference is O(eps)."""
+    t = torch.linspace(0, 2, 5)
+    x0 = torch.tensor([[0.2, 1.0]])
+    dae = daeint(
+        eq537(), x0[:, :1], x0[:, 1:], t, u=lambda tt: torch.full((1,), U), rtol=1e-9, atol=1e-11
+    )
+    gaps = []
+    for eps in (1e-3, 1e-4):
+        ode = solve_implicit_ode(
+            lambda tt, x, e=eps: torch.stack(
+                [-x[..., 0] + x[..., 1], (x[..., 0] - A_COEF * x[..., 1] + U) / e], -1
+            ),
+            x0,
+            t,
+            "radau_iia",
+            rtol=1e-9,
+            atol=1e-11,
+        )
+        gaps.append(float((ode.x[0, 1:, 0] - dae.x[0, 1:, 0]).abs().max()))
+    assert gaps[1] < 0.2 * gaps[0] and gaps[1] < 1e-3
+
+
+def eq546(t, xd, x, z, u):
+    """Notes eq. 5.46: F = [x1' - z; x2' - x1; x1' + x2 - u] (index 1, Theorem 9)."""
+    return torch.cat([xd[..., :1] - z, xd[..., 1:] - x[..., :1], xd[..., :1] + x[..., 1:] - u], -1)
+
+
+@pytest.mark.parametrize(
+    "method,stages,adaptive", [("radau_iia", 3, True), ("gauss_legendre", 2, False)]
+)
+def test_fully_implicit_dae_546_matches_reduced_ode_547(method, stages, adaptive):
+    """Eq. 5.47: z = u - x2, x2' = x1, x1' = u - x2 -> forced harmonic oscillator."""
+    u = 0.5
+    x0 = torch.tensor([[0.3, 0.1]])
+    t = torch.linspace(0, 3, 7)
+    sol = daeint(
+        ImplicitDAE(eq546),
+        x0,
+        torch.zeros(1, 1),
+        t,
+        u=lambda tt: torch.full((1,), u),
+        method=method,
+        stages=stages,
+        adaptive=adaptive,
+        substeps=20,
+        rtol=1e-9,
+        atol=1e-11,
+    )
+    x2 = u + (0.1 - u) * torch.cos(t) + 0.3 * torch.sin(t)
+    x1 = -(0.1 - u) * torch.sin(t) + 0.3 * torch.cos(t)
+    assert sol.success
+    assert float((sol.x[0, :, 0] - x1).abs().max()) < 1e-7
+    assert float((sol.x[0, :, 1] - x2).abs().max()) < 1e-7
+    # Gauss's algebraic states come from the stage polynomial at tau = 1 (stage order s):
+    # order reduction, as expected for collocation on DAEs
+    z_tol = 1e-7 if method == "radau_iia" else 1e-4
+    assert float((sol.z[0, :, 0] - (u - x2)).abs().max()) < z_tol
+    # the inconsistent guess z0 = 0 was corrected to z(0) = u - x2(0) = 0.4
+    assert float(sol.stats.extra["z0_correction"][0]) == pytest.approx(0.4, abs=1e-10)
+    assert any("inconsistent" in m for m in sol.messages)
+
+
+def test_index3_dae_548_raises_high_index_error():
+    """Eq. 5.48 (x2 = u appears without z): [dF/dx' dF/dz] is singular -> index 3."""
+
+    def F(t, xd, x, z, u):
+        return torch.cat([xd[..., :1] - z, xd[..., 1:] - x[..., :1], x[..., 1:] - u], -1)
+
+    with pytest.raises(HighIndexError, match="index > 1"):
+        daeint(
+            ImplicitDAE(F),
+            torch.tensor([[0.3, 0.5]]),
+            torch.zeros(1, 1),
+            torch.linspace(0, 1, 3),
+            u=lambda tt: torch.full((1,), 0.5),
+        )
+
+
+def test_index2_semi_explicit_dae_raises():
+    """x' = z, 0 = x - sin t: dg/dz = 0 (Corollary 1 fails; index 2)."""
+    prob = SemiExplicitDAE(lambda t, x, z: z, lambda t, x, z: x - torch.sin(t))
+    with pytest.raises(HighIndexError, match="dg/dz"):
+        daeint(prob, torch.zeros(2, 1), torch.ones(2, 1), torch.linspace(0, 1, 3))
+
+
+def test_index_check_during_integration_warns_and_sets_status():
+    """0 = u z - x with a held input u: sample 1's u drops to 0 at t = 1, where dg/dz = u
+    loses rank (the DAE stops being index 1); sample 0 keeps u = 1 and must finish."""
+    t = torch.linspace(0, 2, 11)
+    u = torch.stack([torch.ones(11), (t < 0.99).double()])[..., None]  # (2, T, 1)
+    prob = SemiExplicitDAE(lambda t, x, z, u: -x + 0 * z, lambda t, x, z, u: u * z - x)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        sol = daeint(
+            prob, torch.ones(2, 1), torch.ones(2, 1), t, u=u, adaptive=False, index_check_every=1
+        )
+    assert any(issubclass(w.category, HighIndexWarning) for w in caught)
+    assert sol.status[0] == Status.SUCCESS and sol.status[1] != Status.SUCCESS
+    assert any("index > 1" in m and "(1,)" in m and "t = 1" in m for m in sol.messages)
+    torch.testing.assert_close(sol.z[0, :, 0], torch.exp(-t), rtol=1e-6, atol=1e-6)
+
+
+def test_implicit_ode_equals_explicit_form():
+    """Mass-matrix form (eq. 7.49) M x' = f(x) with M = [[2, 1], [0, 1]] vs x' = M^-1 f."""
+    M = torch.tensor([[2.0, 1.0], [0.0, 1.0]])
+
+    def f(x):
+        return torch.stack([x[..., 1], -torch.sin(x[..., 0])], -1)
+
+    x0 = torch.tensor([[1.0, 0.0], [0.2, 0.3]])
+    t = torch.linspace(0, 3, 7)
+    implicit = daeint(
+        ImplicitODE(lambda t, xd, x: xd @ M.T - f(x)), x0, None, t, rtol=1e-10, atol=1e-12
+    )
+    Minv = torch.linalg.inv(M)
+    explicit = solve_implicit_ode(
+        lambda t, x: f(x) @ Minv.T, x0, t, "radau_iia", rtol=1e-10, atol=1e-12
+    )
+    assert implicit.z is None and implicit.success
+    torch.testing.assert_close(implicit.x, explicit.x, rtol=1e-8, atol=1e-8)
+    with pytest.raises(InputValidationError):
+        daeint(ImplicitODE(lambda t, xd, x: xd - x), x0, torch.zeros(2, 1), t)
+
+
+class Coupled(torch.nn.Module):
+    """x' = -k0 x + z, 0 = x - k1 z + sin(x) (index 1 for k1 != 0)."""
+
+    def __init__(self):
+        super().__init__()
+        self.k = torch.nn.Parameter(torch.tensor([1.5, 3.0]))
+
+    def f(self, t, x, z):
+        return -self.k[0] * x + z
+
+    def g(self, t, x, z):
+        return x - self.k[1] * z + torch.sin(x)
+
+    def forward(self, t, x, z):
+        return self.g(t, x, z)
+
+
+@pytest.mark.parametrize("adaptive", [False, True])
+def test_dae_ift_gradients_match_central_differences(adaptive):
+    model = Coupled()
+    prob = SemiExplicitDAE(model.f, model.g)
+    x0 = torch.tensor([[1.0], [0.4]], requires_grad=True)
+    t = torch.linspace(0, 1, 3)
+
+    def loss(x0_):
+        tol = 1e-12 if not adaptive else 1e-10
+        sol = daeint(
+            prob, x0_, torch.zeros(2, 1), t, adaptive=adaptive, substeps=8, rtol=tol, atol=tol
+        )
+        return sol.x[..., -1, :].square().sum() + sol.z[..., -1, :].sum()
+
+    gx, gk = torch.autograd.grad(loss(x0), (x0, model.k))
+    h = 1e-6
+    with torch.no_grad():
+        fd_k = []
+        for i in range(2):
+            model.k[i] += h
+            up = loss(x0)
+            model.k[i] -= 2 * h
+            down = loss(x0)
+            model.k[i] += h
+            fd_k.append((up - down) / (2 * h))
+        fd_x = torch.stack(
+            [(loss(x0 + h * e) - loss(x0 - h * e)) / (2 * h) for e in torch.eye(2)[:, :, None]]
+        )
+    rel = 1e-6 if not adaptive else 1e-5
+    assert float((gk - torch.stack(fd_k)).abs().max() / gk.abs().max()) < rel
+    assert float((gx[:, 0] - fd_x).abs().max() / gx.abs().max()) < rel
+
+
+def test_dae_layer_trains_module_parameters():
+    model = Coupled()
+    layer = DAELayer(
+        SemiExplicitDAE(model.f, model),
+        t=torch.linspace(0, 1, 3),
+        return_solution=False,
+        adaptive=False,
+        substeps=4,
+    )
+    assert {id(p) for p in layer.parameters()} == {id(model.k)}
+    x = layer(torch.tensor([[1.0]]), torch.zeros(1, 1))
+    x[..., -1, :].sum().backward()
+    ref = Coupled()
+    sol = daeint(
+        SemiExplicitDAE(ref.f, ref.g),
+        torch.tensor([[1.0]]),
+        torch.zeros(1, 1),
+        torch.linspace(0, 1, 3),
+        adaptive=False,
+        substeps=4,
+    )
+    sol.x[..., -1, :].sum().backward()
+    torch.testing.assert_close(model.k.grad, ref.k.grad)
+    assert float(model.k.grad.abs().sum()) > 0
+
+
+def test_sampled_input_and_batch_of_parameters():
+    """Eq. 5.37 with a zero-order-hold input sampled on t and a batch of a-values."""
+    a = torch.tensor([[2.0], [4.0]])
+    prob = SemiExplicitDAE(lambda t, x, z, u: -x + z, lambda t, x, z, u: x - a * z + u)
+    t = torch.linspace(0, 1, 5)
+    u = torch.ones(5, 1)
+    sol = daeint(prob, torch.ones(2, 1), torch.zeros(2, 1), t, u=u, rtol=1e-9, atol=1e-11)
+    lam = 1 / a - 1
+    x_inf = -(1 / a) / lam
+    exact = x_inf + (1 - x_inf) * torch.exp(lam * t)
+    assert float((sol.x[..., 0] - exact).abs().max()) < 1e-7
+    assert math.isclose(float(sol.z[1, 0, 0]), 0.5, abs_tol=1e-12)

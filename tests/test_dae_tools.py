@@ -1,0 +1,204 @@
+"""sysid.dae: classification, index, index reduction, elimination, Tikhonov (notes chapter 5)."""
+
+import pytest
+import torch
+
+from integrators import odeint
+from integrators.errors import HighIndexError, SingularMatrixError
+from sysid import dae
+from sysid.linearize import linearize, simulate_lti_zoh
+from sysid.zoo import Bowl, RigidCraneCartesian
+from sysid.zoo.dae import (
+    Example52,
+    Example53,
+    Example546,
+    Example548,
+    Example581,
+    Example588,
+    SingularlyPerturbedLinear,
+    TwoMassSystem,
+)
+
+DT = torch.float64
+
+
+def _rand(*shape, seed=0):
+    return torch.randn(*shape, dtype=DT, generator=torch.Generator().manual_seed(seed))
+
+
+def test_definition_1_classifies_eq_5_2_and_5_3_as_daes_and_an_ode_as_ode():
+    x, xdot = _rand(4, 2), _rand(4, 2, seed=1)
+    none = torch.zeros(4, 0, dtype=DT)
+    assert bool(dae.is_dae(Example52().residual, xdot, x, none).all())  # eq. (5.9)
+    assert bool(dae.is_dae(Example53().residual, xdot, x, none).all())  # eq. (5.11)
+
+    def ode(t, xd, xx, z):
+        return xd - torch.stack([xx[..., 1], -xx[..., 0]], -1)
+
+    assert not bool(dae.is_dae(ode, xdot, x, none).any())
+    # eq. (5.13): u xdot + x = 0 is an ODE for u != 0 and a DAE for u = 0
+    switch = lambda t, xd, xx, z, u: u * xd + xx  # noqa: E731
+    u = torch.tensor([[1.0], [0.0]], dtype=DT)
+    res = dae.is_dae(switch, xdot[:2, :1], x[:2, :1], none[:2], u)
+    assert res.tolist() == [False, True]
+
+
+def test_index1_tests_theorem_9_and_corollary_1():
+    x, z, u = _rand(3, 2), _rand(3, 1, seed=1), _rand(3, 1, seed=2)
+    xdot = torch.zeros(3, 2, dtype=DT)
+    assert bool(dae.is_index1(Example546().residual, xdot, x, z, u).all())  # eq. (5.50)
+    assert not bool(dae.is_index1(Example548().residual, xdot, x, z, u).any())  # eq. (5.49)
+    e581 = Example581()
+    z2 = _rand(3, 2, seed=3)
+    assert not bool(dae.is_index1_semi_explicit(e581.g, x, z2, u).any())  # eq. (5.82)
+    assert bool(dae.is_index1_semi_explicit(e581.reduced_g, x, z2, u).all())  # eq. (5.87)
+
+
+@pytest.mark.parametrize(("example", "expected"), [(Example546, 1), (Example548, 3)])
+def test_differential_index_of_fully_implicit_examples(example, expected):
+    x, z, u = _rand(3, 2), _rand(3, 1, seed=1), _rand(3, 1, seed=2)
+    index = dae.differential_index(example().residual, torch.zeros(3, 2, dtype=DT), x, z, u)
+    assert index.tolist() == [expected] * 3
+
+
+@pytest.mark.parametrize(("example", "expected"), [(Example581, 2), (Example588, 2)])
+def test_differential_index_and_reduction_of_semi_explicit_examples(example, expected):
+    plant = example()
+    x, z = _rand(3, plant.nx), _rand(3, plant.nz, seed=1)
+    assert dae.semi_explicit_index(plant.f, plant.g, x, z).tolist() == [expected] * 3
+    reduced = dae.reduce_index(plant.f, plant.g, x, z)
+    assert reduced.index == expected and reduced.differentiations == expected - 1
+    t = torch.tensor(0.0, dtype=DT)
+    torch.testing.assert_close(reduced.g(t, x, z), plant.reduced_g(t, x, z))  # (5.86b)/(5.93b)
+    assert bool(dae.is_index1_semi_explicit(reduced.g, x, z).all())
+    # consistency conditions are the differentiated equations (§5.6)
+    torch.testing.assert_close(reduced.consistency(t, x, z), plant.g(t, x, z)[..., :1])
+
+
+def test_eq_5_88_reduced_multiplier_eq_5_92():
+    plant = Example588()
+    x = _rand(5, 2)
+    z = plant.multiplier(x)
+    res = plant.reduced_g(torch.tensor(0.0), x, z)
+    torch.testing.assert_close(res, torch.zeros_like(res), rtol=0, atol=1e-12)
+
+
+def test_constrained_lagrangian_models_are_index_3_and_reduce_to_the_kkt_form():
+    """Eq. (5.76)-(5.79): index 3; the automatic reduction (two differentiations) reproduces
+    the index-1 constraint a qddot + (d(a qdot)/dq) qdot = 0 (eq. 2.167b) and the consistency
+    conditions C = [c; cdot] (eq. 2.182)."""
+    for plant in (Bowl(), RigidCraneCartesian()):
+        f, g = plant.index3_dae()
+        x, z = _rand(2, 2 * plant.nq), _rand(2, 1, seed=1)
+        assert dae.semi_explicit_index(f, g, x, z).tolist() == [3, 3]
+        reduced = dae.reduce_index(f, g, x, z)
+        assert reduced.index == 3
+        _, g1 = plant.index1_dae()
+        t = torch.tensor(0.0, dtype=DT)
+        torch.testing.assert_close(reduced.g(t, x, z), g1(t, x, z), rtol=1e-12, atol=1e-12)
+        q, qd = x[:, : plant.nq], x[:, plant.nq :]
+        torch.testing.assert_close(reduced.consistency(t, x, z), plant.consistency(q, qd))
+
+
+def test_reduction_refuses_what_it_cannot_do():
+    def f(t, x, z):
+        return z
+
+    def g(t, x, z):  # dg/dz singular but every row depends on z
+        return torch.cat([z[..., :1] + z[..., 1:], 2 * z[..., :1] + 2 * z[..., 1:] + x], -1)
+
+    with pytest.raises(HighIndexError, match="algebraic manipulations"):
+        dae.reduce_index(f, g, _rand(2, 1), _rand(2, 2))
+
+
+def test_eliminate_linear_eq_5_30_matches_substitution_and_linearize_dae():
+    gen = torch.Generator().manual_seed(4)
+    a, b, c = (torch.randn(3, 3, 2, 2, dtype=DT, generator=gen) for _ in range(3))
+    d, e = (
+        torch.randn(3, 2, 2, dtype=DT, generator=gen),
+        torch.randn(3, 2, 1, dtype=DT, generator=gen),
+    )
+    b = b[..., :1]
+    fm = torch.randn(3, 2, 2, dtype=DT, generator=gen) + 3 * torch.eye(2, dtype=DT)
+    a, c = a[0], c[0]
+    ar, br, cz, dz = dae.eliminate_linear(a, b[0], c, d, e, fm)
+    x, u = _rand(3, 2), _rand(3, 1, seed=5)
+    z = torch.linalg.solve(fm, -(d @ x[..., None] + e @ u[..., None]))[..., 0]
+    xdot = (a @ x[..., None] + b[0] @ u[..., None] + c @ z[..., None])[..., 0]
+    torch.testing.assert_close((ar @ x[..., None] + br @ u[..., None])[..., 0], xdot)
+    torch.testing.assert_close((cz @ x[..., None] + dz @ u[..., None])[..., 0], z)
+    with pytest.raises(SingularMatrixError):
+        dae.eliminate_linear(a, b[0], c, d, e, torch.zeros(3, 2, 2, dtype=DT))
+    # eq. (5.32): the Jacobians of the linear DAE are its matrices
+    f = lambda t, xx, zz, uu: (a @ xx[..., None] + b[0] @ uu[..., None] + c @ zz[..., None])[..., 0]  # noqa: E731
+    g = lambda t, xx, zz, uu: (d @ xx[..., None] + e @ uu[..., None] + fm @ zz[..., None])[..., 0]  # noqa: E731
+    jac = dae.linearize_dae(f, g, x, z, u)
+    torch.testing.assert_close(jac["fx"], a.expand(3, 2, 2))
+    torch.testing.assert_close(jac["gz"], fm)
+    torch.testing.assert_close(jac["gu"], e)
+
+
+def test_tikhonov_eq_5_36_converges_to_dae_limit_eq_5_38():
+    """Theorem 8 on eq. (5.36), a = 2, x(0) = (1, 1), u = -1: x1 of the ODE approaches the
+    solution of the reduced ODE (5.38) as eps -> 0, the error shrinking like eps."""
+    t = torch.linspace(0.0, 2.0, 201, dtype=DT)
+    x0 = torch.tensor([[1.0, 1.0]], dtype=DT)
+    u = -torch.ones(1, dtype=DT)
+    a = 2.0
+    lam = 1 / a - 1  # (5.38a): x1' = lam x1 + u / a
+    x1_limit = (1.0 + (-1 / a) / lam) * torch.exp(lam * t) - (-1 / a) / lam
+    errors = []
+    for eps in (1e-1, 1e-2, 1e-3):
+        plant = SingularlyPerturbedLinear(eps=eps, a=a)
+        with torch.no_grad():
+            sol = odeint(plant, x0, t, method="radau_iia", stages=3, u=lambda tt: u)
+        errors.append(float((sol.x[0, :, 0] - x1_limit).abs().max()))
+    assert errors[0] > errors[1] > errors[2]
+    assert errors[2] < 2e-3 and errors[0] / errors[2] > 30
+    limit = SingularlyPerturbedLinear(a=a)
+    pert = dae.SingularPerturbation(limit.f, limit.g, nx=1)
+    inv, stable = pert.tikhonov_conditions(_rand(3, 1), _rand(3, 1, seed=1))
+    assert bool(inv.all() and stable.all())
+    z = pert.slow_manifold(torch.tensor([[0.5]], dtype=DT), torch.zeros(1, 1, dtype=DT))
+    torch.testing.assert_close(z, torch.tensor([[0.25]], dtype=DT))  # x2 = x1 / a (eq. 5.38b)
+    s = torch.tensor([[0.5, 0.1]], dtype=DT)
+    torch.testing.assert_close(
+        dae.SingularPerturbation(limit.f, limit.g, nx=1, eps=1e-2)(None, s),
+        SingularlyPerturbedLinear(eps=1e-2, a=a)(None, s),
+    )
+
+
+def _two_mass_x2(fun, y0, steps=50, dt=0.01):
+    """Exact samples (ZOH = exact for constant u = 1) of a linear model given as a torch rhs
+    fun(t, s, u): A, B by sysid.linearize, then the matrix exponential (eq. 1.55)."""
+    y0 = torch.tensor([y0], dtype=DT)
+    u = torch.ones(1, 1, dtype=DT)
+    with torch.no_grad():
+        a, b, _, _ = linearize(fun, y0, u)
+        drift = fun(None, torch.zeros_like(y0), torch.zeros_like(u))  # affine part (zero)
+        assert float(drift.abs().max()) == 0.0
+        return simulate_lti_zoh(a[0], b[0], y0[0], torch.ones(steps, 1, dtype=DT), dt)
+
+
+def test_two_mass_system_reductions_converge_eq_5_41_to_5_44():
+    """Fig. 5.3: the ODE (5.41) tends to the ODE (5.43) as m1 -> 0 (error ~ m1), and (5.43)
+    tends to the DAE (5.44) as rho/K -> 0 (typo u -> u/K fixed in both reductions)."""
+    ref = _two_mass_x2(TwoMassSystem().ode_543, [1.0, 1.0, 0.0])[:, 1]
+    err = []
+    for m1 in (1e-2, 1e-3, 1e-4):
+        x = _two_mass_x2(TwoMassSystem(m1=m1), [1.0, 1.0, 0.0, 0.0])
+        err.append(float((x[:, 1] - ref).abs().max()))
+    assert err[0] > 5 * err[1] > 25 * err[2]
+    dae_err = []
+    for rho in (1.0, 0.1, 0.01):
+        plant = TwoMassSystem(K=1e3, rho=rho)
+        slow = _two_mass_x2(plant.ode_543, [1.0, 1.0, 0.0])[:, 1]
+
+        def reduced(t, s, u, p=plant):  # x1 eliminated through g_544 = 0: x1 = (x2 + u/K) / 2
+            z = (s[:, :1] + u / p.K.detach()) / 2
+            torch.testing.assert_close(p.g_544(t, s, z, u), torch.zeros_like(z))
+            return p.f_544(t, s, z, u)
+
+        limit = _two_mass_x2(reduced, [1.0, 0.0])[:, 0]
+        dae_err.append(float((slow - limit).abs().max()))
+    assert dae_err[0] > 5 * dae_err[1] > 25 * dae_err[2]

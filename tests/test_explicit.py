@@ -1,0 +1,314 @@
+"""Fixed-step explicit Runge-Kutta (notes eq. 6.26) checked against closed forms, observed
+convergence orders, matrix exponentials, finite differences and per-sample runs."""
+
+import re
+
+import numpy as np
+import pytest
+import scipy.linalg
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from integrators import ButcherTableau, ODELayer, Status, TableauError, odeint, tableau
+from integrators.explicit import solve_explicit
+
+EXPLICIT = ["euler", "midpoint", "heun", "ralston", "kutta3", "rk4", "rk38", "dopri5"]
+
+
+def forced_decay(t, x):
+    """x' = -x + sin(3t): time-dependent, so wrong nodes c_i would show up in the order."""
+    return -x + torch.sin(3 * t)
+
+
+def forced_decay_exact(t, x0):
+    return (x0 + 0.3) * np.exp(-t) + (np.sin(3 * t) - 3 * np.cos(3 * t)) / 10
+
+
+@pytest.mark.parametrize("name", EXPLICIT)
+def test_observed_order_matches_tableau_order(name):
+    tab = tableau(name)
+    base = {1: 40, 2: 20, 3: 20, 4: 20, 5: 10}[tab.order]
+    ns = [base, 2 * base, 4 * base, 8 * base]
+    x0 = torch.tensor([[1.0], [-0.5]], dtype=torch.float64)
+    errors = []
+    for n in ns:
+        t = torch.linspace(0.0, 3.0, n + 1, dtype=torch.float64)
+        sol = odeint(forced_decay, x0, t, method=name, adaptive=False)
+        exact = forced_decay_exact(t.numpy()[None, :, None], x0.numpy()[:, None, :])
+        errors.append(np.abs(sol.x.numpy() - exact).max())
+    slope = -np.polyfit(np.log(ns), np.log(errors), 1)[0]
+    assert abs(slope - tab.order) <= 0.15, (name, slope, errors)
+    assert sol.success
+
+
+def _linear_rhs(A):
+    def f(t, x):
+        return x @ A.T
+
+    return f
+
+
+@settings(max_examples=12, deadline=None)
+@given(
+    n=st.integers(1, 4),
+    batch=st.integers(1, 3),
+    seed=st.integers(0, 2**31 - 1),
+    name=st.sampled_from(["rk4", "rk38", "dopri5", "kutta3"]),
+)
+def test_random_stable_linear_systems_match_matrix_exponential(n, batch, seed, name):
+    rng = np.random.default_rng(seed)
+    M = rng.standard_normal((n, n))
+    S = rng.standard_normal((n, n))
+    A = -(M @ M.T) / n - 0.2 * np.eye(n) + (S - S.T)  # stable: symmetric part negative
+    x0 = rng.standard_normal((batch, n))
+    t = np.sort(rng.uniform(0.0, 2.0, 6))
+    t = np.concatenate([[0.0], t + np.arange(1, 7) * 1e-3])  # strictly increasing, non-uniform
+    sol = odeint(
+        _linear_rhs(torch.tensor(A)),
+        torch.tensor(x0),
+        torch.tensor(t),
+        method=name,
+        adaptive=False,
+        substeps=200,
+    )
+    exact = np.stack([x0 @ scipy.linalg.expm(A * tk).T for tk in t], axis=1)
+    scale = np.abs(exact).max() + 1.0
+    assert np.abs(sol.x.numpy() - exact).max() <= 1e-7 * scale
+
+
+def test_substeps_equal_a_finer_grid():
+    t = torch.tensor([0.0, 0.3, 0.35, 1.0, 1.7], dtype=torch.float64)  # non-uniform
+    m = 4
+    pieces = [t[k] + (t[k + 1] - t[k]) * torch.arange(m, dtype=t.dtype) / m for k in range(4)]
+    fine = torch.cat(pieces + [t[-1:]])
+    x0 = torch.tensor([[1.0, 0.0], [0.5, -1.0]], dtype=torch.float64)
+
+    def f(t, x):
+        return torch.stack([x[..., 1], -torch.sin(x[..., 0]) + 0.1 * t], dim=-1)
+
+    coarse = odeint(f, x0, t, method="rk4", substeps=m)
+    ref = odeint(f, x0, fine, method="rk4")
+    torch.testing.assert_close(coarse.x, ref.x[:, ::m], rtol=0, atol=1e-14)
+    assert coarse.stats.n_steps == 4 * m and coarse.stats.n_f_evals == 16 * m
+
+
+def test_batched_equals_per_sample_and_broadcast_parameters():
+    mu = torch.tensor([[0.5], [1.0], [3.0]], dtype=torch.float64)
+
+    def vdp(t, x, mu=mu):
+        first = mu[..., 0] * (1 - x[..., 1] ** 2) * x[..., 0] - x[..., 1]
+        return torch.stack([first, x[..., 0].expand_as(first)], dim=-1)
+
+    x0 = torch.tensor([[0.1, 1.0], [2.0, 0.0], [-1.0, 0.5]], dtype=torch.float64)
+    t = torch.linspace(0, 5, 51, dtype=torch.float64)
+    batched = odeint(vdp, x0, t, method="rk4", substeps=3)
+    for i in range(3):
+        single = odeint(lambda t, x, i=i: vdp(t, x, mu[i]), x0[i], t, method="rk4", substeps=3)
+        torch.testing.assert_close(batched.x[i], single.x, rtol=0, atol=1e-13)
+    # a (3, 1) parameter broadcasts an unbatched x0 to a batch of three
+    broadcast = odeint(vdp, x0[0], t, method="rk4", substeps=3)
+    assert broadcast.x.shape == (3, 51, 2)
+    for i in range(3):
+        single = odeint(lambda t, x, i=i: vdp(t, x, mu[i]), x0[0], t, method="rk4", substeps=3)
+        torch.testing.assert_close(broadcast.x[i], single.x, rtol=0, atol=1e-13)
+
+
+def test_finite_escape_time_is_reported_and_other_samples_continue():
+    """x' = x^2 escapes at t = 1/x0 (notes eq. 1.44-1.45: x(t) = 1/(1 - t) for x0 = 1)."""
+    x0 = torch.tensor([[1.0], [-1.0], [0.25]], dtype=torch.float64)
+    t = torch.linspace(0.0, 2.0, 41, dtype=torch.float64)
+    sol = odeint(lambda t, x: x**2, x0, t, method="rk4", substeps=4)
+    assert sol.status.tolist() == [Status.NON_FINITE, Status.SUCCESS, Status.SUCCESS]
+    assert not sol.success
+    assert len(sol.messages) == 1 and "sample 0" in sol.messages[0]
+    # the message names the interval where the state became non-finite, after t = 1
+    times = [float(v.rstrip(";.,")) for v in re.findall(r"t = ([0-9.e+-]+)", sol.messages[0])]
+    assert 1.0 <= times[0] < times[1] <= 2.0
+    k = int(torch.nonzero(torch.isnan(sol.x[0, :, 0]))[0])
+    assert torch.isnan(sol.x[0, k:]).all() and torch.isfinite(sol.x[0, :k]).all()
+    assert abs(float(t[k]) - times[2]) < 1e-12
+    # benign samples follow the closed form x0 / (1 - x0 t)
+    exact = x0[1:] / (1 - x0[1:] * t)
+    torch.testing.assert_close(sol.x[1:, :, 0], exact, rtol=1e-6, atol=0)
+    # before the escape, sample 0 follows 1 / (1 - t)
+    early = t < 0.8
+    torch.testing.assert_close(sol.x[0, early, 0], 1 / (1 - t[early]), rtol=1e-4, atol=0)
+
+
+def test_gradients_match_central_finite_differences():
+    """d(loss)/d(x0) and d(loss)/d(theta) of the discrete simulation, float64, rel. 1e-6."""
+    theta = torch.tensor([0.7, 1.3], dtype=torch.float64, requires_grad=True)
+
+    def f(t, x):
+        return torch.stack(
+            [x[..., 1], -theta[0] * torch.sin(x[..., 0]) - theta[1] * 0.1 * x[..., 1] + 0.2 * t],
+            dim=-1,
+        )
+
+    t = torch.linspace(0, 3, 31, dtype=torch.float64)
+    x0 = torch.tensor([[0.5, 0.0], [1.0, -0.3]], dtype=torch.float64, requires_grad=True)
+    w = torch.linspace(-1, 1, 2 * 31 * 2, dtype=torch.float64).reshape(2, 31, 2)
+
+    def loss():
+        return (odeint(f, x0, t, method="rk4", substeps=2).x * w).sum()
+
+    value = loss()
+    g_x0, g_theta = torch.autograd.grad(value, (x0, theta))
+    eps = 1e-6
+    for param, grad in ((x0, g_x0), (theta, g_theta)):
+        fd = torch.zeros_like(param)
+        with torch.no_grad():
+            flat, fdf = param.view(-1), fd.view(-1)
+            for i in range(flat.numel()):
+                flat[i] += eps
+                up = loss()
+                flat[i] -= 2 * eps
+                down = loss()
+                flat[i] += eps
+                fdf[i] = (up - down) / (2 * eps)
+        torch.testing.assert_close(grad, fd, rtol=1e-6, atol=1e-9)
+
+
+def test_gradient_with_respect_to_sampled_input():
+    """x' = -x + u (ZOH): x_T = sum_k e^{-(T - t_{k+1})} (1 - e^{-h}) u_k, so dx_T/du_k is known."""
+    t = torch.linspace(0, 1, 11, dtype=torch.float64)
+    u = torch.randn(11, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    u.requires_grad_(True)
+    sol = odeint(lambda t, x, u: -x + u, torch.zeros(1, dtype=torch.float64), t, u=u, substeps=8)
+    (grad,) = torch.autograd.grad(sol.x[-1, 0], u)
+    h = 0.1
+    expected = torch.exp(-(1.0 - t[1:])) * (1 - np.exp(-h))
+    torch.testing.assert_close(grad[:-1, 0], expected, rtol=1e-6, atol=0)
+    assert grad[-1, 0] == 0.0
+
+
+def test_float32_works_and_is_accurate_to_single_precision():
+    x0 = torch.tensor([[1.0], [-0.5]], dtype=torch.float32)
+    t = torch.linspace(0, 3, 61, dtype=torch.float32)
+    sol = odeint(forced_decay, x0, t, method="rk4")
+    assert sol.x.dtype == torch.float32
+    exact = forced_decay_exact(t.double().numpy()[None, :, None], x0.double().numpy()[:, None])
+    assert np.abs(sol.x.double().numpy() - exact).max() < 1e-5
+
+
+def test_f_evaluation_count_skips_unused_stages():
+    """dopri5 at fixed step needs 6 of its 7 stages (b_7 = 0, the FSAL stage)."""
+    calls = []
+
+    def f(t, x):
+        calls.append(1)
+        return -x
+
+    t = torch.linspace(0, 1, 6, dtype=torch.float64)
+    x0 = torch.ones(1, dtype=torch.float64)
+    sol = solve_explicit(f, x0, t, tableau("dopri5"), substeps=2)
+    assert len(calls) == sol.stats.n_f_evals == 10 * 6
+    # on x' = -x one step multiplies by the stability function R(-h) (here h = 0.1)
+    growth = tableau("dopri5").stability_function(-0.1).real
+    assert abs(float(sol.x[-1, 0]) - growth**10) <= 1e-14
+
+
+def test_custom_tableau_with_zero_coefficients():
+    """Any explicit tableau works: Ralston's third-order method (c = 0, 1/2, 3/4)."""
+    tab = ButcherTableau(
+        A=[[0, 0, 0], [0.5, 0, 0], [0, 0.75, 0]], b=[2 / 9, 1 / 3, 4 / 9], name="ralston3"
+    )
+    assert tab.order == 3
+    x0 = torch.tensor([[1.0]], dtype=torch.float64)
+    errors = []
+    for n in (20, 40, 80):
+        t = torch.linspace(0.0, 3.0, n + 1, dtype=torch.float64)
+        sol = odeint(forced_decay, x0, t, method=tab)
+        exact = forced_decay_exact(t.numpy(), 1.0)
+        errors.append(np.abs(sol.x[0, :, 0].numpy() - exact).max())
+    slope = -np.polyfit(np.log([20, 40, 80]), np.log(errors), 1)[0]
+    assert abs(slope - 3) <= 0.15
+
+
+def test_implicit_tableau_rejected_by_explicit_solver():
+    with pytest.raises(TableauError, match="implicit"):
+        solve_explicit(
+            lambda t, x: -x,
+            torch.ones(1, dtype=torch.float64),
+            torch.linspace(0, 1, 3, dtype=torch.float64),
+            tableau("implicit_euler"),
+        )
+
+
+def test_compiled_chunks_match_eager():
+    """torch.compile of the chunked step gives the eager result (or falls back to eager)."""
+
+    def f(t, x):
+        return torch.stack([x[..., 1], -x[..., 0] + torch.cos(t)], dim=-1)
+
+    x0 = torch.tensor([[1.0, 0.0], [0.0, 2.0]], dtype=torch.float64)
+    t = torch.linspace(0, 2, 20, dtype=torch.float64)  # 19 intervals: 2 chunks of 8 + 3 eager
+    with torch.no_grad():
+        eager = odeint(f, x0, t, method="euler", compile=False)
+        compiled = odeint(f, x0, t, method="euler", compile=True)
+    assert eager.stats.extra["compiled"] is False
+    torch.testing.assert_close(compiled.x, eager.x, rtol=1e-13, atol=1e-13)
+    assert compiled.stats.extra["compile_s"] >= 0.0
+
+
+class Pendulum(torch.nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.g = torch.nn.Parameter(torch.tensor(9.0, dtype=torch.float64))
+
+    def forward(self, t, x):
+        return torch.stack([x[..., 1], -self.g * torch.sin(x[..., 0])], dim=-1)
+
+
+def test_ode_layer_trains_module_parameters():
+    """Fit the gravity constant of a pendulum from a trajectory simulated with g = 9.81."""
+    t = torch.linspace(0, 2, 21, dtype=torch.float64)
+    x0 = torch.tensor([[0.5, 0.0], [1.0, 0.0]], dtype=torch.float64)
+    truth = Pendulum()
+    with torch.no_grad():
+        truth.g.fill_(9.81)
+        target = odeint(truth, x0, t, substeps=4).x
+    layer = ODELayer(Pendulum(), t=t, method="rk4", return_solution=False, substeps=4)
+    assert [name for name, _ in layer.named_parameters()] == ["f.g"]
+    opt = torch.optim.LBFGS(
+        layer.parameters(),
+        max_iter=50,
+        tolerance_grad=1e-15,
+        tolerance_change=1e-20,
+        line_search_fn="strong_wolfe",
+    )
+
+    def closure():
+        opt.zero_grad()
+        loss = ((layer(x0) - target) ** 2).mean()
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+    assert abs(layer.f.g.item() - 9.81) < 1e-8
+    sol = ODELayer(truth, method="rk4", substeps=4)(x0, t=t)
+    torch.testing.assert_close(sol.x, target)
+
+
+def test_compile_failure_falls_back_to_eager(monkeypatch):
+    """If torch.compile cannot build the chunk, the run continues eagerly with the same result."""
+    from integrators import explicit
+
+    def broken_compile(fn):
+        def call(*args):
+            raise RuntimeError("no C++ compiler")
+
+        return call
+
+    monkeypatch.setattr(explicit.torch, "compile", broken_compile)
+
+    def f(t, x):  # a fresh model, so no cached compiled chunk exists
+        return -2.0 * x + t
+
+    x0 = torch.tensor([[1.0], [0.0]], dtype=torch.float64)
+    t = torch.linspace(0, 1, 21, dtype=torch.float64)
+    sol = odeint(f, x0, t, method="rk4", substeps=2, compile=True)
+    assert sol.stats.extra["compiled"] is False
+    exact = (x0 + 0.25) * torch.exp(-2 * t) + 0.5 * t - 0.25  # x' = -2x + t
+    torch.testing.assert_close(sol.x[..., 0], exact, rtol=0, atol=1e-7)

@@ -1,0 +1,415 @@
+"""Implicit Runge-Kutta for stiff ODEs (notes §7.1-7.4): linear algebra, orders, stiff
+benchmarks against independent references, IFT gradients, batching and statuses."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.integrate import solve_ivp
+
+from integrators import Status, gauss_legendre, odeint, radau_iia, solve_implicit_ode
+from integrators._irk_linalg import StageLinearSolver, _kron
+from integrators.inputs import bind_rhs
+from integrators.radau import embedded_weights
+from sysid.zoo import StiffLinear, StiffVanDerPol
+
+torch.set_default_dtype(torch.float64)
+
+
+def logistic_rhs(t, x):
+    """x1' = x1 (1 - x1), x2' = -x1 x2: smooth, nonlinear, closed form below."""
+    return torch.stack([x[..., 0] * (1 - x[..., 0]), -x[..., 0] * x[..., 1]], -1)
+
+
+def logistic_exact(t, x0):
+    grow = 1 + x0[..., 0:1] * (torch.exp(t) - 1)
+    return torch.stack([x0[..., 0:1] * torch.exp(t) / grow, x0[..., 1:2] / grow], -1)
+
+
+X0 = torch.tensor([[0.2, 1.0], [0.6, -0.5]])
+
+
+# --------------------------------------------------------------------------- linear algebra
+@pytest.mark.parametrize(
+    "tab", [radau_iia(1), radau_iia(3), radau_iia(5), gauss_legendre(2), gauss_legendre(3)]
+)
+def test_transformed_solve_equals_full_kronecker_solve(tab):
+    """The eigen-split real/complex solves give the solution of (I (x) E + h A (x) G) dW = -R."""
+    gen = torch.Generator().manual_seed(0)
+    p, B = 3, 4
+    E = torch.eye(p) + 0.1 * torch.randn(B, p, p, generator=gen)
+    G = torch.randn(B, p, p, generator=gen)
+    h = 0.05 + torch.rand(B, generator=gen)
+    R = torch.randn(B, tab.stages, p, generator=gen)
+    solver = StageLinearSolver(tab.A, torch.float64, "cpu")
+    assert solver.mode == "transformed"
+    factors, singular = solver.factorize(E, G, h)
+    assert not singular.any()
+    dW = solver.solve(factors, R, h)
+    A = torch.as_tensor(np.array(tab.A))
+    big = _kron(torch.eye(tab.stages), E) + h[:, None, None] * _kron(A, G)
+    ref = -torch.linalg.solve(big, R.reshape(B, -1, 1)).reshape(R.shape)
+    torch.testing.assert_close(dW, ref, rtol=1e-10, atol=1e-10)
+
+
+def test_radau3_error_estimate_matches_radau5_constants():
+    """Our Vandermonde-derived embedded weights e reproduce Hairer-Wanner/scipy's for s = 3:
+    scipy uses f0 + Z^T E / h with Z = h A K, i.e. e = A^T E / gamma."""
+    tab = radau_iia(3)
+    gamma, e = embedded_weights(tab)
+    s6 = 6**0.5
+    E = np.array([-13 - 7 * s6, -13 + 7 * s6, -1]) / 3
+    assert gamma == pytest.approx(3 + 3 ** (2 / 3) - 3 ** (1 / 3), rel=1e-13)
+    np.testing.assert_allclose(e, np.array(tab.A).T @ E / gamma, rtol=1e-12)
+
+
+@pytest.mark.parametrize("s", [1, 3, 5])
+def test_embedded_method_has_order_s(s):
+    """x_hat = x_k + h(gamma0 f(x_k) + sum (b + e)_i K_i) integrates t^(q-1) exactly, q <= s."""
+    tab = radau_iia(s)
+    gamma, e = embedded_weights(tab)
+    c, bhat = np.array(tab.c), np.array(tab.b) + e
+    for q in range(1, s + 1):
+        assert bhat @ c ** (q - 1) + (1 / gamma) * (q == 1) == pytest.approx(1 / q, abs=1e-12)
+    assert bhat @ c**s != pytest.approx(1 / (s + 1), abs=1e-6)
+
+
+# ------------------------------------------------------------------------------- orders
+def rotation_rhs(t, x):
+    """x' = w(x) [x2, -x1] with w = 1 + |x|^2: nonlinear, |x| is conserved, so the exact
+    solution is a rotation by the angle w(x0) t."""
+    w = 1 + x.square().sum(-1, keepdim=True)
+    return w * torch.stack([x[..., 1], -x[..., 0]], -1)
+
+
+def rotation_exact(t_end, x0):
+    w = 1 + x0.square().sum(-1)
+    c, s = torch.cos(w * t_end), torch.sin(w * t_end)
+    return torch.stack([c * x0[:, 0] + s * x0[:, 1], -s * x0[:, 0] + c * x0[:, 1]], -1)
+
+
+def _errors(method, s, steps):
+    """Global errors at the final time for the step counts ``steps``."""
+    logistic = s == 1  # order 1-2: the mild logistic problem is in the asymptotic regime
+    t_end = 1.0 if logistic else 10.0
+    x0 = X0 if logistic else torch.tensor([[1.0, 0.0], [0.3, -0.4]])
+    rhs = logistic_rhs if logistic else rotation_rhs
+    exact = logistic_exact(torch.tensor(t_end), x0)[:, 0] if logistic else rotation_exact(t_end, x0)
+    errs = []
+    for N in steps:
+        t = torch.linspace(0, t_end, N + 1)
+        sol = solve_implicit_ode(
+            rhs, x0, t, method, stages=s, adaptive=False, rtol=1e-14, atol=1e-14
+        )
+        assert sol.success
+        errs.append(float((sol.x[:, -1] - exact).abs().max()))
+    return errs
+
+
+@pytest.mark.parametrize(
+    "method,s,steps",
+    [
+        ("gauss_legendre", 1, (16, 32)),
+        ("gauss_legendre", 2, (40, 80)),
+        ("gauss_legendre", 3, (40, 80)),
+        ("gauss_legendre", 4, (20, 40)),
+        ("gauss_legendre", 5, (20, 40)),
+        ("radau_iia", 1, (64, 128)),
+        ("radau_iia", 2, (80, 160)),
+        ("radau_iia", 3, (40, 80)),
+        ("radau_iia", 4, (40, 80)),
+        ("radau_iia", 5, (20, 40)),
+    ],
+)
+def test_observed_order_of_collocation_methods(method, s, steps):
+    """Fixed-step global error slope: 2s for Gauss-Legendre, 2s-1 for Radau IIA (notes §7.3)."""
+    e1, e2 = _errors(method, s, steps)
+    assert e2 > 1e-11, "the finer run must stay above round-off"
+    order = math.log2(e1 / e2)
+    expected = 2 * s if method == "gauss_legendre" else 2 * s - 1
+    assert abs(order - expected) <= 0.2, (order, expected, e1, e2)
+
+
+# ------------------------------------------------------------------------- stiff problems
+def test_stiff_linear_system_adaptive_vs_matrix_exponential():
+    """Notes eq. 6.42 (eigenvalues -200 +- 2000i and +-5i) against expm (closed form)."""
+    plant = StiffLinear(eps=5e-4).requires_grad_(False)  # forward only: no IFT pass
+    x0 = torch.tensor([[1.0, 0.0, 0.5, -0.5]])
+    t = torch.linspace(0, 0.5, 6)
+    sol = solve_implicit_ode(plant, x0, t, "radau_iia", rtol=1e-7, atol=1e-9)
+    exact = plant.exact(t, x0).detach()
+    assert sol.success
+    assert float((sol.x.detach() - exact).abs().max()) < 2e-6
+    # dt = 0.01 puts the fast eigenvalues at |lambda dt| = 20: RK4 explodes, Radau IIA is
+    # accurate once the fast transient (unresolved, but damped: L-stability) has decayed
+    t_fixed = torch.linspace(0, 0.5, 51)
+    exact_fixed = plant.exact(t_fixed, x0).detach()
+    rk4 = odeint(plant, x0, t_fixed, method="rk4")
+    radau = solve_implicit_ode(plant, x0, t_fixed, "radau_iia", adaptive=False)
+    assert not bool(torch.isfinite(rk4.x).all()) or float(rk4.x.abs().max()) > 1e6
+    assert float((radau.x.detach() - exact_fixed)[..., 10:, :].abs().max()) < 1e-6
+
+
+def _vdp_reference(eps, t_end, y0=(2.0, 0.0)):
+    ref = solve_ivp(
+        lambda t, y: [y[1], ((1 - y[0] ** 2) * y[1] - y[0]) / eps],
+        (0, t_end),
+        list(y0),
+        method="Radau",
+        rtol=1e-12,
+        atol=1e-12,
+    )
+    return ref.y[:, -1]
+
+
+def test_stiff_van_der_pol_eps_1e6_to_requested_tolerance():
+    """y1' = y2, y2' = ((1 - y1^2) y2 - y1) / eps, eps = 1e-6, y0 = (2, 0), t in [0, 2]."""
+    eps, rtol = 1e-6, 1e-4
+    sol = solve_implicit_ode(
+        StiffVanDerPol(eps).requires_grad_(False),
+        torch.tensor([[2.0, 0.0]]),
+        torch.tensor([0.0, 2.0]),
+        "radau_iia",
+        rtol=rtol,
+        atol=rtol,
+    )
+    ref = _vdp_reference(eps, 2.0)
+    assert sol.success
+    rel = np.abs(sol.x[0, -1].numpy() - ref) / np.abs(ref)
+    assert rel.max() < 20 * rtol, rel
+    # the factorisation and the Jacobian are reused across steps
+    assert sol.stats.n_jac_evals < int(sol.stats.n_steps[0])
+    assert int(sol.stats.n_newton_iters[0]) >= int(sol.stats.n_steps[0])
+
+
+def robertson(t, y):
+    y1, y2, y3 = y[..., 0], y[..., 1], y[..., 2]
+    return torch.stack(
+        [-0.04 * y1 + 1e4 * y2 * y3, 0.04 * y1 - 1e4 * y2 * y3 - 3e7 * y2**2, 3e7 * y2**2], -1
+    )
+
+
+def test_robertson_kinetics_against_scipy_bdf():
+    t = torch.tensor([0.0, 0.4, 4.0, 40.0])
+    sol = solve_implicit_ode(
+        robertson, torch.tensor([[1.0, 0.0, 0.0]]), t, "radau_iia", rtol=1e-6, atol=1e-10
+    )
+    ref = solve_ivp(
+        lambda t, y: robertson(t, torch.tensor(y)).numpy(),
+        (0, 40),
+        [1.0, 0.0, 0.0],
+        method="BDF",
+        rtol=1e-12,
+        atol=1e-16,
+        t_eval=t.numpy(),
+    ).y.T
+    assert sol.success
+    rel = np.abs(sol.x[0].numpy() - ref) / (np.abs(ref) + 1e-12)
+    assert rel[1:].max() < 1e-4, rel
+    # the linear invariant y1 + y2 + y3 = 1 is kept by every RK method
+    assert float((sol.x.sum(-1) - 1).abs().max()) < 1e-12
+
+
+# ----------------------------------------------------------------------------- gradients
+class Damped(torch.nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.k = torch.nn.Parameter(torch.tensor([2.0, 0.5]))
+
+    def forward(self, t, x):
+        k = self.k
+        return torch.stack(
+            [x[..., 1], -k[0] * x[..., 0] - k[1] * x[..., 1] * (1 + x[..., 0] ** 2)], -1
+        )
+
+
+@pytest.mark.parametrize("adaptive", [False, True])
+def test_ift_gradients_match_central_differences(adaptive):
+    model = Damped()
+    x0 = torch.tensor([[1.0, 0.3]], requires_grad=True)
+    t = torch.tensor([0.0, 1.5])
+    tol = 1e-12 if not adaptive else 1e-10
+
+    def loss(x0_):
+        sol = solve_implicit_ode(
+            model, x0_, t, "radau_iia", adaptive=adaptive, substeps=8, rtol=tol, atol=tol
+        )
+        return sol.x[..., -1, :].pow(2).sum()
+
+    gx, gk = torch.autograd.grad(loss(x0), (x0, model.k))
+    h = 1e-6
+    with torch.no_grad():
+        fd_k = []
+        for i in range(2):
+            model.k[i] += h
+            up = loss(x0)
+            model.k[i] -= 2 * h
+            down = loss(x0)
+            model.k[i] += h
+            fd_k.append((up - down) / (2 * h))
+        fd_x = torch.stack(
+            [(loss(x0 + h * e) - loss(x0 - h * e)) / (2 * h) for e in torch.eye(2)[:, None, :]]
+        )
+    rel_tol = 1e-6 if not adaptive else 1e-5  # adaptive FD also moves the step sequence
+    assert float((gk - torch.stack(fd_k)).abs().max() / gk.abs().max()) < rel_tol
+    assert float((gx[0] - fd_x).abs().max() / gx.abs().max()) < rel_tol
+
+
+def _graph_size(newton_tol):
+    """Number of autograd nodes and bytes of tensors saved in the graph of x(T)."""
+    model = Damped()
+    x0 = torch.tensor([[1.0, 0.0]], requires_grad=True)
+    sol = solve_implicit_ode(
+        model,
+        x0,
+        torch.linspace(0, 1, 5),
+        "gauss_legendre",
+        adaptive=False,
+        substeps=4,
+        newton_tol=newton_tol,
+        max_iter=30,
+        rtol=1e-10,
+        atol=1e-10,
+    )
+    out = sol.x[..., -1, :].sum()
+    seen, stack, saved = set(), [out.grad_fn], 0
+    while stack:
+        node = stack.pop()
+        if node is None or node in seen:
+            continue
+        seen.add(node)
+        for name in dir(node):
+            if name.startswith("_saved_"):
+                value = getattr(node, name)
+                if isinstance(value, torch.Tensor):
+                    saved += value.numel() * value.element_size()
+        stack.extend(fn for fn, _ in node.next_functions)
+    out.backward()
+    return len(seen), saved, int(sol.stats.n_newton_iters.sum()), model.k.grad.clone()
+
+
+def test_gradient_graph_does_not_grow_with_newton_iterations():
+    loose_nodes, loose_bytes, loose_iters, g_loose = _graph_size(1e-1)
+    tight_nodes, tight_bytes, tight_iters, g_tight = _graph_size(1e-8)
+    assert tight_iters > loose_iters
+    assert tight_nodes == loose_nodes and tight_bytes == loose_bytes
+    torch.testing.assert_close(g_loose, g_tight, rtol=1e-5, atol=1e-8)
+
+
+# ------------------------------------------------------------------------------ batching
+def test_batch_invariance_of_adaptive_radau():
+    """Each member keeps its own steps: same answer and step counts alone and in a batch."""
+    eps = torch.tensor([[1e-6], [1e-2], [1.0]])
+    x0 = torch.tensor([[2.0, 0.0], [2.0, 0.0], [1.0, 0.5]])
+    t = torch.tensor([0.0, 0.2, 0.4])
+    batch = solve_implicit_ode(
+        StiffVanDerPol(eps).requires_grad_(False), x0, t, "radau_iia", rtol=1e-5, atol=1e-5
+    )
+    for i in range(3):
+        alone = solve_implicit_ode(
+            StiffVanDerPol(eps[i : i + 1]).requires_grad_(False),
+            x0[i : i + 1],
+            t,
+            "radau_iia",
+            rtol=1e-5,
+            atol=1e-5,
+        )
+        torch.testing.assert_close(alone.x[0], batch.x[i], rtol=1e-11, atol=1e-11)
+        assert int(alone.stats.n_steps[0]) == int(batch.stats.n_steps[i])
+        assert int(alone.stats.n_rejected[0]) == int(batch.stats.n_rejected[i])
+    assert int(batch.stats.n_steps[0]) > 3 * int(batch.stats.n_steps[2])
+
+
+@settings(max_examples=6, deadline=None)
+@given(lam=st.floats(-1e5, -1e-2), x0=st.floats(-3, 3))
+def test_linear_test_equation_any_stiffness(lam, x0):
+    """x' = lam x (eq. 6.40) for any stiffness: adaptive Radau IIA meets its tolerance."""
+    t = torch.tensor([0.0, 0.3, 1.0])
+    sol = solve_implicit_ode(
+        lambda t, x: lam * x, torch.tensor([[x0]]), t, "radau_iia", rtol=1e-8, atol=1e-10
+    )
+    exact = x0 * torch.exp(lam * t)
+    assert sol.success
+    assert float((sol.x[0, :, 0] - exact).abs().max()) < 1e-7 * (1 + abs(x0))
+
+
+# --------------------------------------------------------------------- dense output, misc
+@pytest.mark.parametrize("adaptive", [False, True])
+def test_dense_output_of_collocation_polynomial(adaptive):
+    t = torch.linspace(0, 1, 5)
+    sol = solve_implicit_ode(
+        logistic_rhs, X0, t, "radau_iia", adaptive=adaptive, substeps=8, rtol=1e-9, atol=1e-9
+    )
+    tq = torch.tensor([0.13, 0.5, 0.77, 1.0])
+    exact = logistic_exact(tq[:, None], X0[:, None, :]).squeeze(-2)
+    assert float((sol.at(tq) - exact).abs().max()) < 1e-6
+    torch.testing.assert_close(sol.at(t), sol.x, rtol=1e-12, atol=1e-12)
+
+
+def test_zero_order_hold_input_is_held_over_each_step():
+    """x' = -x + u with u held (eq. 8.34): one 3-stage Gauss step per interval (order 6,
+    dt = 0.25) matches the exact discretisation to ~1e-8 even at the input jump."""
+    t = torch.linspace(0, 2, 9)
+    u = torch.where(t < 1, 1.0, -2.0)[:, None]
+    rhs = bind_rhs(lambda t, x, u: -x + u, u, t)
+    sol = solve_implicit_ode(
+        rhs,
+        torch.tensor([[0.5]]),
+        t,
+        "gauss_legendre",
+        stages=3,
+        adaptive=False,
+        rtol=1e-13,
+        atol=1e-13,
+    )
+    x = 0.5
+    exact = [x]
+    for k in range(8):
+        dt = float(t[k + 1] - t[k])
+        x = float(u[k]) + (x - float(u[k])) * math.exp(-dt)
+        exact.append(x)
+    torch.testing.assert_close(sol.x[0, :, 0], torch.tensor(exact), rtol=1e-8, atol=1e-8)
+
+
+def test_odeint_dispatch_and_float32():
+    t = torch.linspace(0, 1, 5)
+    direct = solve_implicit_ode(logistic_rhs, X0, t, "gauss_legendre", adaptive=False)
+    via = odeint(logistic_rhs, X0, t, method="gauss_legendre")
+    torch.testing.assert_close(direct.x, via.x)
+    sol32 = solve_implicit_ode(
+        logistic_rhs, X0.float(), t.float(), "radau_iia", rtol=1e-5, atol=1e-6
+    )
+    assert sol32.x.dtype == torch.float32 and sol32.success
+    exact = logistic_exact(torch.tensor(1.0), X0)[:, 0]
+    assert float((sol32.x[:, -1].double() - exact).abs().max()) < 1e-4
+
+
+def test_status_and_messages_for_failures():
+    # finite escape time of x' = x^2 at t = 1: the sample stops, the other one finishes
+    x0 = torch.tensor([[1.0], [-1.0]])
+    sol = solve_implicit_ode(lambda t, x: x**2, x0, torch.tensor([0.0, 2.0]), "radau_iia")
+    assert sol.status[0] != Status.SUCCESS and sol.status[1] == Status.SUCCESS
+    assert any("sample (0,)" in m and "t = 1" in m for m in sol.messages), sol.messages
+    torch.testing.assert_close(sol.x[1, -1], torch.tensor([-1 / 3]), rtol=1e-5, atol=1e-6)
+    few = solve_implicit_ode(
+        StiffVanDerPol(1e-6).requires_grad_(False),
+        torch.tensor([[2.0, 0.0]]),
+        torch.tensor([0.0, 2.0]),
+        "radau_iia",
+        max_steps=5,
+    )
+    assert few.status[0] == Status.MAX_STEPS and "max_steps" in few.messages[0]
+    # a fixed implicit Euler step far too long for x' = x^2 from x0 = 1: no root of the stage
+    # equation x1 = 1 + 2 x1^2 exists, Newton must fail and say so
+    bad = solve_implicit_ode(
+        lambda t, x: x**2,
+        torch.tensor([[1.0]]),
+        torch.tensor([0.0, 2.0]),
+        "implicit_euler",
+        adaptive=False,
+    )
+    assert bad.status[0] == Status.NEWTON_FAILED
+    assert "did not converge" in bad.messages[0]

@@ -1,0 +1,118 @@
+"""sysid.linearize: Jacobians along trajectories and at steady states (eq. 1.33-1.42), and the
+exact ZOH discretisation (eq. 1.55) against scipy and python-control."""
+
+import control
+import numpy as np
+import pytest
+import scipy.signal
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from integrators.errors import ConvergenceError
+from sysid.linearize import linearize, simulate_lti_zoh, steady_state, zoh_discretize
+from sysid.zoo import NonlinearExample
+
+DT = torch.float64
+
+
+def test_linearisation_along_a_trajectory_matches_eq_1_39():
+    plant = NonlinearExample()
+    x = torch.randn(3, 40, 2, dtype=DT, generator=torch.Generator().manual_seed(0))
+    u = torch.randn(3, 40, 1, dtype=DT, generator=torch.Generator().manual_seed(1))
+    a, b, c, d = linearize(plant, x, u, h=lambda xx, uu: plant.output(xx, uu))
+    ref = plant.closed_form_linearization(x)
+    for got, want in zip((a, b, c, d), ref, strict=True):
+        torch.testing.assert_close(got, want.expand_as(got), rtol=1e-12, atol=1e-12)
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.floats(-1.5, 1.5))
+def test_steady_state_by_newton_and_eq_1_42(u_bar):
+    """Eq. (1.40)-(1.42): x_bar = [0, u_bar]; A = [[1 - u_bar^2, -1], [1, 0]] (eq. 1.42 prints
+    A[0, 0] = 1: a typo, right only for u_bar = 0), B = [1, 0]^T, C = [1, 3 u_bar^2], D = 0."""
+    plant = NonlinearExample()
+    u = torch.tensor([[u_bar]], dtype=DT)
+    x_bar = steady_state(plant, torch.tensor([[0.3, 0.2]], dtype=DT), u)
+    torch.testing.assert_close(x_bar, torch.tensor([[0.0, u_bar]], dtype=DT), atol=1e-9, rtol=0)
+    a, b, c, d = linearize(plant, x_bar, u, h=lambda xx, uu: plant.output(xx, uu))
+    a_ref = torch.tensor([[[1 - u_bar**2, -1.0], [1.0, 0.0]]], dtype=DT)
+    torch.testing.assert_close(a, a_ref, atol=1e-8, rtol=0)
+    torch.testing.assert_close(b, torch.tensor([[[1.0], [0.0]]], dtype=DT))
+    torch.testing.assert_close(
+        c, torch.tensor([[[1.0, 3 * u_bar**2]]], dtype=DT), atol=1e-8, rtol=0
+    )
+    assert float(d.abs().max()) == 0.0
+
+
+def test_steady_state_reports_non_convergence():
+    with pytest.raises(ConvergenceError, match="batch indices"):
+        steady_state(lambda t, x: x**2 + 1.0, torch.tensor([[0.5]], dtype=DT), max_iter=5)
+
+
+def test_linearize_is_differentiable_with_respect_to_parameters():
+    from sysid.zoo import VanDerPol
+
+    plant = VanDerPol(mu=1.5)
+    x = torch.tensor([[0.4, -0.7]], dtype=DT)
+    a = linearize(plant, x)[0]
+    a[0, 0, 0].backward()  # d/dmu of mu (1 - x2^2) = 1 - x2^2
+    assert plant.mu.grad.item() == pytest.approx(1 - 0.7**2)
+
+
+def _random_lti(seed, n=3, m=2):
+    rng = np.random.default_rng(seed)
+    return rng.normal(size=(n, n)), rng.normal(size=(n, m))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_zoh_discretisation_matches_scipy_and_python_control(seed):
+    a, b = _random_lti(seed)
+    dt = 0.1 + 0.2 * seed
+    ad, bd = zoh_discretize(torch.tensor(a), torch.tensor(b), dt)
+    ad_s, bd_s, *_ = scipy.signal.cont2discrete((a, b, np.eye(3), np.zeros((3, 2))), dt, "zoh")
+    np.testing.assert_allclose(ad.numpy(), ad_s, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(bd.numpy(), bd_s, rtol=1e-12, atol=1e-12)
+    sys_d = control.c2d(control.ss(a, b, np.eye(3), np.zeros((3, 2))), dt, method="zoh")
+    np.testing.assert_allclose(ad.numpy(), sys_d.A, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(bd.numpy(), sys_d.B, rtol=1e-10, atol=1e-12)
+
+
+def test_zoh_discretisation_is_batched_over_systems_and_steps():
+    a = torch.stack([torch.tensor(_random_lti(s)[0]) for s in range(4)])
+    b = torch.stack([torch.tensor(_random_lti(s)[1]) for s in range(4)])
+    dt = torch.tensor([0.1, 0.2, 0.3, 0.4], dtype=DT)
+    ad, bd = zoh_discretize(a, b, dt)
+    for i in range(4):
+        ref = zoh_discretize(a[i], b[i], float(dt[i]))
+        torch.testing.assert_close(ad[i], ref[0])
+        torch.testing.assert_close(bd[i], ref[1])
+
+
+def test_zoh_simulation_matches_scipy_dlsim_and_lsim():
+    a, b = _random_lti(3, n=2, m=1)
+    a = a - 2 * np.eye(2)  # stable
+    c, d = np.array([[1.0, -0.5]]), np.array([[0.2]])
+    dt, steps = 0.05, 60
+    u = np.sin(np.arange(steps) * 0.3)[:, None]
+    x0 = np.array([0.5, -1.0])
+    x, y = simulate_lti_zoh(
+        torch.tensor(a),
+        torch.tensor(b),
+        torch.tensor(x0),
+        torch.tensor(u),
+        dt,
+        torch.tensor(c),
+        torch.tensor(d),
+    )
+    sys_d = scipy.signal.cont2discrete((a, b, c, d), dt, "zoh")
+    _, y_ref, x_ref = scipy.signal.dlsim(sys_d[:4] + (dt,), u, x0=x0)
+    np.testing.assert_allclose(y.numpy(), y_ref, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(x[:-1].numpy(), x_ref, rtol=1e-10, atol=1e-12)
+    # the continuous-time simulator with a held input agrees at the samples (eq. 1.55)
+    t = np.arange(steps + 1) * dt
+    u_fine = np.repeat(u[:, 0], 1)
+    _, _, x_cont = scipy.signal.lsim(
+        (a, b, c, d), np.append(u_fine, u_fine[-1]), t, X0=x0, interp=False
+    )
+    np.testing.assert_allclose(x.numpy(), x_cont, rtol=1e-8, atol=1e-10)

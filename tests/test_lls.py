@@ -1,0 +1,236 @@
+"""Tests of sysid.lls: eq. 4.81 (estimate), 4.92/4.93 (covariance), 4.101 (FIR covariance).
+
+Independent references: statsmodels OLS/WLS/GLS on bundled data sets, numpy.linalg.lstsq,
+explicit inverses computed in numpy, and a batched Monte-Carlo study.
+"""
+
+import warnings
+
+import numpy as np
+import pytest
+import statsmodels.api as sm
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from integrators.errors import InputValidationError, PoorExcitationWarning, SingularMatrixError
+from sysid.lls import lls
+
+DT = torch.float64
+
+
+def toeplitz_regressor(u: torch.Tensor, n_taps: int) -> torch.Tensor:
+    """FIR regressor U of eq. 4.8 with zero initial inputs: U[k, i] = u[k - i]; u (*batch, N)."""
+    padded = torch.nn.functional.pad(u, (n_taps - 1, 0))
+    return padded.unfold(-1, n_taps, 1).flip(-1)
+
+
+@pytest.mark.filterwarnings("ignore::integrators.errors.PoorExcitationWarning")
+@pytest.mark.parametrize("method", ["qr", "cholesky"])
+def test_ols_matches_statsmodels_longley(method):
+    data = sm.datasets.longley.load_pandas()
+    X = sm.add_constant(data.exog).to_numpy()
+    yv = data.endog.to_numpy()
+    ref = sm.OLS(yv, X).fit()
+    res = lls(torch.tensor(X, dtype=DT), torch.tensor(yv, dtype=DT), method=method)
+    # Longley is notoriously ill-conditioned (cond(X'X) ~ 2e19); the normal-equation route
+    # (cholesky) squares the scaled condition number and loses more digits than QR
+    rtol = 1e-7 if method == "qr" else 1e-4
+    np.testing.assert_allclose(res.theta.numpy(), ref.params, rtol=rtol)
+    np.testing.assert_allclose(res.standard_errors.numpy(), ref.bse, rtol=rtol)
+    np.testing.assert_allclose(res.sigma2.item(), ref.scale, rtol=rtol)
+    np.testing.assert_allclose(res.residuals.numpy(), ref.resid, rtol=rtol, atol=1e-4)
+    if method == "qr":  # statsmodels' condition number is that of X: sqrt of cond(X'X)
+        np.testing.assert_allclose(res.condition_number.item(), ref.condition_number**2, rtol=1e-4)
+
+
+def test_longley_warns_of_poor_conditioning():
+    data = sm.datasets.longley.load_pandas()
+    X = torch.tensor(sm.add_constant(data.exog).to_numpy(), dtype=DT)
+    with pytest.warns(PoorExcitationWarning, match="ill-conditioned"):
+        lls(X, torch.tensor(data.endog.to_numpy(), dtype=DT))
+
+
+@pytest.mark.parametrize("method", ["qr", "cholesky"])
+def test_wls_and_gls_match_statsmodels_spector(method):
+    data = sm.datasets.spector.load_pandas()
+    X = sm.add_constant(data.exog).to_numpy()
+    yv = data.endog.to_numpy()
+    w = 1.0 + X[:, 1] ** 2 / 10.0  # positive weights, varying across samples
+    ref = sm.WLS(yv, X, weights=w).fit()
+    Xt, yt = torch.tensor(X, dtype=DT), torch.tensor(yv, dtype=DT)
+    res = lls(Xt, yt, W=torch.tensor(w, dtype=DT), method=method)
+    np.testing.assert_allclose(res.theta.numpy(), ref.params, rtol=1e-9)
+    np.testing.assert_allclose(res.standard_errors.numpy(), ref.bse, rtol=1e-9)
+    np.testing.assert_allclose(res.sigma2.item(), ref.scale, rtol=1e-9)
+    # GLS with a full (AR(1)) covariance: W = Sigma^{-1} given as a full matrix
+    M = len(yv)
+    idx = np.arange(M)
+    Sigma = 0.6 ** np.abs(idx[:, None] - idx[None, :])
+    ref_gls = sm.GLS(yv, X, sigma=Sigma).fit()
+    res_gls = lls(Xt, yt, W=torch.tensor(np.linalg.inv(Sigma), dtype=DT), method=method)
+    np.testing.assert_allclose(res_gls.theta.numpy(), ref_gls.params, rtol=1e-8)
+    np.testing.assert_allclose(res_gls.standard_errors.numpy(), ref_gls.bse, rtol=1e-8)
+
+
+def test_sandwich_covariance_eq_4_92_and_4_93():
+    g = torch.Generator().manual_seed(3)
+    A = torch.randn(4, 40, 3, generator=g, dtype=DT)
+    y = torch.randn(4, 40, generator=g, dtype=DT)
+    s = torch.rand(4, 40, generator=g, dtype=DT) + 0.2  # noise variances (diagonal Sigma)
+    w = torch.rand(4, 40, generator=g, dtype=DT) + 0.5  # some other weights
+    res = lls(A, y, W=w, sigma=s)
+    An, Wn, Sn = A.numpy(), np.stack([np.diag(v) for v in w.numpy()]), s.numpy()
+    for b in range(4):  # reference with explicit inverses (numpy, test only)
+        P = np.linalg.inv(An[b].T @ Wn[b] @ An[b])
+        ref = P @ An[b].T @ Wn[b] @ np.diag(Sn[b]) @ Wn[b] @ An[b] @ P  # eq. 4.92
+        np.testing.assert_allclose(res.covariance[b].numpy(), ref, rtol=1e-10)
+    # W = Sigma^{-1}: eq. 4.93, (A' Sigma^{-1} A)^{-1}; diagonal and full Sigma agree
+    res_ml = lls(A, y, W=1 / s, sigma=s)
+    res_full = lls(A, y, W=torch.diag_embed(1 / s), sigma=torch.diag_embed(s))
+    for b in range(4):
+        ref = np.linalg.inv(An[b].T @ np.diag(1 / Sn[b]) @ An[b])
+        np.testing.assert_allclose(res_ml.covariance[b].numpy(), ref, rtol=1e-10)
+        np.testing.assert_allclose(res_full.covariance[b].numpy(), ref, rtol=1e-10)
+    # scalar sigma^2 with W = I: sigma^2 (A'A)^{-1} (eq. 4.101)
+    res_s = lls(A, y, sigma=0.25)
+    ref = 0.25 * np.linalg.inv(np.einsum("bmi,bmj->bij", An, An))
+    np.testing.assert_allclose(res_s.covariance.numpy(), ref, rtol=1e-10)
+
+
+def test_fir_monte_carlo_covariance_eq_4_101():
+    """10 000 noise realisations, one batched lls call (shared U factorised once)."""
+    g = torch.Generator().manual_seed(7)
+    N, n_taps, sigma, trials = 400, 20, 0.3, 10_000
+    u = torch.randn(N, generator=g, dtype=DT)
+    U = toeplitz_regressor(u, n_taps)
+    b_true = torch.exp(-torch.arange(n_taps, dtype=DT) / 4) * torch.cos(torch.arange(n_taps) / 2)
+    y = U @ b_true + sigma * torch.randn(trials, N, generator=g, dtype=DT)
+    res = lls(U, y)
+    assert res.theta.shape == (trials, n_taps)
+    dev = res.theta - b_true
+    emp = dev.T @ dev / trials
+    predicted = sigma**2 * torch.linalg.inv(U.T @ U)  # eq. 4.101 (test-only inverse)
+    rel = torch.linalg.matrix_norm(emp - predicted) / torch.linalg.matrix_norm(predicted)
+    assert rel < 0.10
+    # unbiased (eq. 4.91): mean error within 4 standard errors of the Monte-Carlo mean
+    se_mean = predicted.diagonal().sqrt() / trials**0.5
+    assert (dev.mean(0).abs() < 4 * se_mean).all()
+    # sigma^2 estimated from residuals is unbiased (divide by M - p)
+    assert abs(res.sigma2.mean().item() / sigma**2 - 1) < 0.01
+
+
+def test_sinusoid_and_step_inputs_warn_white_noise_and_prbs_do_not():
+    """Notes Fig. 4.1: a sinusoid (and a step) does not excite a 20-tap FIR model."""
+    N, n_taps = 200, 20
+    k = torch.arange(N, dtype=DT)
+    g = torch.Generator().manual_seed(0)
+    inputs = {
+        "sinusoid": torch.sin(0.3 * k),
+        "step": torch.ones(N, dtype=DT),
+        "white": torch.randn(N, generator=g, dtype=DT),
+        "prbs": torch.sign(torch.randn(N, generator=g, dtype=DT)),
+    }
+    y = torch.randn(N, generator=g, dtype=DT)
+    conds = {}
+    for name, u in inputs.items():
+        U = toeplitz_regressor(u, n_taps)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            res = lls(U, y)
+        warned = any(issubclass(w.category, PoorExcitationWarning) for w in caught)
+        assert warned == (name in ("sinusoid", "step")), name
+        conds[name] = res.condition_number.item()
+        # reference condition number of U'U from numpy
+        np.testing.assert_allclose(conds[name], np.linalg.cond(U.T @ U), rtol=1e-6)
+    assert conds["sinusoid"] > 1e5 and conds["step"] > 1e4
+    assert conds["white"] < 10 and conds["prbs"] < 10
+
+
+@pytest.mark.parametrize("method", ["qr", "cholesky"])
+def test_singular_normal_matrix_names_batch_index(method):
+    g = torch.Generator().manual_seed(2)
+    A = torch.randn(5, 30, 3, generator=g, dtype=DT)
+    A[3, :, 2] = 2 * A[3, :, 0]  # batch member 3 has dependent columns
+    y = torch.randn(5, 30, generator=g, dtype=DT)
+    with pytest.raises(SingularMatrixError, match=r"batch index \(3,\)"):
+        lls(A, y, method=method)
+
+
+def test_invalid_inputs_are_reported():
+    A = torch.randn(10, 2, dtype=DT)
+    y = torch.randn(10, dtype=DT)
+    y_bad = y.clone()
+    y_bad[7] = float("nan")
+    with pytest.raises(InputValidationError, match=r"index \(7,\)"):
+        lls(A, y_bad)
+    with pytest.raises(InputValidationError, match="more equations"):
+        lls(A[:2], y[:2])
+    with pytest.raises(InputValidationError, match="rows"):
+        lls(A, y[:9])
+    with pytest.raises(InputValidationError, match="non-negative"):
+        lls(A, y, W=-torch.ones(10, dtype=DT))
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    batch=st.integers(1, 4),
+    M=st.integers(4, 30),
+    p=st.integers(1, 3),
+    seed=st.integers(0, 10_000),
+    weighted=st.booleans(),
+)
+def test_batched_matches_numpy_lstsq(batch, M, p, seed, weighted):
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((batch, M, p))
+    y = rng.standard_normal((batch, M))
+    w = rng.uniform(0.1, 2.0, (batch, M)) if weighted else np.ones((batch, M))
+    res = lls(torch.tensor(A), torch.tensor(y), W=torch.tensor(w) if weighted else None)
+    for b in range(batch):
+        sw = np.sqrt(w[b])
+        ref = np.linalg.lstsq(A[b] * sw[:, None], y[b] * sw, rcond=None)[0]
+        np.testing.assert_allclose(res.theta[b].numpy(), ref, rtol=1e-8, atol=1e-10)
+
+
+def test_float32_and_gradients():
+    g = torch.Generator().manual_seed(4)
+    A = torch.randn(3, 50, 4, generator=g, dtype=DT)
+    th = torch.randn(3, 4, generator=g, dtype=DT)
+    y = (A @ th.unsqueeze(-1)).squeeze(-1) + 0.01 * torch.randn(3, 50, generator=g, dtype=DT)
+    r64 = lls(A, y)
+    r32 = lls(A.float(), y.float())
+    assert r32.theta.dtype == torch.float32
+    torch.testing.assert_close(r32.theta.double(), r64.theta, rtol=1e-4, atol=1e-5)
+    # differentiable: d theta / d y = (A'A)^{-1} A' (checked by gradcheck, finite differences)
+    A1 = A[0].clone().requires_grad_(True)
+    y1 = y[0].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda a, b: lls(a, b).theta, (A1, y1))
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    N=st.integers(22, 120),
+    nb=st.integers(1, 20),
+    nk=st.integers(0, 3),
+    seed=st.integers(0, 10_000),
+)
+def test_fir_lls_equals_lls_on_explicit_regressor(N, nb, nk, seed):
+    """fir_lls builds U'U and U'y from correlations (no U); it must equal lls(U, y)."""
+    from sysid.lls import fir_lls
+    from sysid.montecarlo import fir_regressor
+
+    g = torch.Generator().manual_seed(seed)
+    u = torch.randn(2, N, generator=g, dtype=DT)
+    y = torch.randn(2, N, generator=g, dtype=DT)
+    U = fir_regressor(u, nb, nk)
+    np.testing.assert_allclose(U[0].numpy()[nk + 1, 0], u[0, 1].item())  # U[k, i] = u_{k-nk-i}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PoorExcitationWarning)
+        ref = lls(U, y)
+        got = fir_lls(u, y, nb, nk)
+    torch.testing.assert_close(got.theta, ref.theta, rtol=1e-9, atol=1e-11)
+    torch.testing.assert_close(got.covariance, ref.covariance, rtol=1e-9, atol=1e-13)
+    torch.testing.assert_close(got.residuals, ref.residuals, rtol=1e-9, atol=1e-11)
+    # the power-iteration condition estimate is a close lower bound of the exact one
+    assert (got.condition_number <= ref.condition_number * (1 + 1e-9)).all()
+    assert (got.condition_number >= 0.5 * ref.condition_number).all()

@@ -1,0 +1,369 @@
+"""Newton methods (notes §3): convergence rates, damping, IFT gradients, minimisation.
+
+Reference values come from closed forms (cube roots, the asymptotic rates of Theorems 3 and 6),
+scipy.optimize (fsolve, least_squares) and central finite differences.
+"""
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.optimize import fsolve, least_squares
+
+from integrators import ConvergenceError, InputValidationError
+from integrators.newton import NewtonStatus, batch_jacobian, minimize, newton
+
+F64 = torch.float64
+
+
+def cube(x, a):
+    return x**3 - a
+
+
+def vector_phi(x, p):
+    """x1^2 + x2^2 = p1, exp(x1) + x2 = p2 (a circle cut by an exponential)."""
+    x1, x2 = x[..., 0], x[..., 1]
+    return torch.stack([x1**2 + x2**2 - p[..., 0], torch.exp(x1) + x2 - p[..., 1]], -1)
+
+
+def vector_root(p):
+    def f(z):
+        return [z[0] ** 2 + z[1] ** 2 - p[0], np.exp(z[0]) + z[1] - p[1]]
+
+    return fsolve(f, [1.0, -1.0], xtol=1e-14)
+
+
+def errors(result, x_star):
+    return (result.x_history - x_star).abs().amax(-1)  # (iters + 1, *batch)
+
+
+def informative(e, floor=1e-13):
+    e = e.numpy()
+    return e[: np.argmax(e < floor)] if np.any(e < floor) else e
+
+
+# ---------------------------------------------------------------- convergence rates
+def test_full_newton_converges_quadratically_on_a_scalar_problem():
+    """Theorem 3 (eq. 3.10): e_{k+1} / e_k^2 -> |phi''/(2 phi')| = 1 / x* for x^3 - 2."""
+    a = torch.tensor([[2.0]], dtype=F64)
+    res = newton(cube, torch.tensor([[3.0]], dtype=F64), a, return_history=True)
+    assert bool(res.converged.all())
+    x_star = 2.0 ** (1 / 3)
+    e = informative(errors(res, x_star)[:, 0])
+    ratios = e[1:] / e[:-1] ** 2
+    assert len(ratios) >= 4
+    assert np.all(ratios < 2.0)
+    assert abs(ratios[-1] - 1 / x_star) < 0.05
+    assert abs(float(res.observed_order[0]) - 2.0) < 0.2
+
+
+def test_full_newton_converges_quadratically_on_a_vector_problem():
+    p = torch.tensor([[4.0, 1.0]], dtype=F64)
+    x_star = torch.as_tensor(vector_root(p[0].numpy()), dtype=F64)
+    res = newton(vector_phi, torch.tensor([[1.0, -1.0]], dtype=F64), p, return_history=True)
+    assert bool(res.converged.all())
+    torch.testing.assert_close(res.x[0], x_star, rtol=0, atol=1e-12)
+    e = informative(errors(res, x_star)[:, 0])
+    assert len(e) >= 4
+    ratios = e[1:] / e[:-1] ** 2
+    assert np.all(ratios < 5.0)
+    assert float(res.observed_order[0]) > 1.7
+
+
+def test_simplified_newton_converges_linearly_at_the_theorem_6_rate():
+    """Frozen M = phi'(x0): the error ratio tends to kappa = |1 - phi'(x*) / M| (eq. 3.47)."""
+    a = torch.tensor([[2.0]], dtype=F64)
+    res = newton(
+        cube,
+        torch.tensor([[2.0]], dtype=F64),
+        a,
+        method="simplified",
+        max_iter=200,
+        tol=1e-14,
+        return_history=True,
+    )
+    assert bool(res.converged.all()) and res.n_factorizations == 1 and res.n_jac_evals == 1
+    x_star = 2.0 ** (1 / 3)
+    kappa = 1 - 3 * x_star**2 / 12.0
+    e = informative(errors(res, x_star)[:, 0], floor=1e-12)
+    ratios = e[1:] / e[:-1]
+    np.testing.assert_allclose(ratios[-5:], kappa, rtol=1e-3)
+    assert abs(float(res.observed_order[0]) - 1.0) < 0.05
+    assert abs(float(res.contraction[0]) - kappa) < 5e-3
+
+
+def test_scaled_approximate_jacobian_converges_linearly_on_a_vector_problem():
+    """M = 1.5 J(x): I - M^{-1} J = I / 3, so every error component shrinks by exactly 1/3."""
+    p = torch.tensor([[4.0, 1.0]], dtype=F64)
+    x_star = torch.as_tensor(vector_root(p[0].numpy()), dtype=F64)
+
+    def scaled(x, p):
+        return 1.5 * batch_jacobian(vector_phi, x, p)[1]
+
+    res = newton(
+        vector_phi,
+        torch.tensor([[1.0, -1.0]], dtype=F64),
+        p,
+        jacobian=scaled,
+        max_iter=100,
+        tol=1e-14,
+        return_history=True,
+    )
+    assert bool(res.converged.all())
+    e = informative(errors(res, x_star)[:, 0], floor=1e-11)
+    ratios = e[1:] / e[:-1]
+    assert len(ratios) > 10
+    np.testing.assert_allclose(ratios[-5:], 1 / 3, rtol=2e-2)
+
+
+def test_simplified_newton_reuses_a_given_factorization():
+    a = torch.tensor([[2.0], [3.0]], dtype=F64)
+    first = newton(cube, torch.full((2, 1), 1.4, dtype=F64), a, method="simplified", max_iter=100)
+    again = newton(
+        cube,
+        torch.full((2, 1), 1.4, dtype=F64),
+        a + 1e-3,
+        method="simplified",
+        max_iter=100,
+        factorization=first.factorization,
+    )
+    assert again.n_factorizations == 0 and bool(again.converged.all())
+    torch.testing.assert_close(again.x, (a + 1e-3) ** (1 / 3), rtol=0, atol=1e-9)
+
+
+def test_fixed_matrix_as_approximate_jacobian():
+    A = torch.tensor([[3.0, 1.0], [1.0, 2.0]], dtype=F64)
+    b = torch.tensor([[1.0, -1.0], [2.0, 0.5]], dtype=F64)
+
+    def linear(x, b):
+        return x @ A.T - b
+
+    res = newton(linear, torch.zeros(2, 2, dtype=F64), b, jacobian=A)
+    assert bool(res.converged.all()) and int(res.iterations.max()) == 1  # linear: one step
+    assert res.n_factorizations == 1 and res.n_jac_evals == 1
+    torch.testing.assert_close(res.x, torch.linalg.solve(A, b.T).T)
+
+
+# ------------------------------------------------------------------------- damping
+def test_full_steps_diverge_on_arctan_and_damping_rescues_them():
+    """Newton on arctan(x) = 0 diverges for |x0| > 1.3917 (the case of notes Fig. 3.2 right);
+    Armijo-damped steps (Theorem 4) converge from the same guess."""
+    x0 = torch.tensor([[2.0], [-3.0], [0.5]], dtype=F64)
+    full = newton(torch.atan, x0, max_iter=8, return_history=True)
+    assert not bool(full.converged[:2].any()) and bool(full.converged[2])
+    first = full.x_history[:5, 0, 0].abs()
+    assert bool(torch.all(first[1:] > first[:-1]))  # |x_k| grows: oscillating divergence
+    damped = newton(torch.atan, x0, method="damped", max_iter=50)
+    assert bool(damped.converged.all())
+    torch.testing.assert_close(damped.x, torch.zeros_like(x0), rtol=0, atol=1e-10)
+    assert float(damped.step_sizes[0, 0]) < 1.0  # a reduced step was needed
+    assert bool(torch.all(damped.residual_norms[1:, 0] <= damped.residual_norms[:-1, 0]))
+
+
+def test_batch_with_one_failing_member():
+    """x^2 + a = 0 has no real root for a = 1: that member fails, the others converge."""
+    a = torch.tensor([[-4.0], [1.0], [-9.0]], dtype=F64)
+
+    def phi(x, a):
+        return x**2 + a
+
+    res = newton(phi, torch.ones(3, 1, dtype=F64), a, method="damped", max_iter=40)
+    assert res.converged.tolist() == [True, False, True]
+    torch.testing.assert_close(res.x[[0, 2]], torch.tensor([[2.0], [3.0]], dtype=F64))
+    assert res.status[1] != NewtonStatus.CONVERGED
+    assert len(res.messages) == 1 and res.messages[0].startswith("sample 1")
+    with pytest.raises(ConvergenceError, match="sample 1"):
+        newton(phi, torch.ones(3, 1, dtype=F64), a, method="damped", raise_on_failure=True)
+
+
+def test_converged_members_stop_changing():
+    a = torch.tensor([[8.0], [1000.0]], dtype=F64)
+    res = newton(cube, torch.tensor([[2.0], [1.0]], dtype=F64), a, return_history=True)
+    assert res.iterations[0] < res.iterations[1]
+    k = int(res.iterations[0])
+    assert bool(torch.all(res.x_history[k:, 0] == res.x_history[k, 0]))
+
+
+def test_singular_jacobian_is_flagged():
+    res = newton(lambda x: x**2 + 1.0, torch.zeros(2, 1, dtype=F64))
+    assert bool(torch.all(res.status == NewtonStatus.SINGULAR))
+
+
+# ------------------------------------------------------------------------ gradients
+def test_ift_gradient_matches_finite_differences():
+    p = torch.tensor([[4.0, 1.0], [2.0, 0.5], [9.0, 2.0]], dtype=F64, requires_grad=True)
+    w = torch.tensor([[0.3, -1.2]], dtype=F64)
+    x0 = torch.tensor([[1.0, -1.0]], dtype=F64).expand(3, 2)
+    res = newton(vector_phi, x0, p, tol=1e-13)
+    assert bool(res.converged.all())
+    (g,) = torch.autograd.grad((res.x * w).sum(), p)
+    fd = torch.zeros_like(p)
+    h = 1e-6
+    for j in range(2):
+        e = torch.zeros(1, 2, dtype=F64)
+        e[0, j] = h
+        plus = newton(vector_phi, x0, p.detach() + e, tol=1e-14).x
+        minus = newton(vector_phi, x0, p.detach() - e, tol=1e-14).x
+        fd[:, j] = ((plus - minus) * w).sum(-1) / (2 * h)
+    torch.testing.assert_close(g, fd, rtol=1e-6, atol=1e-9)
+    # eq. 3.40 in closed form: dx/dp = -J^{-1} dphi/dp with dphi/dp = -I
+    _, J = batch_jacobian(vector_phi, res.x.detach(), p.detach())
+    torch.testing.assert_close(g, (torch.linalg.inv(J).transpose(-1, -2) @ w[..., None])[..., 0])
+
+
+def test_ift_gradient_reaches_closure_parameters_and_not_x0():
+    k = torch.nn.Parameter(torch.tensor(2.0, dtype=F64))
+    x0 = torch.ones(4, 1, dtype=F64, requires_grad=True)
+    a = torch.linspace(1, 4, 4, dtype=F64)[:, None]
+
+    def phi(x, a):
+        return k * x**3 - a  # root (a / k)^(1/3)
+
+    res = newton(phi, x0, a, params=[k])
+    (gk,) = torch.autograd.grad(res.x.sum(), k)
+    exact = (-(1 / 3) * a ** (1 / 3) * k.detach() ** (-4 / 3)).sum()
+    torch.testing.assert_close(gk, exact)
+    assert torch.autograd.grad(res.x.sum(), x0, allow_unused=True)[0] is None
+
+
+def count_graph_nodes(t):
+    seen, stack = set(), [t.grad_fn]
+    while stack:
+        node = stack.pop()
+        if node is None or node in seen:
+            continue
+        seen.add(node)
+        stack.extend(nxt for nxt, _ in node.next_functions)
+    return len(seen)
+
+
+def test_ift_graph_does_not_grow_with_iterations():
+    a = torch.tensor([[0.5]], dtype=F64, requires_grad=True)
+
+    def phi(x, a):
+        return torch.atan(x) - a
+
+    few = newton(phi, torch.tensor([[0.6]], dtype=F64), a, method="damped")
+    many = newton(
+        phi, torch.tensor([[1.0]], dtype=F64), a, method="simplified", tol=1e-14, max_iter=500
+    )
+    assert int(many.iterations[0]) > 3 * int(few.iterations[0])
+    assert count_graph_nodes(few.x) == count_graph_nodes(many.x) <= 3
+    g_few = torch.autograd.grad(few.x.sum(), a)[0]
+    g_many = torch.autograd.grad(many.x.sum(), a)[0]
+    torch.testing.assert_close(g_few, g_many)
+    torch.testing.assert_close(g_few, 1 + torch.tan(a.detach()) ** 2)  # d tan(a) / da
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.lists(st.floats(0.05, 500.0), min_size=1, max_size=6))
+def test_cube_roots_and_their_gradients_for_varied_data(values):
+    a = torch.tensor(values, dtype=F64)[:, None].requires_grad_(True)
+    res = newton(cube, torch.ones_like(a).detach(), a, method="damped", max_iter=100)
+    assert bool(res.converged.all())
+    torch.testing.assert_close(res.x, a.detach() ** (1 / 3), rtol=1e-10, atol=0)
+    (g,) = torch.autograd.grad(res.x.sum(), a)
+    torch.testing.assert_close(g, a.detach() ** (-2 / 3) / 3, rtol=1e-8, atol=0)
+
+
+def test_float32_works():
+    a = torch.tensor([[2.0], [5.0]], dtype=torch.float32)
+    res = newton(cube, torch.ones(2, 1), a)
+    assert res.x.dtype == torch.float32 and bool(res.converged.all())
+    torch.testing.assert_close(res.x, a ** (1 / 3), rtol=1e-5, atol=0)
+
+
+def test_bad_inputs():
+    with pytest.raises(InputValidationError, match="method"):
+        newton(cube, torch.ones(1, 1), torch.ones(1, 1), method="secant")
+    with pytest.raises(InputValidationError, match="shape"):
+        newton(lambda x: x.sum(-1), torch.ones(2, 3))
+    with pytest.raises(InputValidationError, match="non-finite"):
+        newton(cube, torch.tensor([[float("nan")]]), torch.ones(1, 1))
+
+
+# ----------------------------------------------------------------------- minimise
+def exp_model(theta, t):
+    return theta[..., 0:1] * torch.exp(-theta[..., 1:2] * t) + theta[..., 2:3]
+
+
+def test_gauss_newton_matches_scipy_least_squares_for_a_batch_of_problems():
+    g = torch.Generator().manual_seed(1)
+    t = torch.linspace(0, 3, 40, dtype=F64)
+    truth = torch.tensor([[2.0, 1.3, 0.5], [1.0, 0.4, -0.2], [3.0, 2.5, 1.0]], dtype=F64)
+    y = exp_model(truth, t) + 0.05 * torch.randn(3, 40, generator=g, dtype=F64)
+
+    def residual(theta, t, y):
+        return exp_model(theta, t) - y
+
+    res = minimize(
+        residual,
+        torch.tensor([[1.0, 1.0, 0.0]], dtype=F64).expand(3, 3),
+        t,
+        y,
+        method="gauss_newton",
+    )
+    assert bool(res.converged.all())
+    for i in range(3):
+        ref = least_squares(
+            lambda q, i=i: q[0] * np.exp(-q[1] * t.numpy()) + q[2] - y[i].numpy(),
+            [1.0, 1.0, 0.0],
+            xtol=1e-15,
+            ftol=1e-15,
+            gtol=1e-15,
+        )
+        np.testing.assert_allclose(res.theta[i].numpy(), ref.x, rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(float(res.loss[i]), ref.cost, rtol=1e-10)
+    th = res.theta
+    decay = torch.exp(-th[:, 1:2] * t)
+    exact_jac = torch.stack([decay, -th[:, 0:1] * t * decay, torch.ones_like(decay)], -1)
+    torch.testing.assert_close(res.J, exact_jac)  # scipy's res.jac is only a finite difference
+    assert bool(torch.all(res.loss_history[1:] <= res.loss_history[:-1] + 1e-15))
+
+
+def test_newton_minimises_rosenbrock_with_line_search():
+    def rosenbrock(th):
+        return 100 * (th[..., 1] - th[..., 0] ** 2) ** 2 + (1 - th[..., 0]) ** 2
+
+    th0 = torch.tensor([[-1.2, 1.0], [2.0, -1.0], [-0.5, 3.0]], dtype=F64)
+    res = minimize(rosenbrock, th0)
+    assert bool(res.converged.all())
+    torch.testing.assert_close(res.theta, torch.ones(3, 2, dtype=F64), rtol=0, atol=1e-8)
+    assert bool(torch.all(res.loss_history[1:] <= res.loss_history[:-1]))  # Theorem 7
+    exact_h = torch.tensor([[802.0, -400.0], [-400.0, 200.0]], dtype=F64)
+    torch.testing.assert_close(res.hessian, exact_h.expand(3, 2, 2), rtol=1e-6, atol=1e-6)
+
+
+def test_regularised_gauss_newton_still_converges_on_a_rank_deficient_problem():
+    """r = [theta1 + theta2 - 2]: J^T J is singular; alpha I (eq. 3.61) makes steps exist."""
+
+    def residual(theta):
+        return (theta[..., 0] + theta[..., 1] - 2.0)[..., None]
+
+    res = minimize(
+        residual, torch.zeros(1, 2, dtype=F64), method="gauss_newton", regularization=1e-6
+    )
+    assert bool(res.converged.all())
+    assert abs(float(res.theta.sum()) - 2.0) < 1e-8
+
+
+class _NumpySquare(torch.autograd.Function):
+    """x^2 with a backward that leaves torch: it has no vmap batching rule."""
+
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        return x**2
+
+    @staticmethod
+    def backward(ctx, grad):
+        (x,) = ctx.saved_tensors
+        return 2 * x * torch.from_numpy(grad.detach().numpy().copy())
+
+
+def test_batch_jacobian_falls_back_to_a_component_loop():
+    x = torch.tensor([[0.5, -1.5, 2.0], [1.0, 2.0, 3.0]], dtype=F64)
+    weights = torch.tensor([1.0, 2.0, 3.0], dtype=F64)
+    _, J = batch_jacobian(lambda z: _NumpySquare.apply(z) * weights, x)
+    torch.testing.assert_close(J, torch.diag_embed(2 * x * weights))

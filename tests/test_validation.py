@@ -1,0 +1,110 @@
+"""Tests of sysid.validation against hand computations, scipy and statsmodels."""
+
+import math
+
+import numpy as np
+import pytest
+import scipy.stats
+import torch
+from statsmodels.stats.diagnostic import acorr_ljungbox
+from statsmodels.tsa.stattools import acf, ccf
+
+from integrators.errors import InputValidationError
+from sysid.filters import iir_filter
+from sysid.models import ARX
+from sysid.montecarlo import input_signal, simulate_data
+from sysid.validation import aic, fit_percent, fpe, residual_test, select_order
+
+DT = torch.float64
+
+
+def gen(seed):
+    return torch.Generator().manual_seed(seed)
+
+
+def test_fit_percent_hand_computation():
+    rng = np.random.default_rng(0)
+    y = rng.standard_normal((3, 50, 2))
+    yhat = y + 0.3 * rng.standard_normal((3, 50, 2))
+    got = fit_percent(torch.tensor(y), torch.tensor(yhat)).numpy()
+    for b in range(3):
+        for c in range(2):
+            ref = 100 * (
+                1
+                - np.linalg.norm(y[b, :, c] - yhat[b, :, c])
+                / np.linalg.norm(y[b, :, c] - y[b, :, c].mean())
+            )
+            assert got[b, c] == pytest.approx(ref, rel=1e-12)
+    yt = torch.tensor(y)
+    assert torch.allclose(fit_percent(yt, yt), torch.full((3, 2), 100.0, dtype=DT))
+    mean_model = yt.mean(dim=-2, keepdim=True).expand_as(yt)
+    assert torch.allclose(fit_percent(yt, mean_model), torch.zeros(3, 2, dtype=DT), atol=1e-12)
+    with pytest.raises(InputValidationError, match="constant"):
+        fit_percent(torch.ones(10), torch.zeros(10))
+
+
+def test_aic_fpe_hand_computation():
+    rng = np.random.default_rng(1)
+    e = rng.normal(0, 0.7, size=(4, 200))
+    d = 5
+    got_aic = aic(torch.tensor(e).unsqueeze(-1), d).numpy()
+    got_fpe = fpe(torch.tensor(e).unsqueeze(-1), d).numpy()
+    for b in range(4):
+        V = np.mean(e[b] ** 2)
+        loglik = scipy.stats.norm.logpdf(e[b], scale=math.sqrt(V)).sum()  # maximised Gaussian
+        assert got_aic[b] == pytest.approx(-2 * loglik + 2 * d, rel=1e-12)
+        assert got_fpe[b] == pytest.approx(V * (1 + d / 200) / (1 - d / 200), rel=1e-12)
+
+
+def test_residual_test_matches_statsmodels():
+    e = torch.randn(2, 300, 1, generator=gen(2), dtype=DT)
+    u = torch.randn(2, 300, 1, generator=gen(3), dtype=DT)
+    r = residual_test(e, u, max_lag=12)
+    for b in range(2):
+        x = e[b, :, 0].numpy()
+        np.testing.assert_allclose(r.autocorrelation[b].numpy(), acf(x, nlags=12), atol=1e-12)
+        lb = acorr_ljungbox(x, lags=[12])
+        assert r.whiteness_statistic[b].item() == pytest.approx(lb["lb_stat"].iloc[0], rel=1e-10)
+        assert r.whiteness_pvalue[b].item() == pytest.approx(lb["lb_pvalue"].iloc[0], rel=1e-8)
+        ref = ccf(x, u[b, :, 0].numpy(), adjusted=False)[:13]  # corr(e_{k+tau}, u_k), tau >= 0
+        np.testing.assert_allclose(r.cross_correlation[b, 0, 12:].numpy(), ref, atol=1e-12)
+    assert r.bound == pytest.approx(scipy.stats.norm.ppf(0.995) / math.sqrt(300))
+
+
+def test_residual_test_flags_coloured_and_passes_white():
+    T, N = 400, 400
+    white = torch.randn(T, N, generator=gen(4), dtype=DT)
+    u = torch.randn(T, N, 1, generator=gen(5), dtype=DT)
+    res_white = residual_test(white.unsqueeze(-1), u, max_lag=20, alpha=0.01)
+    # false alarm rates near alpha = 1 % (the Ljung-Box chi^2 law is slightly liberal at
+    # N = 400, m = 20: statsmodels' acorr_ljungbox rejects the same 3.5 % of these series)
+    assert res_white.white.float().mean() > 0.95
+    assert res_white.independent.float().mean() > 0.95
+    coloured = iir_filter(torch.ones(1, dtype=DT), torch.tensor([-0.5], dtype=DT), white)
+    res_col = residual_test(coloured.unsqueeze(-1), max_lag=20)
+    assert res_col.white.float().mean() < 0.01
+    # residuals that still contain the input two samples back: not independent of past inputs
+    leak = white[:, 2:] + 0.5 * u[:, :-2, 0]
+    res_leak = residual_test(leak.unsqueeze(-1), u[:, 2:], max_lag=10)
+    assert res_leak.independent.float().mean() < 0.01
+    assert res_leak.cross_correlation[:, 0, 12].mean() > 3 * res_leak.bound  # lag +2
+
+
+def test_select_order_picks_true_arx_order():
+    u = input_signal("white", 600, (20,), generator=gen(6))
+    true = torch.tensor([-1.2, 0.5, 0.5, 0.3], dtype=DT)
+    data = simulate_data(
+        ARX(2, 2, 1), u, theta=true, noise_std=0.1, noise="model", generator=gen(7)
+    )
+    val = select_order(data, "arx", criterion="validation")
+    assert val.best == (2, 2)
+    assert (val.best_index == val.orders.index((2, 2))).float().mean() >= 0.9
+    for criterion in ("aic", "fpe"):
+        sel = select_order(data, "arx", criterion=criterion)
+        chosen = [sel.orders[i] for i in sel.best_index.tolist()]
+        assert all(na >= 2 and nb >= 2 for na, nb in chosen)  # never under-fits
+        counts = {o: chosen.count(o) for o in set(chosen)}
+        assert max(counts, key=counts.get) == (2, 2)  # the most frequent choice is the truth
+    # table rows carry the criteria; AIC of the true order beats the under-fitted ones
+    rows = {(r["na"], r["nb"]): r for r in sel.table}
+    assert rows[(2, 2)]["aic"] < rows[(1, 2)]["aic"] and rows[(2, 2)]["aic"] < rows[(2, 1)]["aic"]
