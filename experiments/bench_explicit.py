@@ -257,46 +257,50 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     out = output_dir(args, "bench_explicit")
+    previous_threads = torch.get_num_threads()
     torch.set_num_threads(1)
-    if args.quick:
-        fixed = fixed_step_table([1, 64], 100, 1, False, args.seed)
-        adaptive = adaptive_table(16, 2.0, 11, 1e-6, 1e-9, 20.0, args.seed)
-    else:
-        fixed = fixed_step_table([1, 1024, 65536], 1000, 3, not args.no_compile, args.seed)
-        adaptive = adaptive_table(256, 10.0, 101, 1e-6, 1e-9, 20.0, args.seed)
-    header = (
-        f"Measured {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC on "
-        f"{platform.machine()} ({platform.processor() or 'cpu'}), torch {torch.__version__}, "
-        "1 thread, float64.\n\n"
-    )
-    md_fixed = write_table(fixed, out / "fixed_step_rk4")
-    md_adaptive = write_table(adaptive, out / "adaptive_dopri5")
-    report = (
-        header
-        + "## Fixed-step RK4, Van der Pol (mu = 1), h = 0.01\n\n"
-        + md_fixed
-        + "\n## dopri5, 256 Van der Pol oscillators, mu in [0.1, 20]\n\n"
-        + md_adaptive
-    )
-    (out / "bench_explicit.md").write_text(report)
-    fig, ax = plt.subplots(figsize=(7, 4))
-    solvers = list(dict.fromkeys(r["solver"] for r in fixed))
-    batches = list(dict.fromkeys(r["batch"] for r in fixed))
-    width = 0.8 / len(solvers)
-    for i, name in enumerate(solvers):
-        walls = [
-            next(r["wall_s"] for r in fixed if r["solver"] == name and r["batch"] == b)
-            for b in batches
-        ]
-        ax.bar(np.arange(len(batches)) + i * width, walls, width, label=name)
-    ax.set_xticks(np.arange(len(batches)) + 0.4 - width / 2, [str(b) for b in batches])
-    ax.set_yscale("log")
-    ax.set_xlabel("batch size")
-    ax.set_ylabel("wall time [s]")
-    ax.legend(fontsize=7)
-    save_figure(fig, out / "fixed_step_rk4.png")
-    print(report)
-    return {"fixed": fixed, "adaptive": adaptive}
+    try:
+        if args.quick:
+            fixed = fixed_step_table([1, 64], 100, 1, False, args.seed)
+            adaptive = adaptive_table(16, 2.0, 11, 1e-6, 1e-9, 20.0, args.seed)
+        else:
+            fixed = fixed_step_table([1, 1024, 65536], 1000, 3, not args.no_compile, args.seed)
+            adaptive = adaptive_table(256, 10.0, 101, 1e-6, 1e-9, 20.0, args.seed)
+        header = (
+            f"Measured {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC on "
+            f"{platform.machine()} ({platform.processor() or 'cpu'}), torch {torch.__version__}, "
+            "1 thread, float64.\n\n"
+        )
+        md_fixed = write_table(fixed, out / "fixed_step_rk4")
+        md_adaptive = write_table(adaptive, out / "adaptive_dopri5")
+        report = (
+            header
+            + "## Fixed-step RK4, Van der Pol (mu = 1), h = 0.01\n\n"
+            + md_fixed
+            + "\n## dopri5, 256 Van der Pol oscillators, mu in [0.1, 20]\n\n"
+            + md_adaptive
+        )
+        (out / "bench_explicit.md").write_text(report)
+        fig, ax = plt.subplots(figsize=(7, 4))
+        solvers = list(dict.fromkeys(r["solver"] for r in fixed))
+        batches = list(dict.fromkeys(r["batch"] for r in fixed))
+        width = 0.8 / len(solvers)
+        for i, name in enumerate(solvers):
+            walls = [
+                next(r["wall_s"] for r in fixed if r["solver"] == name and r["batch"] == b)
+                for b in batches
+            ]
+            ax.bar(np.arange(len(batches)) + i * width, walls, width, label=name)
+        ax.set_xticks(np.arange(len(batches)) + 0.4 - width / 2, [str(b) for b in batches])
+        ax.set_yscale("log")
+        ax.set_xlabel("batch size")
+        ax.set_ylabel("wall time [s]")
+        ax.legend(fontsize=7)
+        save_figure(fig, out / "fixed_step_rk4.png")
+        print(report)
+        return {"fixed": fixed, "adaptive": adaptive}
+    finally:
+        torch.set_num_threads(previous_threads)
 
 
 if __name__ == "__main__":

@@ -5,7 +5,11 @@ Task (issue 4): OE model ``y = q^-1 B(q)/F(q) u`` with nb = nf = 4, loss
 (100 000 in the full run). Three implementations, run side by side in one process:
 
 - ``ours``: :class:`sysid.OE` ``simulation_errors`` through :func:`sysid.filters.iir_filter`
-  (block-Toeplitz forward, adjoint backward, pure torch, any device);
+  (one autograd node, adjoint backward; on the CPU with one shared filter its two filtering
+  passes run in ``scipy.signal.lfilter`` by default, elsewhere in the block-Toeplitz method);
+- ``ours_torch``: the same with the pure-torch block method forced on the CPU
+  (``sysid.filters.cpu_backend("torch")``; the path used on CUDA, for batched coefficients
+  and for higher derivatives), so that the comparison of the torch code itself stays visible;
 - ``scipy_autograd``: a dynoNet-style :class:`torch.autograd.Function` calling
   ``scipy.signal.lfilter`` in forward and backward (CPU, zero initial conditions; written here
   for the comparison only, it is not part of the library);
@@ -31,6 +35,7 @@ import torch
 
 from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
 from sysid import OE, IOData
+from sysid.filters import cpu_backend
 
 NAME = "bench_filter"
 NB = NF = 4
@@ -104,6 +109,9 @@ def oe_gradient(method: str, u: torch.Tensor, y: torch.Tensor, theta: torch.Tens
 
     ``data``: the :class:`IOData` of ``(u, y)`` for ``"ours"`` (built, and validated, once).
     """
+    if method == "ours_torch":  # the pure-torch block method, no CPU dispatch to scipy
+        with cpu_backend("torch"):
+            return oe_gradient("ours", u, y, theta, data)
     theta = theta.detach().clone().requires_grad_(True)
     if method == "scipy_autograd_loop":  # one scipy call per data set of a batch
         runs = [oe_gradient("scipy_autograd", u[i], y[i], theta[i]) for i in range(len(u))]
@@ -184,7 +192,7 @@ def _run(args):
         else:
             ref_loss, ref_grad = oe_gradient("scipy_autograd_loop", u, y, theta)
             runs = [("scipy_autograd_loop", "cpu")]
-        runs += [("ours", d.type) for d in devices]
+        runs += [("ours", d.type) for d in devices] + [("ours_torch", "cpu")]
         timing = {}
         for method, device in runs:
             reps = 1 if method == "python_loop" else repeats

@@ -201,32 +201,38 @@ def main(argv=None):
     )
     args = parser.parse_args(argv)
     out = output_dir(args, NAME)
+    previous_dtype = torch.get_default_dtype()
     torch.set_default_dtype(torch.float64)
-    if args.quick:
-        rows = stiff_rows(t_end=0.3, rtols=(1e-4,), batch=8, n_check=3, ref_rtol=1e-10, repeats=1)
-        rows += fixed_rows(t_end=1.0, dt=0.05, repeats=1)
-    else:
-        rows = stiff_rows(
-            t_end=2.0,
-            rtols=(1e-6, 1e-9),
-            batch=256,
-            n_check=8,
-            ref_rtol=1e-12,
-            repeats=args.repeats,
-        )
-        rows += fixed_rows(t_end=10.0, dt=0.01, repeats=args.repeats)
-    write_table(rows, out / NAME)
-    fig, ax = plt.subplots(figsize=(9, 4))
-    y = np.arange(len(rows))
-    ax.barh(y - 0.2, [r["ours_s"] for r in rows], height=0.4, label="ours")
-    ax.barh(y + 0.2, [r["peer_s"] for r in rows], height=0.4, label="peer")
-    ax.set_yticks(y, [f"{r['case']} rtol={r['rtol']}" for r in rows], fontsize=6)
-    ax.set_xscale("log")
-    ax.set_xlabel("wall time [s]")
-    ax.legend()
-    fig.tight_layout()
-    save_figure(fig, out / f"{NAME}.png")
-    return rows
+    try:
+        if args.quick:
+            rows = stiff_rows(
+                t_end=0.3, rtols=(1e-4,), batch=8, n_check=3, ref_rtol=1e-10, repeats=1
+            )
+            rows += fixed_rows(t_end=1.0, dt=0.05, repeats=1)
+        else:
+            rows = stiff_rows(
+                t_end=2.0,
+                rtols=(1e-6, 1e-9),
+                batch=256,
+                n_check=8,
+                ref_rtol=1e-12,
+                repeats=args.repeats,
+            )
+            rows += fixed_rows(t_end=10.0, dt=0.01, repeats=args.repeats)
+        write_table(rows, out / NAME)
+        fig, ax = plt.subplots(figsize=(9, 4))
+        y = np.arange(len(rows))
+        ax.barh(y - 0.2, [r["ours_s"] for r in rows], height=0.4, label="ours")
+        ax.barh(y + 0.2, [r["peer_s"] for r in rows], height=0.4, label="peer")
+        ax.set_yticks(y, [f"{r['case']} rtol={r['rtol']}" for r in rows], fontsize=6)
+        ax.set_xscale("log")
+        ax.set_xlabel("wall time [s]")
+        ax.legend()
+        fig.tight_layout()
+        save_figure(fig, out / f"{NAME}.png")
+        return rows
+    finally:
+        torch.set_default_dtype(previous_dtype)
 
 
 if __name__ == "__main__":

@@ -85,19 +85,19 @@ class StageLinearSolver:
         factors = ["transformed"]
         if self.lam_r.numel():
             mats = (self.lam_r[:, None, None] / hb) * E[..., None, :, :] + G[..., None, :, :]
-            lu, piv, info = torch.linalg.lu_factor_ex(mats)
-            factors += [lu, piv]
-            singular |= (info != 0).any(-1)
+            fac, sing = _factor_blocks(mats)
+            factors += list(fac)
+            singular |= sing.any(-1)
         else:
-            factors += [None, None]
+            factors += [None, None, None]
         if self.lam_c.numel():
             Ec, Gc = E.to(self.cdtype)[..., None, :, :], G.to(self.cdtype)[..., None, :, :]
             mats = (self.lam_c[:, None, None] / hb.to(self.cdtype)) * Ec + Gc
-            lu, piv, info = torch.linalg.lu_factor_ex(mats)
-            factors += [lu, piv]
-            singular |= (info != 0).any(-1)
+            fac, sing = _factor_blocks(mats)
+            factors += list(fac)
+            singular |= sing.any(-1)
         else:
-            factors += [None, None]
+            factors += [None, None, None]
         return tuple(factors), singular
 
     def solve(self, factors, R: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
@@ -115,24 +115,76 @@ class StageLinearSolver:
             _, lu, piv = factors
             flat = R.reshape(*R.shape[:-2], -1, 1)
             return -torch.linalg.lu_solve(lu, piv, flat).reshape(R.shape)
-        _, lu_r, piv_r, lu_c, piv_c = factors
+        fac_r, fac_c = factors[1:4], factors[4:7]
         inv_h = (1.0 / h)[..., None, None]
         out = torch.zeros_like(R)
-        if lu_r is not None:
+        if fac_r[0] is not None:
             rhs = -inv_h * (self.P_r @ R)
-            sol = torch.linalg.lu_solve(lu_r, piv_r, rhs[..., None])[..., 0]
-            out = out + (self.V_r @ sol)
-        if lu_c is not None:
+            out = out + (self.V_r @ _solve_blocks(fac_r, rhs))
+        if fac_c[0] is not None:
             Rc = R.to(self.cdtype)
             rhs = -inv_h.to(self.cdtype) * (self.P_c @ Rc)
-            sol = torch.linalg.lu_solve(lu_c, piv_c, rhs[..., None])[..., 0]
-            out = out + (self.V_c @ sol).real
+            out = out + (self.V_c @ _solve_blocks(fac_c, rhs)).real
         return out
 
     def solve_real_block(self, factors, rhs: torch.Tensor) -> torch.Tensor:
         """Solve ``(lambda_r / h E + G) y = rhs`` with the first real block: (*batch, p)."""
-        _, lu_r, piv_r, _, _ = factors
-        return torch.linalg.lu_solve(lu_r[..., 0, :, :], piv_r[..., 0, :], rhs[..., None])[..., 0]
+        return _solve_blocks(factors[1:4], rhs[..., None, :])[..., 0, :]
+
+
+_SMALL = 8  # blocks up to this size are inverted by vectorised Gauss-Jordan in big batches
+_BIG_BATCH = 32
+
+
+def _factor_blocks(mats: torch.Tensor):
+    """Factor (*batch, q, p, p) blocks: ``("lu", LU, pivots)`` or ``("inv", inverse, None)``.
+
+    LAPACK's batched LU runs one small factorisation after another; for many tiny blocks a
+    Gauss-Jordan inverse vectorised over the batch (p steps of whole-batch tensor ops) is much
+    faster, and applying it is a batched matmul.
+
+    Returns:
+        (factors, singular) with ``singular`` of shape (*batch, q).
+    """
+    p = mats.shape[-1]
+    if p <= _SMALL and mats[..., 0, 0].numel() >= _BIG_BATCH:
+        inv, singular = _gauss_jordan_inverse(mats)
+        return ("inv", inv, None), singular
+    lu, piv, info = torch.linalg.lu_factor_ex(mats)
+    return ("lu", lu, piv), info != 0
+
+
+def _solve_blocks(factors, rhs: torch.Tensor) -> torch.Tensor:
+    """Solve with factors from :func:`_factor_blocks`; rhs (*batch, q, p)."""
+    kind, a, b = factors
+    if kind == "inv":
+        return (a @ rhs[..., None])[..., 0]
+    return torch.linalg.lu_solve(a, b, rhs[..., None])[..., 0]
+
+
+def _gauss_jordan_inverse(mats: torch.Tensor):
+    """Inverse of (..., p, p) matrices by Gauss-Jordan with partial pivoting, vectorised.
+
+    Returns:
+        (inverse, singular) with ``singular`` (...,) true where a pivot was exactly zero.
+    """
+    p = mats.shape[-1]
+    eye = torch.eye(p, dtype=mats.dtype, device=mats.device)
+    aug = torch.cat([mats, eye.expand_as(mats)], dim=-1)  # (..., p, 2p)
+    rows = torch.arange(p, device=mats.device)
+    singular = torch.zeros(mats.shape[:-2], dtype=torch.bool, device=mats.device)
+    for k in range(p):
+        piv = aug[..., k:, k].abs().argmax(-1) + k  # (...)
+        perm = torch.where(rows == k, piv[..., None], torch.where(rows == piv[..., None], k, rows))
+        aug = torch.gather(aug, -2, perm[..., None].expand_as(aug))
+        pivot = aug[..., k, k]
+        zero = pivot == 0
+        singular |= zero
+        row = aug[..., k, :] / torch.where(zero, torch.ones_like(pivot), pivot)[..., None]
+        factor = aug[..., :, k]
+        updated = aug - factor[..., :, None] * row[..., None, :]
+        aug = torch.where((rows == k)[:, None], row[..., None, :], updated)
+    return aug[..., p:], singular
 
 
 def _kron(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

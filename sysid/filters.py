@@ -32,23 +32,63 @@ pass's block matrices); then ``dL/dx_k = sum_j b_j gw_{k+j}``, ``dL/db_j = sum_k
 ``dL/dzi = gw[:k]``. Under ``create_graph=True`` the backward pass runs through the
 differentiable :func:`allpole`, so higher derivatives work; a forward-mode rule (``jvp``) and
 an automatic vmap rule serve ``torch.func.jacfwd`` / ``jacrev``.
+
+CPU dispatch. For one filter shared by all signals (1-D ``b`` and ``a``) on CPU tensors, the
+block method's fixed cost (building the Toeplitz blocks, the scan, ~15 small kernels) exceeds
+the cost of the plain recursion in compiled code, so by default :func:`iir_filter` then runs
+the two filtering passes (forward ``B/A`` and the adjoint ``1/A`` in backward) with
+``scipy.signal.lfilter`` inside the same autograd node; the gradient formulas above are
+unchanged and stay in torch. The pure-torch block path still serves CUDA, batched
+coefficients, ``torch.func`` transforms and every higher derivative (the backward pass under
+``create_graph=True`` is always the differentiable torch path). :func:`cpu_backend` selects
+the path (``"auto"`` default, ``"torch"`` to force the block method, e.g. to benchmark it).
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 
+import numpy as np
+import scipy.signal
 import torch
 import torch.nn.functional as F
 
 from integrators.errors import InputValidationError
 
-__all__ = ["allpole", "fir_filter", "iir_filter", "poly_mul"]
+__all__ = ["allpole", "cpu_backend", "fir_filter", "iir_filter", "poly_mul"]
 
 # The Toeplitz blocks of a batch of denominators use at most this many entries in all.
 _TOEPLITZ_BUDGET = 1 << 22
 _MAX_BLOCK = 64
+_BACKENDS = ("auto", "torch")
+_cpu_backend = "auto"
+
+
+@contextlib.contextmanager
+def cpu_backend(name: str):
+    """Context manager choosing how :func:`iir_filter` filters CPU tensors.
+
+    ``"auto"`` (the default): ``scipy.signal.lfilter`` for a single filter (1-D ``b`` and
+    ``a``) on float32/float64 CPU tensors outside ``torch.func`` transforms, the pure-torch
+    block method otherwise; ``"torch"``: always the block method.
+    """
+    global _cpu_backend
+    if name not in _BACKENDS:
+        raise InputValidationError(f"cpu_backend must be one of {_BACKENDS}, got {name!r}.")
+    previous, _cpu_backend = _cpu_backend, name
+    try:
+        yield
+    finally:
+        _cpu_backend = previous
+
+
+def _broadcast(*shapes) -> torch.Size:
+    """``torch.broadcast_shapes`` with a fast path for equal shapes (per-call overhead)."""
+    if all(shape == shapes[0] for shape in shapes[1:]):
+        return torch.Size(shapes[0])
+    return torch.broadcast_shapes(*shapes)
 
 
 def _batch_numel(shape) -> int:
@@ -199,7 +239,7 @@ def _allpole_forward(a: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 def _lagged_dots(g: torch.Tensor, x: torch.Tensor, lags) -> torch.Tensor:
     """``r_j = sum_k g_k x_{k-j}`` for each lag j (``(*batch, len(lags))``), as dot products."""
     N = x.shape[-1]
-    batch = torch.broadcast_shapes(g.shape[:-1], x.shape[:-1])
+    batch = _broadcast(g.shape[:-1], x.shape[:-1])
     out = []
     for j in lags:  # loop over the filter order
         if j >= N:
@@ -287,6 +327,43 @@ def _add_initial_state(w: torch.Tensor, zi: torch.Tensor) -> torch.Tensor:
     return w.expand(*batch, N) + F.pad(zi[..., :k], (0, N - k))
 
 
+def _scipy_eligible(b, a, x, zi) -> bool:
+    """True where :func:`iir_filter` may use ``scipy.signal.lfilter`` (see the module doc)."""
+    if _cpu_backend != "auto" or b.shape[:-1].numel() != 1 or a.shape[:-1].numel() != 1:
+        return False
+    if x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64):
+        return False
+    n, m, N = a.shape[-1], b.shape[-1], x.shape[-1]
+    if n == 0 or m == 0 or N == 0:
+        return False
+    batch = _broadcast(b.shape[:-1], a.shape[:-1], x.shape[:-1])
+    if batch.numel() != x.shape[:-1].numel():
+        return False
+    if zi.shape[-1] != 0 and tuple(zi.shape) != (*x.shape[:-1], max(n, m - 1)):
+        return False
+    wrapped = torch._C._functorch.is_functorch_wrapped_tensor
+    return not any(wrapped(t) for t in (b, a, x, zi))
+
+
+def _scipy_lfilter(b, a, x: torch.Tensor, zi=None, reverse: bool = False) -> torch.Tensor:
+    """``(B/A) x`` along the last dimension by ``scipy.signal.lfilter`` (CPU; ``b`` and ``a``
+    hold one filter, possibly with leading dimensions of size 1; the output has the broadcast
+    batch shape). ``reverse=True`` filters the time-reversed ``x`` and reverses the result
+    (the adjoint pass) without extra copies; ``b = None`` means ``B = 1``."""
+    num = np.ones(1) if b is None else b.detach().double().reshape(-1).numpy()
+    den = np.concatenate([[1.0], a.detach().double().reshape(-1).numpy()])
+    xn = x.detach().numpy()
+    if zi is None or zi.shape[-1] == 0:
+        y = scipy.signal.lfilter(
+            num, den, np.ascontiguousarray(xn[..., ::-1]) if reverse else xn, axis=-1
+        )
+    else:
+        y = scipy.signal.lfilter(num, den, xn, axis=-1, zi=zi.detach().numpy())[0]
+    y = np.ascontiguousarray(y[..., ::-1] if reverse else y)
+    batch = x.shape[:-1] if b is None else _broadcast(b.shape[:-1], a.shape[:-1], x.shape[:-1])
+    return torch.from_numpy(y.reshape(*batch, x.shape[-1])).to(x.dtype)
+
+
 def _empty_plan(like: torch.Tensor):
     return like.new_zeros(0, 0), like.new_zeros(0, 0), like.new_zeros(0, 0, 0)
 
@@ -302,6 +379,8 @@ class _IIR(torch.autograd.Function):
 
     @staticmethod
     def forward(b, a, x, zi):
+        if _scipy_eligible(b, a, x, zi):
+            return _scipy_lfilter(b, a, x, zi), *_empty_plan(x)
         N = x.shape[-1]
         if a.shape[-1] == 0 or N == 0 or b.shape[-1] == 0:
             w = _add_initial_state(fir_filter(b, x), zi)
@@ -319,6 +398,8 @@ class _IIR(torch.autograd.Function):
         ctx.save_for_backward(b, a, x, y, *plan)
         ctx.save_for_forward(b, a, x, y)
         ctx.zi_shape = zi.shape
+        # an empty plan with a non-trivial filter means that forward used scipy
+        ctx.scipy = plan[0].numel() == 0 and min(b.shape[-1], a.shape[-1], x.shape[-1]) > 0
         ctx.set_materialize_grads(True)
 
     @staticmethod
@@ -328,6 +409,8 @@ class _IIR(torch.autograd.Function):
         # adjoint of 1/A: the same filter on the time-reversed upstream gradient
         if torch.is_grad_enabled() or a.shape[-1] == 0:  # double backward: differentiable path
             gw = allpole(a, grad_y.flip(-1)).flip(-1)
+        elif ctx.scipy:
+            gw = _scipy_lfilter(None, a, grad_y, reverse=True)
         else:
             gw = _allpole_apply(plan, grad_y.flip(-1)).flip(-1)
         grad_b = grad_a = grad_x = grad_zi = None

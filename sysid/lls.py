@@ -401,24 +401,23 @@ def _lagged_products(X: torch.Tensor, Z: torch.Tensor, nb: int) -> torch.Tensor:
 
     Two batched block Gram matrices, each an ``O(N L)`` matmul: ``G0 = sum_k X_k' Z_k`` and
     ``G1 = sum_k X_k' Z_{k+1}``; then ``sum_m w_m z_{m+d} = sum_{i < L-d} G0[i, i+d] +
-    sum_{i >= L-d} G1[i, i+d-L]``, read as strided "wrapped diagonals" (entry ``(i, d)`` at
-    offset ``i (L + 1) + d`` of ``G0``, at ``i (L + 1) + d - L`` of ``G1``).
+    sum_{i >= L-d} G1[i, i+d-L]``, read as strided "wrapped diagonals": with a zero row added
+    below ``G0`` and above ``G1``, entry ``(i, d)`` sits at offset ``i (L + 1) + d`` of both.
     """
     L = X.shape[-1]
-    G0 = torch.einsum("...ki,...kj->...ij", X, Z).contiguous()
+    G0 = F.pad(torch.einsum("...ki,...kj->...ij", X, Z), (0, 0, 0, 1))
     G1 = F.pad(torch.einsum("...ki,...kj->...ij", X[..., :-1, :], Z[..., 1:, :]), (0, 0, 1, 0))
     shape, strides = (*G0.shape[:-2], L, nb), (*G0.stride()[:-2], L + 1, 1)
-    D0 = G0.as_strided(shape, strides)
-    D1 = G1.contiguous().as_strided(shape, (*G1.stride()[:-2], L + 1, 1), L)
     i = torch.arange(L, device=X.device).unsqueeze(-1)
     wrapped = i + torch.arange(nb, device=X.device) >= L
+    D0, D1 = G0.as_strided(shape, strides), G1.as_strided(shape, strides)
     return torch.where(wrapped, D1, D0).sum(-2)
 
 
 def _fir_residuals(u, y, theta, nk: int) -> torch.Tensor:
     """``y - U theta`` for the FIR regressor ``U[k, i] = u_{k-nk-i}`` (exact direct sums)."""
     N = u.shape[-1]
-    w = torch.nn.functional.pad(u, (nk, 0))[..., :N]
+    w = F.pad(u, (nk, 0))[..., :N]
     return y - fir_filter(theta, w)
 
 
@@ -429,9 +428,10 @@ def fir_lls(
 
     Same result as ``lls(fir_regressor(u, nb, nk), y)`` (``U[k, i] = u_{k-nk-i}``, zero before
     sample 0, all ``N`` rows), but ``U'U`` and ``U'y`` come from correlations: with
-    ``w_k = u_{k-nk}``, ``(U'U)_{ij} = r_{|i-j|} - T_{min(i,j), |i-j|}`` where
-    ``r_d = sum_m w_m w_{m+d}`` and ``T`` sums the ``min(i, j)`` products that fall past the
-    end of the record; ``(U'y)_i = c_i = sum_m w_m y_{m+i}``. The lagged products ``r`` and
+    ``w_k = u_{k-nk}``, ``(U'U)_{ij} = r_{|i-j|} - (E'E)_{ij}`` where
+    ``r_d = sum_m w_m w_{m+d}`` and ``E`` (``(nb - 1) x nb``, ``E[k, i] = w_{N+k-i}`` for
+    ``k < i``) holds the products that fall past the end of the record;
+    ``(U'y)_i = c_i = sum_m w_m y_{m+i}``. The lagged products ``r`` and
     ``c`` come from batched Gram matrices of length-``L`` blocks (``L = max(nb, 16)``, see
     :func:`_lagged_products`): ``O(N L)`` matmul work per data set, no FFT, no ``N x nb``
     regressor. The unscaled condition number is estimated on first read of
@@ -466,16 +466,16 @@ def fir_lls(
     batch = torch.broadcast_shapes(u.shape[:-1], y.shape[:-1])
     L = max(nb, 16)
     K = -(-N // L)
-    w = torch.nn.functional.pad(u, (nk, 0))[..., :N] if nk else u
-    X = (torch.nn.functional.pad(w, (0, K * L - N)) if K * L > N else w).unflatten(-1, (K, L))
-    Y = (torch.nn.functional.pad(y, (0, K * L - N)) if K * L > N else y).unflatten(-1, (K, L))
+    w = F.pad(u, (nk, 0))[..., :N] if nk else u
+    X = (F.pad(w, (0, K * L - N)) if K * L > N else w).unflatten(-1, (K, L))
+    Y = (F.pad(y, (0, K * L - N)) if K * L > N else y).unflatten(-1, (K, L))
     r = _lagged_products(X, X, nb)
     c = _lagged_products(X, Y, nb)
     # Toeplitz part R[i, j] = r_|i-j|, minus the products past the end of the record:
     # C = E'E with E[k, i] = w_{N+k-i} for k < i (nb - 1 rows, built from the last samples).
     s_ = torch.cat([r.flip(-1), r[..., 1:]], dim=-1)  # s_[nb-1+j-i] = r_|i-j|
     R = s_.unfold(-1, nb, 1).flip(-2)
-    last = F.pad(w[..., max(0, N - nb + 1) :], (max(0, nb - 1 - N), nb - 1))
+    last = F.pad(w[..., max(0, N - nb + 1) :], (max(0, nb - 1 - N), nb))
     E = last.unfold(-1, nb, 1)[..., : nb - 1, :].flip(-1)  # E[k, i] = last[k + nb-1 - i]
     G = (R - E.transpose(-1, -2) @ E).expand(*batch, nb, nb)
     c = c.expand(*batch, nb)
@@ -484,12 +484,12 @@ def fir_lls(
     yy = (y.unsqueeze(-2) @ y.unsqueeze(-1))[..., 0, 0].expand(batch)
     Gtheta = (G @ theta.unsqueeze(-1)).squeeze(-1)
     rss = yy - 2 * (theta * c).sum(-1) + (theta * Gtheta).sum(-1)
-    inexact = rss < 1e-3 * yy
+    inexact = (rss < 1e-3 * yy).reshape(-1)
     if bool(inexact.any()):  # cancellation: recompute those sums of squares explicitly
-        where = inexact.nonzero(as_tuple=True)
-        ub, yb = u.expand(*batch, N)[where], y.expand(*batch, N)[where]
-        res = _fir_residuals(ub, yb, theta[where], nk)
-        rss = rss.index_put(where, (res * res).sum(-1))
+        where = inexact.nonzero().squeeze(-1)
+        ub, yb = (t.expand(*batch, N).reshape(-1, N)[where] for t in (u, y))
+        res = _fir_residuals(ub, yb, theta.reshape(-1, nb)[where], nk)
+        rss = rss.reshape(-1).index_put((where,), (res * res).sum(-1)).reshape(batch)
     sigma2 = rss / (N - nb)
     covariance = sigma2[..., None, None] * normal_inverse
     return LLSResult(

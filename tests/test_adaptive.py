@@ -25,7 +25,7 @@ from integrators.dense import continuous_extension, dopri5_dense_weights
 from integrators.inputs import bind_rhs
 from sysid.zoo import LinearTestEquation, Lorenz, Quadratic, VanDerPol
 
-torch.set_default_dtype(torch.float64)
+pytestmark = pytest.mark.usefixtures("float64_default")
 
 
 def _reference(f, x0, t, rtol=1e-13, atol=1e-13):

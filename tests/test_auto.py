@@ -7,7 +7,7 @@ from integrators import odeint
 from integrators.auto import choose_method
 from sysid.zoo import StiffLinear
 
-torch.set_default_dtype(torch.float64)
+pytestmark = pytest.mark.usefixtures("float64_default")
 
 
 def test_spectral_radius_is_the_largest_eigenvalue_modulus():

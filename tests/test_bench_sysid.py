@@ -8,6 +8,9 @@ def test_bench_sysid_quick_agreement(tmp_path):
     fir = [r for r in rows if r["task"].startswith("300 FIR")]
     assert len(fir) == 3
     assert all(r["max_param_diff_vs_numpy"] < 1e-10 for r in fir)
+    # sigma^2 (fir_lls: from r'r = y'y - 2 theta'c + theta'U'U theta) agrees with numpy's
+    # residual sum of squares
+    assert all(r["max_sigma2_rel_diff_vs_numpy"] < 1e-10 for r in fir)
     oe = {r["method"]: r for r in rows if r["task"].startswith("OE(4,4) fit")}
     ours, scipy_fit = oe["sysid.fit gauss_newton"], oe["scipy least_squares (trf, 2-point)"]
     # both reach the same least-squares optimum (cost and parameters)
@@ -16,4 +19,6 @@ def test_bench_sysid_quick_agreement(tmp_path):
     assert ours["param_error_vs_truth"] < 0.05
     grads = [r for r in rows if "gradient" in r["task"]]
     assert all(r["grad_rel_diff"] < 1e-10 for r in grads)
+    # both of our paths (CPU dispatch to scipy, pure-torch block method) are reported
+    assert sum(r["method"].startswith("ours") for r in grads) == 2
     assert (tmp_path / "bench_sysid.md").exists()

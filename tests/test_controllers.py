@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from integrators import IController, InputValidationError, PIController
 from integrators.controllers import error_norm, initial_step
 
-torch.set_default_dtype(torch.float64)
+pytestmark = pytest.mark.usefixtures("float64_default")
 
 
 def test_error_norm_is_hairers_weighted_rms():

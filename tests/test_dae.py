@@ -20,7 +20,7 @@ from integrators import (
     solve_implicit_ode,
 )
 
-torch.set_default_dtype(torch.float64)
+pytestmark = pytest.mark.usefixtures("float64_default")
 
 A_COEF = 2.0
 U = 1.0

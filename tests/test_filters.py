@@ -12,6 +12,14 @@ from sysid import filters
 from sysid.filters import allpole, iir_filter, poly_mul
 
 
+@pytest.fixture(autouse=True)
+def _pure_torch_path():
+    """Every test here exercises the pure-torch block method unless it selects the CPU
+    dispatch to scipy itself (the tests at the end of this file)."""
+    with filters.cpu_backend("torch"):
+        yield
+
+
 def stable_monic(n: int, rng: np.random.Generator, radius: float = 0.95) -> np.ndarray:
     """[1, a_1..a_n] with random roots of modulus < radius (complex ones in pairs)."""
     n_pairs = n // 2
@@ -132,3 +140,63 @@ def test_dtype_mismatch_is_rejected():
         iir_filter(
             torch.ones(2, dtype=torch.float64), torch.ones(1, dtype=torch.float32), torch.ones(5)
         )
+
+
+# ---------------------------------------------------------------- CPU dispatch to scipy
+
+
+@pytest.mark.parametrize("with_zi", [False, True])
+def test_cpu_dispatch_matches_block_method_values_and_gradients(with_zi):
+    """cpu_backend("auto") (scipy lfilter inside the autograd node) and the block method
+    give the same output and the same gradients in b, a, x, zi (to rounding)."""
+    rng = np.random.default_rng(11)
+    a = torch.tensor(stable_monic(4, rng)[1:]).unsqueeze(0)  # a leading size-1 dimension
+    b = torch.tensor(rng.normal(size=(1, 5)))
+    x = torch.tensor(rng.normal(size=(3, 500)))
+    zi = torch.tensor(rng.normal(size=(3, 4))) if with_zi else None
+    with filters.cpu_backend("auto"):
+        assert filters._scipy_eligible(b, a, x, x.new_zeros(0) if zi is None else zi)
+    results, weights = {}, torch.tensor(rng.normal(size=(3, 500)))
+    for backend in ("auto", "torch"):
+        with filters.cpu_backend(backend):
+            leaves = [t.clone().requires_grad_(True) for t in (b, a, x)]
+            zl = None if zi is None else zi.clone().requires_grad_(True)
+            y = iir_filter(*leaves, zl)
+            grads = torch.autograd.grad((y * weights).sum(), leaves + ([zl] if with_zi else []))
+            results[backend] = (y.detach(), grads)
+    expected = scipy.signal.lfilter(
+        b[0].numpy(), np.r_[1.0, a[0].numpy()], x.numpy(), zi=None if zi is None else zi.numpy()
+    )
+    expected = expected[0] if with_zi else expected
+    np.testing.assert_allclose(results["auto"][0].numpy(), expected, rtol=0, atol=1e-12)
+    torch.testing.assert_close(results["auto"][0], results["torch"][0], rtol=0, atol=1e-11)
+    for g_auto, g_torch in zip(results["auto"][1], results["torch"][1], strict=True):
+        torch.testing.assert_close(g_auto, g_torch, rtol=1e-10, atol=1e-10)
+
+
+def test_cpu_dispatch_gradcheck_and_higher_derivatives():
+    """Under the default backend: gradients vs finite differences, forward mode, and the
+    double backward (which runs the differentiable torch path)."""
+    rng = np.random.default_rng(12)
+    a = torch.tensor(stable_monic(2, rng)[1:], requires_grad=True)
+    b = torch.tensor(rng.normal(size=3), requires_grad=True)
+    x = torch.tensor(rng.normal(size=(2, 20)), requires_grad=True)
+    zi = torch.tensor(rng.normal(size=(2, 2)), requires_grad=True)
+    with filters.cpu_backend("auto"):
+        assert filters._scipy_eligible(b, a, x, zi)
+        assert torch.autograd.gradcheck(iir_filter, (b, a, x, zi), check_forward_ad=True)
+        assert torch.autograd.gradgradcheck(iir_filter, (b, a, x, zi))
+
+
+def test_cpu_dispatch_only_for_a_shared_filter():
+    x = torch.zeros(3, 10, dtype=torch.float64)
+    b1, a1 = torch.ones(2, dtype=torch.float64), torch.full((1,), 0.5, dtype=torch.float64)
+    none = x.new_zeros(0)
+    with filters.cpu_backend("auto"):
+        assert filters._scipy_eligible(b1, a1, x, none)
+        assert not filters._scipy_eligible(b1.expand(3, 2), a1, x, none)  # batched coefficients
+        assert not filters._scipy_eligible(b1, a1, x, x.new_zeros(3, 5))  # unusual zi length
+    assert not filters._scipy_eligible(b1, a1, x, none)  # this module's fixture: "torch"
+    with pytest.raises(filters.InputValidationError, match="cpu_backend"):
+        with filters.cpu_backend("numpy"):
+            pass

@@ -16,7 +16,7 @@ from integrators.inputs import bind_rhs
 from integrators.radau import embedded_weights
 from sysid.zoo import StiffLinear, StiffVanDerPol
 
-torch.set_default_dtype(torch.float64)
+pytestmark = pytest.mark.usefixtures("float64_default")
 
 
 def logistic_rhs(t, x):
@@ -53,6 +53,23 @@ def test_transformed_solve_equals_full_kronecker_solve(tab):
     big = _kron(torch.eye(tab.stages), E) + h[:, None, None] * _kron(A, G)
     ref = -torch.linalg.solve(big, R.reshape(B, -1, 1)).reshape(R.shape)
     torch.testing.assert_close(dW, ref, rtol=1e-10, atol=1e-10)
+
+
+def test_vectorised_gauss_jordan_blocks_match_lapack():
+    """Big batches of small blocks use a pivoting Gauss-Jordan inverse (real and complex)."""
+    from integrators._irk_linalg import _factor_blocks, _solve_blocks
+
+    gen = torch.Generator().manual_seed(1)
+    mats = torch.randn(64, 1, 4, 4, generator=gen)
+    mats[0, 0] = torch.tensor([[0.0, 1, 0, 0], [1, 0, 0, 0], [0, 0, 0, 2], [0, 0, 3, 0]])
+    cmats = torch.complex(mats, torch.randn(64, 1, 4, 4, generator=gen))
+    for m in (mats, cmats):
+        fac, singular = _factor_blocks(m)
+        assert fac[0] == "inv" and not singular.any()
+        rhs = torch.randn(64, 1, 4, generator=gen).to(m.dtype)
+        torch.testing.assert_close(_solve_blocks(fac, rhs), torch.linalg.solve(m, rhs))
+    _, singular = _factor_blocks(torch.zeros(64, 1, 3, 3))
+    assert singular.all()
 
 
 def test_radau3_error_estimate_matches_radau5_constants():

@@ -234,3 +234,24 @@ def test_fir_lls_equals_lls_on_explicit_regressor(N, nb, nk, seed):
     # the power-iteration condition estimate is a close lower bound of the exact one
     assert (got.condition_number <= ref.condition_number * (1 + 1e-9)).all()
     assert (got.condition_number >= 0.5 * ref.condition_number).all()
+
+
+def test_fir_lls_sigma2_without_cancellation_loss():
+    """fir_lls takes r'r = y'y - 2 theta'U'y + theta'U'U theta where that is accurate and
+    recomputes it from explicit residuals where it would cancel (tiny noise): sigma^2 and
+    the residuals still match lls on the explicit regressor (batched and unbatched)."""
+    from sysid.lls import fir_lls
+    from sysid.montecarlo import fir_regressor
+
+    g = torch.Generator().manual_seed(21)
+    nb, N = 6, 300
+    u = torch.randn(3, N, generator=g, dtype=DT)
+    U = fir_regressor(u, nb)
+    b = torch.randn(nb, generator=g, dtype=DT)
+    noise = torch.tensor([1e-7, 0.1, 1e-3], dtype=DT).unsqueeze(-1)
+    y = U @ b + noise * torch.randn(3, N, generator=g, dtype=DT)
+    ref = lls(U, y)
+    for got, want in [(fir_lls(u, y, nb), ref), (fir_lls(u[0], y[0], nb), lls(U[0], y[0]))]:
+        torch.testing.assert_close(got.sigma2, want.sigma2, rtol=1e-6, atol=0)
+        torch.testing.assert_close(got.residuals, want.residuals, rtol=0, atol=1e-12)
+        torch.testing.assert_close(got.theta, want.theta, rtol=1e-9, atol=1e-12)
