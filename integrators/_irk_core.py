@@ -20,6 +20,7 @@ import torch
 
 from ._irk_linalg import StageLinearSolver
 from ._irk_system import StageSystem, rank_ratio
+from .newton import newton
 
 EPS = {
     torch.float64: float(np.finfo(np.float64).eps),
@@ -203,6 +204,31 @@ class IRKCore:
                 break
         converged = done & active
         return W, converged, iters, theta, non_finite
+
+    def damped_newton(self, times, inputs, h, xk, W, active, tol, max_iter=50):
+        """Fallback for a fixed step whose simplified Newton failed (a fixed step cannot be
+        shortened): damped Newton with the exact stage Jacobian at every iterate (notes
+        Theorem 4) on the flattened stage residual.
+
+        Args:
+            h (*batch,), xk (*batch, n), W (*batch, s, p): as in :meth:`newton`.
+            active: (*batch,) bool: the members to solve.
+            tol: residual tolerance ``||R||_inf`` (derivative units).
+
+        Returns:
+            ``(W, converged, iterations)``; members outside ``active`` keep ``W`` and report
+            zero iterations. No autograd graph (gradients come from :meth:`ift`).
+        """
+        stage_shape = W.shape[-2:]
+
+        def phi(w):
+            return self.residual(times, inputs, h, xk, w.unflatten(-1, stage_shape)).flatten(-2)
+
+        with torch.no_grad():
+            res = newton(phi, W.detach().flatten(-2), method="damped", tol=tol, max_iter=max_iter)
+        converged = res.converged & active
+        W_new = torch.where(active[..., None, None], res.x.detach().unflatten(-1, stage_shape), W)
+        return W_new, converged, res.iterations * active
 
     # --------------------------------------------------------------- Jacobians
     def frozen_blocks(self, t, xk, zk, xdot):

@@ -123,6 +123,15 @@ def integrate_fixed(
                 conv_all = conv_all | converged
                 theta_all = torch.where(todo, theta, theta_all)
             failed = active & ~conv_all
+            if bool(failed.any()):  # last resort: damped Newton with exact Jacobians
+                residual_tol = newton_tol * float(sc_x.min()) / float(h)
+                W_fb, rescued, iters = core.damped_newton(
+                    times, inputs, hb, x.detach(), W_ok, failed, residual_tol
+                )
+                n_newton += iters
+                W_ok = torch.where(rescued[..., None, None], W_fb, W_ok)
+                conv_all = conv_all | rescued
+                failed = active & ~conv_all
             if bool(failed.any()):
                 for idx in torch.nonzero(failed).tolist():
                     messages.append(

@@ -5,7 +5,6 @@ import csv
 from experiments import (
     mechanics_constraint_drift,
     mechanics_energy_drift,
-    mechanics_tikhonov,
     mechanics_two_pendulum,
 )
 
@@ -38,19 +37,6 @@ def test_energy_drift_rk4_vs_gauss_legendre(tmp_path):
     assert rk4["max_err_second_half"] > 1e-3 * rk4["energy"]
     assert rk4["max_err_second_half"] > rk4["max_err_first_half"]
     assert (tmp_path / "energy_drift.png").stat().st_size > 0
-
-
-def test_tikhonov_limits_are_approached_like_eps(tmp_path):
-    """Theorem 8: eq. (5.36) -> (5.37) as eps -> 0 and (5.41) -> (5.43) as m1 -> 0, both
-    with an error proportional to the small parameter (fitted log-log slope ~ 1)."""
-    rows = mechanics_tikhonov.main(["--quick", "--out", str(tmp_path)])
-    for system, key in (("eq. 5.36", "max_error_x1"), ("eq. 5.41 -> 5.43", "max_error_x2")):
-        sel = [r for r in rows if r["system"] == system]
-        errors = [r[key] for r in sel]
-        assert errors == sorted(errors, reverse=True)
-        assert 0.85 < sel[0]["fitted_slope"] < 1.15
-        assert errors[-1] < 2e-3
-    assert (tmp_path / "tikhonov.png").stat().st_size > 0
 
 
 def test_two_pendulum_polar_and_cartesian_models_agree(tmp_path):

@@ -430,3 +430,19 @@ def test_status_and_messages_for_failures():
     )
     assert bad.status[0] == Status.NEWTON_FAILED
     assert "did not converge" in bad.messages[0]
+
+
+@pytest.mark.parametrize("method, stages", [("implicit_euler", None), ("radau_iia", 3)])
+def test_fixed_step_falls_back_to_damped_newton_when_simplified_newton_diverges(method, stages):
+    """x' = x (1 - x), x0 = 0.1, dt = 1: the Jacobian frozen at x0 gives a simplified-Newton
+    contraction factor of about 2.2, so only the damped exact-Newton fallback (Theorem 4)
+    solves the step. Implicit Euler's step solves x1 = x0 + x1 (1 - x1), i.e. x1^2 = 0.1."""
+    x0 = torch.tensor([0.1])
+    t = torch.tensor([0.0, 1.0, 2.0])
+    sol = odeint(lambda t, x: x * (1 - x), x0, t, method=method, stages=stages, adaptive=False)
+    assert sol.success
+    if method == "implicit_euler":
+        torch.testing.assert_close(sol.x[1, 0], torch.tensor(0.1**0.5), rtol=1e-9, atol=0)
+    else:  # order 5 at dt = 1: close to the logistic closed form
+        exact = 0.1 * torch.exp(t) / (1 - 0.1 + 0.1 * torch.exp(t))
+        torch.testing.assert_close(sol.x[:, 0], exact, rtol=2e-3, atol=0)
