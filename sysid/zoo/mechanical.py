@@ -80,7 +80,21 @@ class SpringMassDamper(LagrangianSystem):
         return (_u(u, q) - xi * qdot - k * q) / m  # eq. (1.28)
 
 
-class Crane(LagrangianSystem):
+class _CartCrane(LagrangianSystem):
+    """Crane plants in polar coordinates: point 0 is the cart, gravity acts along -y on the
+    point masses, and the input u is a horizontal force on the cart (eq. 2.115)."""
+
+    def gravity(self):
+        return torch.stack([torch.zeros_like(self.g), -self.g])
+
+    def force_points(self, q):
+        return self.positions(q)[..., :1, :]
+
+    def point_forces(self, q, qdot, u):
+        return _horizontal_force(u, q)
+
+
+class Crane(_CartCrane):
     """Crane in polar coordinates, eq. (2.55)-(2.70): q = (x, theta), cart M at (x, 0), hanging
     mass m at p_m = (x + L sin theta, -L cos theta) (eq. 2.56), V = -m g L cos theta (eq. 2.62).
     W(q) of eq. (2.60); accelerations eq. (2.70) (checked: no typo). Input: horizontal force u
@@ -99,15 +113,6 @@ class Crane(LagrangianSystem):
         cart = torch.stack([x, torch.zeros_like(x)], -1)
         bob = torch.stack([x + length * torch.sin(th), -length * torch.cos(th)], -1)
         return torch.stack([cart, bob], -2)
-
-    def gravity(self):
-        return torch.stack([torch.zeros_like(self.g), -self.g])
-
-    def force_points(self, q):
-        return self.positions(q)[..., :1, :]
-
-    def point_forces(self, q, qdot, u):
-        return _horizontal_force(u, q)
 
     def closed_form_mass_matrix(self, q):
         M, m, L = like(self.M, q), like(self.m, q), like(self.L, q)
@@ -129,7 +134,7 @@ class Crane(LagrangianSystem):
         )
 
 
-class ElasticCranePolar(LagrangianSystem):
+class ElasticCranePolar(_CartCrane):
     """Elastic crane in polar coordinates, eq. (2.71)-(2.81): q = (x, theta, L), cart M at
     (x, 0), hanging mass m at (x + L sin theta, -L cos theta), rod energy K (L - L0)^2 / 2
     (eq. 2.71), gravity V = -m g L cos theta (eq. 2.77). W(q) of eq. (2.76) and the vector of
@@ -150,17 +155,8 @@ class ElasticCranePolar(LagrangianSystem):
         bob = torch.stack([x + length * torch.sin(th), -length * torch.cos(th)], -1)
         return torch.stack([cart, bob], -2)
 
-    def gravity(self):
-        return torch.stack([torch.zeros_like(self.g), -self.g])
-
     def potential(self, q):
         return 0.5 * like(self.K, q) * (q[..., 2] - like(self.L0, q)) ** 2  # eq. (2.71)
-
-    def force_points(self, q):
-        return self.positions(q)[..., :1, :]
-
-    def point_forces(self, q, qdot, u):
-        return _horizontal_force(u, q)
 
     def closed_form_mass_matrix(self, q):
         M, m = like(self.M, q), like(self.m, q)
@@ -287,7 +283,7 @@ class RigidCraneCartesian(LagrangianSystem):
         return sol[..., :3], sol[..., 3:]
 
 
-class TwoPendulumCranePolar(LagrangianSystem):
+class TwoPendulumCranePolar(_CartCrane):
     """Two-pendulum crane in polar coordinates, eq. (2.98)-(2.109): q = (x, theta1, theta2),
     cart and both hanging masses of mass m, rods of length L, p1 = (x, 0) + R(theta1)(0, -L),
     p2 = p1 + R(theta2)(0, -L) (eq. 2.99-2.102), V = m g (p1_y + p2_y) (eq. 2.106).
@@ -311,15 +307,6 @@ class TwoPendulumCranePolar(LagrangianSystem):
         p1 = p0 + length * torch.stack([torch.sin(t1), -torch.cos(t1)], -1)
         p2 = p1 + length * torch.stack([torch.sin(t2), -torch.cos(t2)], -1)
         return torch.stack([p0, p1, p2], -2)
-
-    def gravity(self):
-        return torch.stack([torch.zeros_like(self.g), -self.g])
-
-    def force_points(self, q):
-        return self.positions(q)[..., :1, :]
-
-    def point_forces(self, q, qdot, u):
-        return _horizontal_force(u, q)
 
     def closed_form_mass_matrix(self, q):
         m, L = like(self.m, q), like(self.L, q)
