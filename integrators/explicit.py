@@ -16,12 +16,17 @@ the FSAL stage of dopri5 at fixed step). The time loop runs in chunks of several
 chunk is a plain Python function that can be compiled with ``torch.compile`` (fusing the
 model ``f`` and the stage sums into one kernel). Compiled chunks are cached per model, so the
 one-off compile time is paid once per model and shape (reported in
-``stats.extra["compile_s"]``). Finiteness is checked once per output time without host
-synchronisation; the only synchronisation is one at the end.
+``stats.extra["compile_s"]``).
 
-Failure handling: a sample whose state becomes inf/nan gets ``Status.NON_FINITE``; its
-carried state is frozen at the last finite output (so the rest of the batch is unaffected)
-and its outputs from the first non-finite output time on are NaN. ``Solution.messages`` names
+Outputs are collected time-major (without autograd, in one preallocated buffer) and returned
+as a (*batch, T, nx) view of it: no strided copy per output. Finiteness costs nothing per
+step: a non-finite state stays non-finite under ``x_{k+1} = x_k + h sum_i b_i K_i``
+(inf + finite = inf, inf - inf = nan), so one check of the final state (the only host
+synchronisation) finds the failed samples, and only then are their outputs searched.
+
+Failure handling: a sample whose state becomes inf/nan gets ``Status.NON_FINITE`` and its
+outputs from the first non-finite output time on are NaN (the other samples are unaffected:
+batch members are independent). ``Solution.messages`` names
 the sample index and the time interval where it happened.
 """
 
@@ -100,24 +105,22 @@ def _lincomb(x, h, terms):
 def _make_chunk(f, kind, u_fn, scheme: _Scheme, substeps: int, n_out: int):
     """A function advancing ``n_out`` output intervals of ``substeps`` steps each.
 
-    chunk(x, t_stage, h, h_float, u0, du) -> (x_last, outputs, finite)
+    chunk(x, t_stage, h, h_float, u0, du) -> (x_last, outputs)
         x: (*batch, nx) state at the chunk start.
         t_stage: (n_out * substeps, n_stages) stage times.
         h: (n_out * substeps,) step sizes (tensor, used when h_float is None).
         h_float: tuple of Python-float step sizes, or None (compiled chunks).
         u0, du: (..., n_out, nu) input at the interval start and its increment over the
             interval (du is None for zero-order hold), or None.
-    Returns the state at the chunk end, the (*batch, n_out, nx) states at the output times
-    (non-finite samples frozen at the previous output) and the (n_out, *batch) finiteness
-    flags (one tensor each, so a compiled chunk allocates few outputs).
+    Returns the state at the chunk end and the time-major (n_out, *batch, nx) states at the
+    output times (one tensor, so a compiled chunk allocates few outputs).
     """
     stages = scheme.stages
     a, b, c = scheme.a, scheme.b, scheme.c
     m = substeps
 
     def chunk(x, t_stage, h, h_float, u0, du):
-        outputs, finite = [], []
-        prev = x
+        outputs = []
         for q in range(n_out):
             if kind == "zoh":
                 uq = u0[..., q, :]
@@ -142,14 +145,8 @@ def _make_chunk(f, kind, u_fn, scheme: _Scheme, substeps: int, n_out: int):
                         us = uq if theta == 0.0 else torch.add(uq, dq, alpha=theta)
                         K.append(f(ts, xs, us))
                 x = _lincomb(x, hn, [(coef, K[r]) for r, coef in b])
-            ok = torch.isfinite(x).all(-1)
-            x = torch.where(ok.unsqueeze(-1), x, prev)
-            prev = x
             outputs.append(x)
-            finite.append(ok)
-        if n_out == 1:
-            return x, x.unsqueeze(-2), finite[0].unsqueeze(0)
-        return x, torch.stack(outputs, dim=-2), torch.stack(finite, dim=0)
+        return x, torch.stack(outputs, dim=0)
 
     return chunk
 
@@ -207,9 +204,10 @@ def solve_explicit(
             were taken with this model over all calls).
 
     Returns:
-        Solution with ``x`` (*batch, T, nx), per-sample ``status`` (SUCCESS or NON_FINITE)
-        and ``stats`` (n_steps, n_f_evals; ``extra["compiled"]``, ``extra["compile_s"]`` the
-        wall time of calls that triggered a compilation, else 0).
+        Solution with ``x`` (*batch, T, nx) (a view of a time-major buffer, not contiguous;
+        call ``.contiguous()`` where a contiguous tensor is needed), per-sample ``status``
+        (SUCCESS or NON_FINITE) and ``stats`` (n_steps, n_f_evals; ``extra["compiled"]``,
+        ``extra["compile_s"]`` the wall time of calls that triggered a compilation, else 0).
 
     Raises:
         TableauError: for an implicit tableau.
@@ -268,9 +266,11 @@ def solve_explicit(
         compile_s += time.perf_counter() - tic
 
     grad_mode = torch.is_grad_enabled()
-    outputs: list[torch.Tensor] = [x0.unsqueeze(-2)]
-    finite: list[torch.Tensor] = []
     x = x0
+    # With autograd the per-chunk outputs are kept and concatenated at the end; without it
+    # they are copied into one preallocated time-major buffer (half the memory, no big cat).
+    outputs: list[torch.Tensor] = [x.unsqueeze(0)]
+    buffer = None
     k = 0
     while k < n_int:
         n_c = n_out_chunk if k + n_out_chunk <= n_int else 1
@@ -283,7 +283,7 @@ def solve_explicit(
             fresh = signature not in entry.signatures
             tic = time.perf_counter()
             try:
-                x, ys, oks = entry.compiled(*args)
+                x, ys = entry.compiled(*args)
             except Exception:  # compilation unavailable: fall back to eager, remember it
                 entry.failed = True
                 continue
@@ -293,25 +293,29 @@ def solve_explicit(
         else:
             fn = chunk_eager if n_c == n_out_chunk else tail_eager
             hf = None if h_list is None else h_list[s0:s1]
-            x, ys, oks = fn(x, t_stage[s0:s1], h[s0:s1], hf, us, ds)
-        outputs.append(ys)
-        finite.append(oks)
+            x, ys = fn(x, t_stage[s0:s1], h[s0:s1], hf, us, ds)
+        if grad_mode:
+            outputs.append(ys)
+        else:
+            if buffer is None:
+                buffer = ys.new_empty((T, *ys.shape[1:]))
+                buffer[0] = outputs[0][0]
+            buffer[k + 1 : k + 1 + n_c] = ys
         k += n_c
-    x_out = torch.cat(outputs, dim=-2)  # (*batch, T, nx)
+    x_time_major = torch.cat(outputs, dim=0) if buffer is None else buffer  # (T, *batch, nx)
+    x_out = x_time_major.movedim(0, -2)  # (*batch, T, nx) view
 
     status = torch.zeros(batch, dtype=torch.int8, device=x0.device)
     messages: list[str] = []
-    if finite:
-        ok = torch.cat(finite, dim=0)  # (T-1, *batch)
-        bad = ~ok
-        failed = bad.any(0)
-        if bool(failed.any()):  # the single host synchronisation of the run
-            first = bad.to(torch.int8).argmax(0) + 1  # output index of the first bad state
-            first = torch.where(failed, first, torch.full_like(first, T))
-            late = torch.arange(T, device=x0.device) >= first.unsqueeze(-1)  # (*batch, T)
-            x_out = torch.where(late.unsqueeze(-1), torch.full_like(x_out, float("nan")), x_out)
-            status = torch.where(failed, Status.NON_FINITE.value, status).to(torch.int8)
-            messages = _failure_messages(failed, first, t)
+    failed = ~torch.isfinite(x).all(-1)  # non-finite states are absorbing (module docstring)
+    if bool(failed.any()):  # the single host synchronisation of the run
+        bad = ~torch.isfinite(x_time_major).all(-1)  # (T, *batch)
+        first = bad.to(torch.int8).argmax(0)  # output index of the first bad state
+        first = torch.where(failed, first, torch.full_like(first, T))
+        late = torch.arange(T, device=x0.device) >= first.unsqueeze(-1)  # (*batch, T)
+        x_out = torch.where(late.unsqueeze(-1), torch.full_like(x_out, float("nan")), x_out)
+        status = torch.where(failed, Status.NON_FINITE.value, status).to(torch.int8)
+        messages = _failure_messages(failed, first, t)
     stats = SolverStats(
         n_f_evals=n_steps * len(scheme.stages),
         n_steps=n_steps,

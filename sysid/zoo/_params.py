@@ -30,6 +30,13 @@ def like(param: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return param.to(dtype=x.dtype, device=x.device)
 
 
+def like_component(param: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``like(param, x)`` without its trailing broadcast axis: a scalar or ``(*batch,)`` tensor
+    that multiplies single state components ``x[..., i]`` (shape ``(*batch,)``)."""
+    param = like(param, x)
+    return param[..., 0] if param.dim() > 0 else param
+
+
 def check_state(x: torch.Tensor, n: int, plant: str) -> None:
     """Raise InputValidationError unless ``x`` has shape ``(*batch, n)``."""
     if not isinstance(x, torch.Tensor) or x.dim() < 1 or x.shape[-1] != n:

@@ -13,7 +13,7 @@ from torch import nn
 
 from integrators.errors import InputValidationError
 
-from ._params import as_parameter, check_state, input_or_zero, like
+from ._params import as_parameter, check_state, input_or_zero, like, like_component
 
 
 def _time_grid(t, x0: torch.Tensor) -> torch.Tensor:
@@ -48,10 +48,12 @@ class VanDerPol(nn.Module):
 
     def forward(self, t, x, u=None):
         check_state(x, 2, "VanDerPol")
-        mu = like(self.mu, x)
-        x1, x2 = x[..., 0:1], x[..., 1:2]
-        u = input_or_zero(u, x, 1)
-        return torch.cat([mu * (1 - x2**2) * x1 - x2 + u, x1], dim=-1)
+        mu = like_component(self.mu, x)
+        x1, x2 = x.unbind(-1)
+        x1_dot = mu * (1 - x2 * x2) * x1 - x2
+        if u is not None:
+            x1_dot = x1_dot + input_or_zero(u, x, 1)[..., 0]
+        return torch.stack([x1_dot, x1], dim=-1)
 
 
 class StiffVanDerPol(nn.Module):
@@ -71,9 +73,9 @@ class StiffVanDerPol(nn.Module):
 
     def forward(self, t, x, u=None):
         check_state(x, 2, "StiffVanDerPol")
-        eps = like(self.eps, x)
-        y1, y2 = x[..., 0:1], x[..., 1:2]
-        return torch.cat([y2, ((1 - y1**2) * y2 - y1) / eps], dim=-1)
+        eps = like_component(self.eps, x)
+        y1, y2 = x.unbind(-1)
+        return torch.stack([y2, ((1 - y1 * y1) * y2 - y1) / eps], dim=-1)
 
 
 class Lorenz(nn.Module):
@@ -91,9 +93,9 @@ class Lorenz(nn.Module):
 
     def forward(self, t, x, u=None):
         check_state(x, 3, "Lorenz")
-        sigma, rho, beta = like(self.sigma, x), like(self.rho, x), like(self.beta, x)
-        x1, x2, x3 = x[..., 0:1], x[..., 1:2], x[..., 2:3]
-        return torch.cat([sigma * (x2 - x1), x1 * (rho - x3) - x2, x1 * x2 - beta * x3], dim=-1)
+        sigma, rho, beta = (like_component(p, x) for p in (self.sigma, self.rho, self.beta))
+        x1, x2, x3 = x.unbind(-1)
+        return torch.stack([sigma * (x2 - x1), x1 * (rho - x3) - x2, x1 * x2 - beta * x3], dim=-1)
 
 
 class StiffLinear(nn.Module):
