@@ -174,7 +174,7 @@ def fixed_step_table(batches, n_steps, repeats, use_compile, seed):
     return rows
 
 
-def adaptive_table(batch, t_end, n_out, rtol, atol, mu_max, seed):
+def adaptive_table(batch, t_end, n_out, rtol, atol, mu_max, seed, repeats=1):
     """Rows of the dopri5 comparison on a batch of Van der Pol oscillators with spread mu."""
     import torchdiffeq
     import torchode
@@ -195,14 +195,15 @@ def adaptive_table(batch, t_end, n_out, rtol, atol, mu_max, seed):
     with torch.no_grad():
         calls["n"] = 0
         wall, sol = best_time(
-            lambda: odeint(counted, x0, t, method="dopri5", rtol=rtol, atol=atol), 1
+            lambda: odeint(counted, x0, t, method="dopri5", rtol=rtol, atol=atol), repeats
         )
         per_sample = sol.stats.n_f_evals
         rows.append(
             {
                 "solver": "ours dopri5 (per-sample steps)",
+                "t_end": t_end,
                 "wall_s": wall,
-                "batched_f_calls": calls["n"],
+                "batched_f_calls": calls["n"] // repeats,
                 "sample_f_evals": int(torch.as_tensor(per_sample).sum()),
                 "max_sample_f_evals": int(torch.as_tensor(per_sample).max()),
                 "max_error": float(np.abs(sol.x.numpy() - ref).max()),
@@ -212,15 +213,17 @@ def adaptive_table(batch, t_end, n_out, rtol, atol, mu_max, seed):
 
         calls["n"] = 0
         wall, x = best_time(
-            lambda: torchdiffeq.odeint(counted, x0, t, method="dopri5", rtol=rtol, atol=atol), 1
+            lambda: torchdiffeq.odeint(counted, x0, t, method="dopri5", rtol=rtol, atol=atol),
+            repeats,
         )
         rows.append(
             {
                 "solver": "torchdiffeq dopri5 (one step for the batch)",
+                "t_end": t_end,
                 "wall_s": wall,
-                "batched_f_calls": calls["n"],
-                "sample_f_evals": calls["n"] * batch,
-                "max_sample_f_evals": calls["n"],
+                "batched_f_calls": calls["n"] // repeats,
+                "sample_f_evals": calls["n"] // repeats * batch,
+                "max_sample_f_evals": calls["n"] // repeats,
                 "max_error": float(np.abs(x.transpose(0, 1).numpy() - ref).max()),
                 "all_success": True,
             }
@@ -232,13 +235,14 @@ def adaptive_table(batch, t_end, n_out, rtol, atol, mu_max, seed):
         control = torchode.IntegralController(atol=atol, rtol=rtol, term=term)
         solver = torchode.AutoDiffAdjoint(step, control)
         problem = torchode.InitialValueProblem(y0=x0, t_eval=t.expand(batch, -1))
-        wall, res = best_time(lambda: solver.solve(problem), 1)
+        wall, res = best_time(lambda: solver.solve(problem), repeats)
         n_f = res.stats["n_f_evals"]
         rows.append(
             {
                 "solver": "torchode Dopri5 (per-sample steps)",
+                "t_end": t_end,
                 "wall_s": wall,
-                "batched_f_calls": calls["n"],
+                "batched_f_calls": calls["n"] // repeats,
                 "sample_f_evals": int(n_f.sum()),
                 "max_sample_f_evals": int(n_f.max()),
                 "max_error": float(np.abs(res.ys.numpy() - ref).max()),
@@ -265,7 +269,11 @@ def main(argv=None):
             adaptive = adaptive_table(16, 2.0, 11, 1e-6, 1e-9, 20.0, args.seed)
         else:
             fixed = fixed_step_table([1, 1024, 65536], 1000, 3, not args.no_compile, args.seed)
-            adaptive = adaptive_table(256, 10.0, 101, 1e-6, 1e-9, 20.0, args.seed)
+            adaptive = [
+                row
+                for t_end in (10.0, 20.0)
+                for row in adaptive_table(256, t_end, 101, 1e-6, 1e-9, 20.0, args.seed, repeats=3)
+            ]
         header = (
             f"Measured {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC on "
             f"{platform.machine()} ({platform.processor() or 'cpu'}), torch {torch.__version__}, "

@@ -1,4 +1,5 @@
-"""Benchmark: implicit Runge-Kutta (Radau IIA, Gauss-Legendre) against scipy and torchdiffeq.
+"""Benchmark: implicit Runge-Kutta (Radau IIA, Gauss-Legendre) against scipy and torchdiffeq,
+and implicit-function-theorem gradients against unrolled Newton iterations.
 
 1. Stiff Van der Pol ``y1' = y2, y2' = ((1 - y1^2) y2 - y1) / eps``, ``y(0) = (2, 0)``,
    ``t in [0, 2]`` (``eps = 1e-6``): adaptive Radau IIA (s = 3, ``solve_implicit_ode``) vs
@@ -13,20 +14,50 @@
    implicit Runge-Kutta), at equal step: error vs scipy DOP853 (rtol 1e-13), wall time of
    the forward pass and of forward + backward (gradient of ``|x(T)|^2`` w.r.t. ``x0``, ``mu``).
 
-All peers run in this process; times are the best of ``--repeats`` runs. Results: table
-``bench_implicit.csv/.md`` and figure ``bench_implicit.png`` (wall times).
+3. Implicit-function-theorem gradients vs unrolled autograd through the Newton iterations
+   (forward + backward of a scalar loss, same problem, same iterations where possible):
+
+   a. Van der Pol, batch of ``mu in [0.5, 1.5]``, fixed step (dt = 0.01, t in [0, 10];
+      ``--quick``: dt = 0.05, t in [0, 1]), Gauss-Legendre s = 2 and Radau IIA s = 3:
+      ``solve_implicit_ode(..., adaptive=False)`` (simplified Newton without a graph, then
+      one IFT solve per step, eq. 3.40) vs :func:`unrolled_irk`, the same method written
+      plainly (eq. 7.14-7.18, full Newton, autograd on through every iteration and through
+      the Newton matrix). Loss ``sum |x(T)|^2``, gradients w.r.t. ``x0`` and ``mu``.
+   b. ``integrators.newton`` (full Newton + IFT) vs :func:`unrolled_newton` (the same
+      iteration with autograd through it) on ``exp(x) + M x = b`` (n = 8, a batch of ``b``),
+      started at ``x0 = L`` so that larger ``L`` forces more iterations (about ``L + 5``):
+      the IFT graph keeps the same size while the unrolled graph grows linearly.
+
+   Columns: ``*_saved_MB``, the bytes of distinct storages the autograd graph holds for
+   backward at the end of the forward pass (:class:`GraphMemory`, via
+   ``torch.autograd.graph.saved_tensors_hooks``: deterministic and available on CPU);
+   ``*_cuda_peak_MB`` (only with ``--device cuda``), ``torch.cuda.max_memory_allocated``
+   above the start over forward + backward; ``memory_ratio`` = unrolled / IFT saved bytes;
+   ``grad_rel_diff`` = ``max|g_IFT - g_unrolled| / max|g_unrolled|`` over the parameters;
+   ``*_fd_error``, the relative error of the directional derivative along ``mu`` (3a) or
+   ``b`` (3b) against a central finite difference; ``*_newton_iters``, Newton iterations
+   per step (3a, mean) or per solve (3b, max over the batch); errors are against scipy
+   DOP853 (3a) or ``max ||phi(x)||_inf`` (3b).
+
+All peers run in this process, on one torch thread (``--threads``); times are the best of
+``--repeats`` runs. ``--sections`` picks sections (e.g. ``--sections 3``). Results: table
+``bench_implicit.csv/.md``, figures ``bench_implicit.png`` (wall times) and
+``bench_implicit_ift_memory.png`` (saved memory against Newton iterations, section 3b).
 """
 
 from __future__ import annotations
 
+import gc
+import threading
 import time
+import weakref
 
 import numpy as np
 import torch
 from scipy.integrate import solve_ivp
 
 from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
-from integrators import solve_implicit_ode
+from integrators import gauss_legendre, newton, radau_iia, solve_implicit_ode
 
 NAME = "bench_implicit"
 
@@ -100,6 +131,8 @@ def stiff_rows(t_end, rtols, batch, n_check, ref_rtol, repeats, batch_rtols=None
                 "ours_steps": int(ours.stats.n_steps.max()),
             }
         )
+        if rtol not in batch_rtols:
+            continue
         ours_t, ours = _timed(
             lambda rtol=rtol: solve_implicit_ode(
                 _vdp_torch(eps_t), x0, t, "radau_iia", rtol=rtol, atol=rtol
@@ -188,6 +221,394 @@ def fixed_rows(t_end, dt, repeats):
     return rows
 
 
+# ---------------------------------------------------------- section 3: IFT vs unrolled Newton
+class _Packed:
+    """A tensor saved for backward, wrapped so that a weak reference to the wrapper tells
+    whether the autograd graph still holds it."""
+
+    __slots__ = ("tensor", "__weakref__")
+
+    def __init__(self, tensor):
+        self.tensor = tensor
+
+
+def _unpack(packed):
+    return packed.tensor
+
+
+def _tensors_in(value):
+    if isinstance(value, torch.Tensor):
+        return [value]
+    if isinstance(value, (tuple, list)):
+        return [v for v in value if isinstance(v, torch.Tensor)]
+    return []
+
+
+def _context_tensors(root):
+    """Tensors kept as attributes of custom ``autograd.Function`` nodes in the graph of
+    ``root`` (such attributes bypass the saved-tensor hooks)."""
+    found, seen, stack = [], set(), [root]
+    while stack:
+        node = stack.pop()
+        if node is None or node in seen:
+            continue
+        seen.add(node)
+        if isinstance(node, torch.autograd.function.BackwardCFunction):
+            for value in vars(node).values():
+                found.extend(_tensors_in(value))
+        stack.extend(fn for fn, _ in node.next_functions)
+    return found
+
+
+class GraphMemory:
+    """Bytes an autograd graph holds for its backward pass (deterministic, on any device).
+
+    Inside ``with GraphMemory() as meter:`` every tensor autograd saves for backward (built-in
+    operations and ``save_for_backward``) passes through ``saved_tensors_hooks`` and is
+    recorded. ``meter.saved_bytes(loss)`` sums the sizes of the distinct storages that the
+    graphs built inside the block still hold when it is called, plus tensors kept as
+    attributes of custom ``autograd.Function`` contexts reachable from ``loss``
+    (``integrators.newton``'s IFT node keeps ``x*`` and its arguments that way). Temporary
+    graphs built and dropped during the forward pass (Jacobians by autograd inside the
+    solvers) are not counted. Call it on deep graphs through :func:`_with_large_stack`.
+    """
+
+    def __enter__(self):
+        self._packed = []
+        self._hooks = torch.autograd.graph.saved_tensors_hooks(self._pack, _unpack)
+        self._hooks.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        self._hooks.__exit__(*exc)
+
+    def _pack(self, tensor):
+        packed = _Packed(tensor.detach())  # no grad_fn: no cycle through a saved output
+        self._packed.append(weakref.ref(packed))
+        return packed
+
+    def saved_bytes(self, output: torch.Tensor) -> int:
+        gc.collect()  # graphs dropped inside reference cycles (e.g. exception tracebacks)
+        tensors = [p.tensor for ref in self._packed if (p := ref()) is not None]
+        tensors += _context_tensors(output.grad_fn)
+        storages = {}
+        for tensor in tensors:
+            storage = tensor.untyped_storage()
+            storages[(str(tensor.device), storage.data_ptr())] = storage.nbytes()
+        return sum(storages.values())
+
+
+def _jacobian_in_graph(y, x):
+    """``dy/dx`` (*batch, m, n) of a sample-wise map, kept in the autograd graph
+    (``create_graph=True``) so that a backward pass differentiates through it too."""
+    rows = []
+    for i in range(y.shape[-1]):
+        (row,) = torch.autograd.grad(y[..., i].sum(), x, create_graph=True, allow_unused=True)
+        rows.append(torch.zeros_like(x) if row is None else row)
+    return torch.stack(rows, dim=-2)
+
+
+def unrolled_irk(f, x0, t, tab, tol=1e-12, max_iter=50):
+    """Plain fixed-step IRK whose backward differentiates through every Newton iteration.
+
+    Per step: stage equations ``K_i = f(t_k + c_i dt, x_k + dt sum_j a_ij K_j)`` (eq. 7.14, as
+    ``R = K - f``), full Newton ``dR/dK dK = -R``, ``K <- K + dK`` (eq. 7.16-7.17) from
+    ``K_i = f(t_k, x_k)`` until ``||dK||_inf <= tol (1 + ||K||_inf)``, then
+    ``x_{k+1} = x_k + dt sum_i b_i K_i`` (eq. 7.18). Every operation, the Newton matrix
+    ``dR/dK = I - dt (A kron I) blockdiag(df/dx(X_i))`` included, stays in the autograd graph,
+    as in a naive PyTorch implementation (torchdiffeq's implicit solvers likewise keep their
+    corrector iterations in the graph).
+
+    Args:
+        f: ``f(t, x) -> (*batch, n)``; x0: (*batch, n), requiring grad (the Newton matrix is
+            formed by autograd w.r.t. the stage states); t: (T,) grid, one step per interval;
+        tab: implicit ButcherTableau.
+
+    Returns:
+        ``(x_T, iterations)``: (*batch, n) final state and mean Newton iterations per step.
+    """
+    A, b, c, _ = tab.tensors(x0.dtype, x0.device)
+    s, n = tab.stages, x0.shape[-1]
+    batch = x0.shape[:-1]
+    eye = torch.eye(s * n, dtype=x0.dtype, device=x0.device)
+    x, iterations = x0, 0
+    for k in range(t.shape[0] - 1):
+        h = t[k + 1] - t[k]
+        K = f(t[k], x).unsqueeze(-2).expand(*batch, s, n)
+        for _ in range(max_iter):
+            X = [x + h * (A[i] @ K) for i in range(s)]
+            F = [f(t[k] + c[i] * h, X[i]) for i in range(s)]
+            R = K - torch.stack(F, dim=-2)
+            J = torch.stack([_jacobian_in_graph(F[i], X[i]) for i in range(s)], dim=-3)
+            coupling = (A[:, :, None, None] * J[..., :, None, :, :]).transpose(-3, -2)
+            M = eye - h * coupling.reshape(*batch, s * n, s * n)
+            dK = -torch.linalg.solve(M, R.flatten(-2)).unflatten(-1, (s, n))
+            K = K + dK
+            iterations += 1
+            if float(dK.detach().abs().max()) <= tol * (1 + float(K.detach().abs().max())):
+                break
+        x = x + h * (b @ K)
+    return x, iterations / (t.shape[0] - 1)
+
+
+def unrolled_newton(phi, x0, *args, tol=1e-12, max_iter=100):
+    """Full Newton ``x <- x - J(x)^{-1} phi(x)`` (eq. 3.5-3.9) with autograd through every
+    iteration (Jacobian by autograd, kept in the graph); stops when ``||phi||_inf <= tol``
+    for the whole batch. ``x0`` must require grad. Returns ``(x, iterations)``."""
+    x = x0
+    for iteration in range(max_iter + 1):
+        r = phi(x, *args)
+        if float(r.detach().abs().max()) <= tol or iteration == max_iter:
+            return x, iteration
+        x = x - torch.linalg.solve(_jacobian_in_graph(r, x), r)
+
+
+def _with_large_stack(fn, megabytes=1024):
+    """``fn()`` run in a thread with a large C stack (the graph it builds dies there too).
+
+    Once Python has walked an autograd graph (:func:`_context_tensors` creates a Python
+    object per node), PyTorch frees that graph recursively; graphs tens of thousands of
+    nodes deep (the unrolled IRK) then overflow the default 8 MB stack and crash.
+    """
+    result = {}
+
+    def target():
+        try:
+            result["value"] = fn()
+        except BaseException as exc:  # re-raised in the caller's thread
+            result["error"] = exc
+
+    previous = threading.stack_size(megabytes * 2**20)
+    try:
+        thread = threading.Thread(target=target)
+        thread.start()
+        thread.join()
+    finally:
+        threading.stack_size(previous)
+    if "error" in result:
+        raise result["error"]
+    return result["value"]
+
+
+def _sync(device):
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _forward_backward(forward, params, repeats, device):
+    """Time ``forward`` + gradient (best of ``repeats``), then one more run measuring the
+    graph's saved bytes and, on CUDA, the peak allocated memory above the start."""
+
+    def once():
+        loss, info = forward()
+        grads = torch.autograd.grad(loss, params)
+        _sync(device)
+        return grads, info
+
+    def measured():
+        if device.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(device)
+            start = torch.cuda.memory_allocated(device)
+        with GraphMemory() as meter:
+            loss, info = forward()
+            saved = meter.saved_bytes(loss)
+        grads = torch.autograd.grad(loss, params)
+        _sync(device)
+        peak = None
+        if device.type == "cuda":
+            peak = (torch.cuda.max_memory_allocated(device) - start) / 2**20
+        return {"saved_MB": saved / 2**20, "grads": grads, "info": info, "peak": peak}
+
+    seconds, _ = _timed(once, repeats)
+    return {"s": seconds, **_with_large_stack(measured)}
+
+
+def _grad_difference(ours, peer):
+    """max over parameters of ``max|g_ours - g_peer| / max|g_peer|``."""
+    return max(float((o - p).abs().max() / p.abs().max()) for o, p in zip(ours, peer, strict=True))
+
+
+def _ift_row(case, ours, peer, fd_slope, ours_dir, peer_dir, errors, steps):
+    row = {
+        "case": case,
+        "rtol": None,
+        "ours_error": errors[0],
+        "peer_error": errors[1],
+        "ours_s": ours["s"],
+        "peer": "unrolled autograd through Newton",
+        "peer_s": peer["s"],
+        "speedup": peer["s"] / ours["s"],
+        "ours_steps": steps,
+        "ours_newton_iters": ours["info"][0],
+        "peer_newton_iters": peer["info"][0],
+        "ours_saved_MB": ours["saved_MB"],
+        "peer_saved_MB": peer["saved_MB"],
+        "memory_ratio": peer["saved_MB"] / ours["saved_MB"],
+        "grad_rel_diff": _grad_difference(ours["grads"], peer["grads"]),
+        "ours_fd_error": abs(ours_dir - fd_slope) / abs(fd_slope),
+        "peer_fd_error": abs(peer_dir - fd_slope) / abs(fd_slope),
+    }
+    if ours["peak"] is not None:
+        row["ours_cuda_peak_MB"] = ours["peak"]
+        row["peer_cuda_peak_MB"] = peer["peak"]
+    return row
+
+
+def ift_irk_rows(t_end, dt, batch, repeats, device, fd_step=1e-5):
+    """Section 3a: fixed-step Gauss s=2 / Radau IIA s=3 on Van der Pol, IFT per step (ours)
+    vs the same method with autograd through its Newton iterations (:func:`unrolled_irk`).
+
+    Loss ``sum_batch |x(T)|^2``, gradients w.r.t. ``x0`` and the per-sample ``mu``; the
+    finite difference is central in the direction ``mu + delta (1, ..., 1)``.
+    """
+    mus = np.linspace(0.5, 1.5, batch)
+    x0_np = np.array([0.5, 1.0])
+    ref = np.stack(
+        [
+            solve_ivp(
+                lambda t, x, mu=mu: [mu * (1 - x[1] ** 2) * x[0] - x[1], x[0]],
+                (0, t_end),
+                x0_np,
+                method="DOP853",
+                rtol=1e-13,
+                atol=1e-13,
+            ).y[:, -1]
+            for mu in mus
+        ]
+    )
+    t = torch.linspace(0.0, t_end, int(round(t_end / dt)) + 1, device=device)
+    model = _VdP(mus).to(device)
+    x0 = torch.tensor(x0_np, device=device).expand(batch, 2).clone().requires_grad_(True)
+    params = (x0, model.mu)
+    options = dict(adaptive=False, rtol=1e-10, atol=1e-10)
+    rows = []
+    for tab in (gauss_legendre(2), radau_iia(3)):
+
+        def ours_forward(tab=tab):
+            sol = solve_implicit_ode(model, x0, t, tab, **options)
+            iters = float(sol.stats.n_newton_iters.double().mean()) / (len(t) - 1)
+            x = sol.x[:, -1]
+            return x.square().sum(), (iters, x.detach().cpu().numpy())
+
+        def peer_forward(tab=tab):
+            x, iters = unrolled_irk(model, x0, t, tab)
+            return x.square().sum(), (iters, x.detach().cpu().numpy())
+
+        ours = _forward_backward(ours_forward, params, repeats, device)
+        peer = _forward_backward(peer_forward, params, repeats, device)
+        with torch.no_grad():
+            mu0 = model.mu.detach().clone()
+            losses = []
+            for sign in (1.0, -1.0):
+                model.mu.copy_(mu0 + sign * fd_step)
+                x = solve_implicit_ode(model, x0.detach(), t, tab, **options).x[:, -1]
+                losses.append(float(x.square().sum()))
+            model.mu.copy_(mu0)
+        fd_slope = (losses[0] - losses[1]) / (2 * fd_step)
+        rows.append(
+            _ift_row(
+                f"VdP mu in [0.5, 1.5] x{batch}, dt={dt}, {tab.name}, IFT vs unrolled, fwd+bwd",
+                ours,
+                peer,
+                fd_slope,
+                float(ours["grads"][1].sum()),
+                float(peer["grads"][1].sum()),
+                tuple(float(np.max(np.abs(r["info"][1] - ref))) for r in (ours, peer)),
+                len(t) - 1,
+            )
+        )
+    return rows
+
+
+def _root_problem(n, batch, seed, device):
+    """``phi(x; M, b) = exp(x) + M x - b`` (per sample; ``M`` (n, n) shared, ``b`` (batch, n)):
+    a regular root near ``log b``; from a start ``x0 = L`` Newton first walks down about one
+    unit per iteration (``exp`` dominates), so ``L`` sets the number of iterations."""
+    gen = torch.Generator().manual_seed(seed)
+    M = 0.1 / n**0.5 * torch.randn(n, n, generator=gen, dtype=torch.float64)
+    b = 1.0 + torch.rand(batch, n, generator=gen, dtype=torch.float64)
+    M = M.to(device).requires_grad_(True)
+    b = b.to(device).requires_grad_(True)
+
+    def phi(x, M, b):
+        return torch.exp(x) + x @ M.mT - b
+
+    return phi, M, b
+
+
+def ift_newton_rows(starts, n, batch, repeats, device, seed=0, tol=1e-12, fd_step=1e-6):
+    """Section 3b: ``integrators.newton`` (full Newton, IFT gradient) vs :func:`unrolled_newton`
+    on :func:`_root_problem` from starts ``x0 = L`` (more iterations for larger ``L``).
+
+    Loss ``sum |x*|^2``, gradients w.r.t. ``M`` and ``b``; the finite difference is central in
+    the direction ``b + delta (1, ..., 1)``; errors are ``max ||phi(x)||_inf``.
+    """
+    phi, M, b = _root_problem(n, batch, seed, device)
+    rows = []
+    for start in starts:
+        x0 = torch.full((batch, n), float(start), dtype=torch.float64, device=device)
+
+        def ours_forward(x0=x0):
+            res = newton(phi, x0, M, b, tol=tol, max_iter=200)
+            return res.x.square().sum(), (int(res.iterations.max()), res.x.detach())
+
+        def peer_forward(x0=x0):
+            x, iters = unrolled_newton(phi, x0.clone().requires_grad_(True), M, b, tol=tol)
+            return x.square().sum(), (iters, x.detach())
+
+        ours = _forward_backward(ours_forward, (M, b), repeats, device)
+        peer = _forward_backward(peer_forward, (M, b), repeats, device)
+        with torch.no_grad():
+            errors = tuple(float(phi(r["info"][1], M, b).abs().max()) for r in (ours, peer))
+            losses = [
+                float(
+                    newton(phi, x0, M, b + sign * fd_step, tol=tol, max_iter=200).x.square().sum()
+                )
+                for sign in (1.0, -1.0)
+            ]
+        fd_slope = (losses[0] - losses[1]) / (2 * fd_step)
+        rows.append(
+            _ift_row(
+                f"newton exp(x)+Mx=b, n={n}, batch {batch}, x0={start}, IFT vs unrolled, fwd+bwd",
+                ours,
+                peer,
+                fd_slope,
+                float(ours["grads"][1].sum()),
+                float(peer["grads"][1].sum()),
+                errors,
+                None,
+            )
+        )
+    return rows
+
+
+def _time_figure(rows, path):
+    fig, ax = plt.subplots(figsize=(9, 0.3 * len(rows) + 1.5))
+    y = np.arange(len(rows))
+    ax.barh(y - 0.2, [r["ours_s"] for r in rows], height=0.4, label="ours")
+    ax.barh(y + 0.2, [r["peer_s"] for r in rows], height=0.4, label="peer")
+    ax.set_yticks(y, [f"{r['case']} rtol={r['rtol']}" for r in rows], fontsize=6)
+    ax.set_xscale("log")
+    ax.set_xlabel("wall time [s]")
+    ax.legend()
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def _memory_figure(newton_rows, path):
+    """Saved-for-backward memory against Newton iterations (section 3b)."""
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    iters = [r["ours_newton_iters"] for r in newton_rows]
+    ax.plot(iters, [r["ours_saved_MB"] for r in newton_rows], "o-", label="IFT (ours)")
+    ax.plot(iters, [r["peer_saved_MB"] for r in newton_rows], "s-", label="unrolled autograd")
+    ax.set_xlabel("Newton iterations")
+    ax.set_ylabel("saved for backward [MB]")
+    ax.set_ylim(bottom=0)
+    ax.legend()
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
 def main(argv=None):
     parser = experiment_parser(NAME, __doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=3)
@@ -199,40 +620,61 @@ def main(argv=None):
         default=[1e-6, 1e-9],
         help="tolerances of the batch case (scipy's loop at 1e-9 takes long)",
     )
+    parser.add_argument("--sections", type=int, nargs="+", choices=(1, 2, 3), default=[1, 2, 3])
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    parser.add_argument(
+        "--device",
+        default="cuda" if torch.cuda.is_available() else "cpu",
+        help="device of section 3 (default cuda when available; adds CUDA peak memory)",
+    )
     args = parser.parse_args(argv)
     out = output_dir(args, NAME)
+    device = torch.device(args.device)
     previous_dtype = torch.get_default_dtype()
+    previous_threads = torch.get_num_threads()
     torch.set_default_dtype(torch.float64)
+    torch.set_num_threads(args.threads)
+    rows, newton_rows = [], []
     try:
         if args.quick:
-            rows = stiff_rows(
-                t_end=0.3, rtols=(1e-4,), batch=8, n_check=3, ref_rtol=1e-10, repeats=1
-            )
-            rows += fixed_rows(t_end=1.0, dt=0.05, repeats=1)
+            if 1 in args.sections:
+                rows += stiff_rows(
+                    t_end=0.3, rtols=(1e-4,), batch=8, n_check=3, ref_rtol=1e-10, repeats=1
+                )
+            if 2 in args.sections:
+                rows += fixed_rows(t_end=1.0, dt=0.05, repeats=1)
+            if 3 in args.sections:
+                rows += ift_irk_rows(t_end=1.0, dt=0.05, batch=4, repeats=1, device=device)
+                newton_rows = ift_newton_rows((0, 10), n=8, batch=16, repeats=2, device=device)
         else:
-            rows = stiff_rows(
-                t_end=2.0,
-                rtols=(1e-6, 1e-9),
-                batch=256,
-                n_check=8,
-                ref_rtol=1e-12,
-                repeats=args.repeats,
-            )
-            rows += fixed_rows(t_end=10.0, dt=0.01, repeats=args.repeats)
+            if 1 in args.sections:
+                rows += stiff_rows(
+                    t_end=2.0,
+                    rtols=(1e-6, 1e-9),
+                    batch=args.batch,
+                    n_check=8,
+                    ref_rtol=1e-12,
+                    repeats=args.repeats,
+                    batch_rtols=args.batch_rtols,
+                )
+            if 2 in args.sections:
+                rows += fixed_rows(t_end=10.0, dt=0.01, repeats=args.repeats)
+            if 3 in args.sections:
+                rows += ift_irk_rows(
+                    t_end=10.0, dt=0.01, batch=16, repeats=args.repeats, device=device
+                )
+                newton_rows = ift_newton_rows(
+                    (0, 5, 10, 20, 40), n=8, batch=256, repeats=args.repeats, device=device
+                )
+        rows += newton_rows
         write_table(rows, out / NAME)
-        fig, ax = plt.subplots(figsize=(9, 4))
-        y = np.arange(len(rows))
-        ax.barh(y - 0.2, [r["ours_s"] for r in rows], height=0.4, label="ours")
-        ax.barh(y + 0.2, [r["peer_s"] for r in rows], height=0.4, label="peer")
-        ax.set_yticks(y, [f"{r['case']} rtol={r['rtol']}" for r in rows], fontsize=6)
-        ax.set_xscale("log")
-        ax.set_xlabel("wall time [s]")
-        ax.legend()
-        fig.tight_layout()
-        save_figure(fig, out / f"{NAME}.png")
+        _time_figure(rows, out / f"{NAME}.png")
+        if newton_rows:
+            _memory_figure(newton_rows, out / f"{NAME}_ift_memory.png")
         return rows
     finally:
         torch.set_default_dtype(previous_dtype)
+        torch.set_num_threads(previous_threads)
 
 
 if __name__ == "__main__":
