@@ -262,7 +262,9 @@ def solve_explicit(
     compile_s = 0.0
     if use_compiled and entry.compiled is None:
         tic = time.perf_counter()  # the first torch.compile imports dynamo/inductor (seconds)
-        entry.compiled = torch.compile(_make_chunk(f, kind, u_fn, scheme, m, n_out_chunk))
+        entry.compiled = torch.compile(
+            _make_chunk(f, kind, u_fn, scheme, m, n_out_chunk), dynamic=False
+        )
         compile_s += time.perf_counter() - tic
 
     grad_mode = torch.is_grad_enabled()

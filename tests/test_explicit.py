@@ -303,7 +303,7 @@ def test_compile_failure_falls_back_to_eager(monkeypatch):
     """If torch.compile cannot build the chunk, the run continues eagerly with the same result."""
     from integrators import explicit
 
-    def broken_compile(fn):
+    def broken_compile(fn, **options):
         def call(*args):
             raise RuntimeError("no C++ compiler")
 
