@@ -56,6 +56,7 @@ import scipy.optimize
 import scipy.stats
 import torch
 import torch.autograd.forward_ad as fwAD
+import torch.nn.functional as F
 
 from integrators.errors import (
     InputValidationError,
@@ -64,6 +65,7 @@ from integrators.errors import (
 )
 
 from .data import IOData
+from .filters import iir_filter
 from .lls import lls
 from .models import OE, PolynomialModel
 
@@ -278,6 +280,89 @@ def _jacobian(residual_fn, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Ten
     return r[0].detach(), jt.movedim(0, -1).detach()
 
 
+class _OutputError:
+    """Simulation errors and their exact Jacobian for models without A, C, D
+    (``y = sum_i q^-nk_i B_i/F_i u_i + e``, eq. 4.133), by filtering, no autograd.
+
+    With ``v_i = u_i / F_i`` and ``x_i = B_i / F_i u_i`` (the response to input i),
+    ``d yhat / d b_ij = v_i(t - nk_i - j)`` and ``d yhat / d f_ij = -x_i(t - j) / F_i``
+    (``d(1/F)/df_j = -q^-j / F^2``); so one more pass of the filter ``1/F_i`` over the two
+    signals ``u_i`` and ``x_i`` (one batched call) gives every column; ``J = -d yhat/d theta``
+    is then a stack of delayed copies. Zero initial conditions in each experiment,
+    experiments concatenated in time; ``sw`` (``(*batch, M)`` or None) weights the rows.
+
+    :meth:`linearise` reuses the responses ``x_i`` of the last :meth:`residuals` call when
+    ``theta`` is the same (in Levenberg-Marquardt, the accepted line-search point).
+    """
+
+    def __init__(self, model: PolynomialModel, data: IOData, sw: torch.Tensor | None):
+        self.model, self.data, self.sw = model, data, sw
+        # rows of J' in theta order, by blocks (signal, input, first lag, count): b_i from
+        # -v_i (signal 0) delayed by nk_i, nk_i + 1, ..; then f_i from x_i / F_i (signal 1)
+        # delayed by 1, 2, ..
+        self.blocks = [
+            (0, i, k, n) for i, (k, n) in enumerate(zip(model.nk, model.nb, strict=True))
+        ]
+        self.blocks += [(1, i, 1, n) for i, n in enumerate(model.nf)]
+        self.blocks = [block for block in self.blocks if block[3]]
+        self.top = max((first + n - 1 for _, _, first, n in self.blocks), default=0)
+        self._last: tuple[torch.Tensor, list[torch.Tensor]] | None = None
+
+    def _responses(self, theta: torch.Tensor, B, den) -> list[torch.Tensor]:
+        """Per experiment, the responses ``x_i`` ``(*batch, nu, N)``."""
+        if self._last is not None and torch.equal(self._last[0], theta):
+            return self._last[1]
+        out = [
+            iir_filter(B, den, part.u.to(theta.dtype).transpose(-1, -2))
+            for part in self.data.experiment_list  # loop over experiments (usually one)
+        ]
+        if not out[0].requires_grad:
+            self._last = (theta.detach().clone(), out)
+        return out
+
+    def _errors(self, theta: torch.Tensor, responses: list[torch.Tensor]) -> torch.Tensor:
+        parts = [
+            part.y[..., 0].to(theta.dtype) - x.sum(-2)
+            for part, x in zip(self.data.experiment_list, responses, strict=True)
+        ]
+        r = parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
+        r = r.expand(*theta.shape[:-1], r.shape[-1])
+        return r if self.sw is None else r * self.sw
+
+    def residuals(self, theta: torch.Tensor) -> torch.Tensor:
+        """Weighted simulation errors ``(*batch, M)`` (those of ``model.simulation_errors``)."""
+        B, den = self.model._transfer_polys(theta)
+        return self._errors(theta, self._responses(theta, B, den))
+
+    def linearise(self, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(r, J)``; ``J`` is the transpose of a contiguous ``(*batch, p, M)`` tensor (a
+        faster ``J'J``)."""
+        with torch.no_grad():
+            B, den = self.model._transfer_polys(theta)  # (*b, nu, width), (*b, nu, nf)
+            ones = torch.ones_like(den[..., :1])
+            responses = self._responses(theta, B, den)
+            jacobians = []
+            for part, x in zip(self.data.experiment_list, responses, strict=True):
+                u = part.u.to(theta.dtype).transpose(-1, -2)
+                both = torch.stack(torch.broadcast_tensors(-u, x), dim=-3)
+                both = iir_filter(ones.unsqueeze(-3), den.unsqueeze(-3), both)  # -v_i, x_i/F_i
+                N = both.shape[-1]
+                windows = F.pad(both, (self.top, 0)).unfold(-1, N, 1)  # window j: top - j
+                # each block is a slice of consecutive windows in decreasing delay: take the
+                # blocks in reverse order, then one flip restores theta order
+                last = [
+                    windows[..., s, i, self.top - first - n + 1 : self.top - first + 1, :]
+                    for s, i, first, n in reversed(self.blocks)  # loop over inputs (2 nu)
+                ]
+                empty = both.new_zeros(*both.shape[:-3], 0, N)  # a model without parameters
+                jacobians.append(torch.cat(last, dim=-2).flip(-2) if last else empty)
+            Jt = jacobians[0] if len(jacobians) == 1 else torch.cat(jacobians, dim=-1)
+            Jt = Jt.expand(*theta.shape[:-1], *Jt.shape[-2:])
+            if self.sw is not None:
+                Jt = Jt * self.sw.unsqueeze(-2)
+            return self._errors(theta, responses), Jt.transpose(-1, -2)
+
+
 @dataclass
 class _LMResult:
     theta: torch.Tensor
@@ -354,9 +439,9 @@ def _levenberg_marquardt(
         active = ~(converged | failed)
         if not bool(active.any()):
             break
-        c = loss.curvature(r)
-        H = J.transpose(-1, -2) @ (J * c.unsqueeze(-1))
-        g = (J.transpose(-1, -2) @ loss.psi(r).unsqueeze(-1)).squeeze(-1)
+        Jt = J.transpose(-1, -2)
+        H = Jt @ J if loss.name == "gaussian" else Jt @ (J * loss.curvature(r).unsqueeze(-1))
+        g = (Jt @ loss.psi(r).unsqueeze(-1)).squeeze(-1)
         scale = (torch.diagonal(H, dim1=-2, dim2=-1).sum(-1) / p).clamp_min(torch.finfo(dtype).tiny)
         small_grad = g.abs().amax(-1) <= gtol * (1 + f) * scale.sqrt()
         L, info = torch.linalg.cholesky_ex(H + (lam * scale)[..., None, None] * eye)
@@ -810,6 +895,9 @@ def _fit_iterative(
             return e if sw is None else e * sw
 
         jacobian_fn = None
+        if model.na == model.nc == model.nd == 0:  # H = 1: prediction errors = simulation errors
+            output_error = _OutputError(model, data, sw)
+            residual_fn, jacobian_fn = output_error.residuals, output_error.linearise
         admissible = _admissible_fn(model, criterion)
 
     if init is None and linear:

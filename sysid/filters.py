@@ -85,10 +85,19 @@ def cpu_backend(name: str):
 
 
 def _broadcast(*shapes) -> torch.Size:
-    """``torch.broadcast_shapes`` with a fast path for equal shapes (per-call overhead)."""
+    """Broadcast batch shapes (as ``torch.broadcast_shapes``, whose Python implementation
+    costs about 30 us a call; this is a plain loop over the few dimensions)."""
     if all(shape == shapes[0] for shape in shapes[1:]):
         return torch.Size(shapes[0])
-    return torch.broadcast_shapes(*shapes)
+    ndim = max(len(shape) for shape in shapes)
+    out = []
+    padded = [(1,) * (ndim - len(shape)) + tuple(shape) for shape in shapes]
+    for sizes in zip(*padded, strict=True):
+        distinct = {size for size in sizes if size != 1}
+        if len(distinct) > 1:
+            raise InputValidationError(f"batch shapes {padded} do not broadcast.")
+        out.append(distinct.pop() if distinct else 1)
+    return torch.Size(out)
 
 
 def _batch_numel(shape) -> int:
@@ -109,7 +118,7 @@ def fir_filter(c: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         ``(*broadcast(batch_c, batch_x), N)``.
     """
     m, N = c.shape[-1], x.shape[-1]
-    batch = torch.broadcast_shapes(c.shape[:-1], x.shape[:-1])
+    batch = _broadcast(c.shape[:-1], x.shape[:-1])
     if m == 0 or N == 0:
         return x.new_zeros(*batch, N)
     out = c[..., :1] * x  # a new (*batch, N) tensor, safe to update in place
@@ -124,7 +133,7 @@ def poly_mul(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
     ``(*b1, m) x (*b2, n) -> (*broadcast, m + n - 1)`` (``p`` or ``q`` empty -> empty).
     """
     m, n = p.shape[-1], q.shape[-1]
-    batch = torch.broadcast_shapes(p.shape[:-1], q.shape[:-1])
+    batch = _broadcast(p.shape[:-1], q.shape[:-1])
     if m == 0 or n == 0:
         return p.new_zeros(*batch, 0)
     if m == 1 or n == 1:  # a constant factor (e.g. A = 1 in an OE model)
@@ -206,12 +215,12 @@ def _allpole_apply(plan, w: torch.Tensor, b: torch.Tensor | None = None) -> torc
     N = w.shape[-1]
     n_blocks = -(-N // L)
     if b is None:
-        batch = torch.broadcast_shapes(Tt.shape[:-2], w.shape[:-1])
+        batch = _broadcast(Tt.shape[:-2], w.shape[:-1])
         blocks = F.pad(w, (0, n_blocks * L - N)).expand(*batch, n_blocks * L)
         P = blocks.reshape(*batch, n_blocks, L) @ Tt  # (*batch, n_blocks, L) from rest
     else:
         m = b.shape[-1]
-        batch = torch.broadcast_shapes(Tt.shape[:-2], b.shape[:-1], w.shape[:-1])
+        batch = _broadcast(Tt.shape[:-2], b.shape[:-1], w.shape[:-1])
         G = F.pad(b, (0, 1))[..., _fir_band_index(L, m, b.device)]
         K = G.reshape(*b.shape[:-1], L + m - 1, L) @ Tt  # (*, L + m - 1, L)
         ext = F.pad(w, (m - 1, n_blocks * L - N)).unfold(-1, L + m - 1, L)
@@ -237,9 +246,16 @@ def _allpole_forward(a: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 
 def _lagged_dots(g: torch.Tensor, x: torch.Tensor, lags) -> torch.Tensor:
-    """``r_j = sum_k g_k x_{k-j}`` for each lag j (``(*batch, len(lags))``), as dot products."""
+    """``r_j = sum_k g_k x_{k-j}`` for each lag j (``(*batch, len(lags))``), as dot products.
+
+    A single signal (batch of one element) takes ``torch.dot`` on 1-D views (the BLAS dot;
+    measured three to four times faster than a ``(1, N) @ (N, 1)`` matmul at N = 100 000)."""
     N = x.shape[-1]
     batch = _broadcast(g.shape[:-1], x.shape[:-1])
+    if batch.numel() == 1 and g.shape[:-1].numel() == 1 and x.shape[:-1].numel() == 1:
+        g1, x1 = g.reshape(N), x.reshape(N)
+        dots = [torch.dot(g1[j:], x1[: N - j]) if j < N else g1.new_zeros(()) for j in lags]
+        return (torch.stack(dots) if dots else g.new_zeros(0)).reshape(*batch, -1)
     out = []
     for j in lags:  # loop over the filter order
         if j >= N:
@@ -313,7 +329,7 @@ def allpole(a: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
         ``(*broadcast, N)``; differentiable in ``a`` and ``w`` (custom adjoint backward).
     """
     if a.shape[-1] == 0:
-        return w.expand(*torch.broadcast_shapes(a.shape[:-1], w.shape[:-1]), w.shape[-1])
+        return w.expand(*_broadcast(a.shape[:-1], w.shape[:-1]), w.shape[-1])
     return _AllPole.apply(a, w)
 
 
@@ -323,7 +339,7 @@ def _add_initial_state(w: torch.Tensor, zi: torch.Tensor) -> torch.Tensor:
     k = min(zi.shape[-1], N)
     if k == 0:
         return w
-    batch = torch.broadcast_shapes(w.shape[:-1], zi.shape[:-1])
+    batch = _broadcast(w.shape[:-1], zi.shape[:-1])
     return w.expand(*batch, N) + F.pad(zi[..., :k], (0, N - k))
 
 
@@ -353,15 +369,13 @@ def _scipy_lfilter(b, a, x: torch.Tensor, zi=None, reverse: bool = False) -> tor
     num = np.ones(1) if b is None else b.detach().double().reshape(-1).numpy()
     den = np.concatenate([[1.0], a.detach().double().reshape(-1).numpy()])
     xn = x.detach().numpy()
-    if zi is None or zi.shape[-1] == 0:
-        y = scipy.signal.lfilter(
-            num, den, np.ascontiguousarray(xn[..., ::-1]) if reverse else xn, axis=-1
-        )
+    if zi is None or zi.shape[-1] == 0:  # lfilter reads the reversed view in place
+        y = scipy.signal.lfilter(num, den, xn[..., ::-1] if reverse else xn, axis=-1)
     else:
         y = scipy.signal.lfilter(num, den, xn, axis=-1, zi=zi.detach().numpy())[0]
-    y = np.ascontiguousarray(y[..., ::-1] if reverse else y)
     batch = x.shape[:-1] if b is None else _broadcast(b.shape[:-1], a.shape[:-1], x.shape[:-1])
-    return torch.from_numpy(y.reshape(*batch, x.shape[-1])).to(x.dtype)
+    y = torch.from_numpy(np.ascontiguousarray(y).reshape(*batch, x.shape[-1])).to(x.dtype)
+    return y.flip(-1) if reverse else y
 
 
 def _empty_plan(like: torch.Tensor):

@@ -92,8 +92,9 @@ def _monic(tail: torch.Tensor) -> torch.Tensor:
 
 
 def _sum_inputs(y: torch.Tensor) -> torch.Tensor:
-    """Sum the per-input responses ``(*batch, nu, N) -> (*batch, N)`` (a view when nu = 1)."""
-    return y[..., 0, :] if y.shape[-2] == 1 else y.sum(-2)
+    """Sum the per-input responses ``(*batch, nu, N) -> (*batch, N)`` (a view when nu = 1,
+    taken by ``squeeze``, whose backward is a view too: no zero-filled gradient buffer)."""
+    return y.squeeze(-2) if y.shape[-2] == 1 else y.sum(-2)
 
 
 def _roots(tail: torch.Tensor) -> torch.Tensor:
@@ -170,6 +171,9 @@ class PolynomialModel(nn.Module):
         self.a, self.c, self.d = param(self.na), param(self.nc), param(self.nd)
         self.b = nn.ParameterList([param(n) for n in self.nb])
         self.f = nn.ParameterList([param(n) for n in self.nf])
+        # (letter, size) of each block of theta, fixed by the orders (see _blocks)
+        self._layout = [("a", self.na), *(("b", n) for n in self.nb), ("c", self.nc)]
+        self._layout += [("d", self.nd), *(("f", n) for n in self.nf)]
 
     # ------------------------------------------------------------------ parameters
     def _blocks(self) -> list[tuple[str, int, nn.Parameter]]:
@@ -201,10 +205,9 @@ class PolynomialModel(nn.Module):
                 f"theta has {theta.shape[-1]} entries; this model has {self.n_params} "
                 f"parameters {self.parameter_names()}."
             )
-        sizes = [p.shape[-1] for _, _, p in self._blocks()]
-        parts = torch.split(theta, sizes, dim=-1)
+        parts = torch.split(theta, [size for _, size in self._layout], dim=-1)
         out: dict[str, list[torch.Tensor]] = {k: [] for k in "abcdf"}
-        for (letter, _, _), part in zip(self._blocks(), parts, strict=True):
+        for (letter, _), part in zip(self._layout, parts, strict=True):
             out[letter].append(part)
         return out
 
@@ -240,6 +243,24 @@ class PolynomialModel(nn.Module):
         nf = max(self.nf)
         Fp = torch.stack([_monic(F.pad(f, (0, nf - f.shape[-1]))) for f in co["f"]], dim=-2)
         return A, B, C, D, Fp
+
+    def _transfer_polys(self, theta: torch.Tensor | None):
+        """Numerators ``q^-nk_i B_i`` (``(*b, nu, width)``, delay included) and denominator
+        tails of ``A F_i`` without the leading 1 (``(*b, nu, na + max nf)``) of the inputs'
+        transfer functions: the few autograd nodes that :meth:`simulate` needs (for an OE
+        model the denominator tail is a view of ``theta``)."""
+        co = self._coefficients(theta)
+        width = max(k + n for k, n in zip(self.nk, self.nb, strict=True))
+        nf = max(self.nf)
+        B = [F.pad(b, (k, width - k - b.shape[-1])) for b, k in zip(co["b"], self.nk, strict=True)]
+        tails = [f if f.shape[-1] == nf else F.pad(f, (0, nf - f.shape[-1])) for f in co["f"]]
+        if self.n_inputs == 1:
+            B, tails = B[0].unsqueeze(-2), tails[0].unsqueeze(-2)
+        else:
+            B, tails = torch.stack(B, dim=-2), torch.stack(tails, dim=-2)
+        if self.na:
+            tails = poly_mul(_monic(co["a"][0]).unsqueeze(-2), _monic(tails))[..., 1:]
+        return B, tails
 
     # ------------------------------------------------------------------ evaluation
     def _inputs(self, u) -> list[torch.Tensor]:
@@ -279,14 +300,13 @@ class PolynomialModel(nn.Module):
         Returns:
             ``(*batch, N, 1)``.
         """
-        A, B, _, _, Fp = self._polys(theta)
-        den = poly_mul(A.unsqueeze(-2), Fp)  # (*b, nu, na + nf + 1)
+        B, den_tail = self._transfer_polys(theta)  # (*b, nu, .): B_i, tail of A F_i
         parts = self._inputs(u)
         if zi is not None and len(parts) > 1:
             raise InputValidationError("zi is only supported for a single experiment.")
         out = []
         for x in parts:
-            y = _sum_inputs(iir_filter(B, den[..., 1:], x, zi))
+            y = _sum_inputs(iir_filter(B, den_tail, x, zi))
             out.append(y.unsqueeze(-1))
         return out[0] if len(out) == 1 else torch.cat(out, dim=-2)
 

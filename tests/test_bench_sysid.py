@@ -17,6 +17,9 @@ def test_bench_sysid_quick_agreement(tmp_path):
     assert abs(ours["final_cost"] - scipy_fit["final_cost"]) < 1e-6 * scipy_fit["final_cost"]
     assert abs(ours["param_error_vs_truth"] - scipy_fit["param_error_vs_truth"]) < 2e-3
     assert ours["param_error_vs_truth"] < 0.05
+    # started where scipy starts (our automatic initial estimate), the same optimum
+    same = oe["sysid.fit gauss_newton, same start as scipy"]
+    assert abs(same["final_cost"] - ours["final_cost"]) < 1e-9 * ours["final_cost"]
     grads = [r for r in rows if "gradient" in r["task"]]
     assert all(r["grad_rel_diff"] < 1e-10 for r in grads)
     # both of our paths (CPU dispatch to scipy, pure-torch block method) are reported

@@ -4,6 +4,7 @@ Independent references: statsmodels OLS/WLS/GLS on bundled data sets, numpy.lina
 explicit inverses computed in numpy, and a batched Monte-Carlo study.
 """
 
+import re
 import warnings
 
 import numpy as np
@@ -229,7 +230,10 @@ def test_fir_lls_equals_lls_on_explicit_regressor(N, nb, nk, seed):
         ref = lls(U, y)
         got = fir_lls(u, y, nb, nk)
     torch.testing.assert_close(got.theta, ref.theta, rtol=1e-9, atol=1e-11)
+    # standard errors from diag((U'U)^{-1}) at once, the covariance matrix on first read
+    torch.testing.assert_close(got.standard_errors, ref.standard_errors, rtol=1e-9, atol=1e-13)
     torch.testing.assert_close(got.covariance, ref.covariance, rtol=1e-9, atol=1e-13)
+    torch.testing.assert_close(got.normal_inverse, ref.normal_inverse, rtol=1e-9, atol=1e-13)
     torch.testing.assert_close(got.residuals, ref.residuals, rtol=1e-9, atol=1e-11)
     # the power-iteration condition estimate is a close lower bound of the exact one
     assert (got.condition_number <= ref.condition_number * (1 + 1e-9)).all()
@@ -255,3 +259,79 @@ def test_fir_lls_sigma2_without_cancellation_loss():
         torch.testing.assert_close(got.sigma2, want.sigma2, rtol=1e-6, atol=0)
         torch.testing.assert_close(got.residuals, want.residuals, rtol=0, atol=1e-12)
         torch.testing.assert_close(got.theta, want.theta, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("N", [7, 12, 13, 100, 1001])
+@pytest.mark.parametrize("nb", [1, 5, 12, 20, 31])
+def test_lagged_products_equal_direct_sums(N, nb):
+    """Block-Gram correlations sum_m w_m z_{m+d} (whole blocks of 12 samples plus the pairs
+    ending in the last partial block) equal the direct sums, with broadcast batch shapes."""
+    from sysid.lls import _lagged_products
+
+    g = torch.Generator().manual_seed(N + 100 * nb)
+    w = torch.randn(3, N, generator=g, dtype=DT)
+    z = torch.randn(2, 1, N, generator=g, dtype=DT)
+    got = _lagged_products(w, z, nb)
+    wn, zn = w.numpy(), z.numpy()
+    want = np.zeros((2, 3, nb))
+    for d in range(min(nb, N)):  # loop over lags (reference)
+        want[..., d] = (wn[:, : N - d] * zn[..., d:]).sum(-1)
+    assert got.shape == (2, 3, nb)
+    np.testing.assert_allclose(got.numpy(), want, rtol=1e-12, atol=1e-12)
+
+
+def test_scaled_condition_screening_is_exact_where_needed_and_lazy_elsewhere():
+    """fir_lls and lls(method="cholesky") estimate the scaled condition number by power
+    iteration only where the bound p * trace(S^-1) reaches the thresholds; the warning then
+    names the right batch member, and the deferred estimates are those of the eager
+    computation (a close lower bound of numpy's condition number of the scaled U'U)."""
+    from sysid.lls import _condition_estimate, fir_lls
+    from sysid.montecarlo import fir_regressor
+
+    N, nb = 200, 20
+    k = torch.arange(N, dtype=DT)
+    g = torch.Generator().manual_seed(5)
+    u = torch.randn(4, N, generator=g, dtype=DT)
+    u[2] = torch.sin(0.3 * k)  # poorly exciting for 20 taps (notes Fig. 4.1)
+    y = torch.randn(4, N, generator=g, dtype=DT)
+    U = fir_regressor(u, nb)
+    G = (U.transpose(-1, -2) @ U).numpy()
+    dinv = 1 / np.sqrt(np.diagonal(G, axis1=-2, axis2=-1))
+    exact = np.linalg.cond(G * dinv[:, :, None] * dinv[:, None, :])
+    for solve in (lambda: fir_lls(u, y, nb), lambda: lls(U, y, method="cholesky")):
+        with pytest.warns(PoorExcitationWarning, match=r"batch index \(2,\)"):
+            res = solve()
+        assert isinstance(res._scaled_condition_number, torch.Tensor) is False  # deferred
+        got = res.scaled_condition_number.numpy()
+        assert (got <= exact * (1 + 1e-9)).all() and (got >= 0.5 * exact).all()
+        assert got[2] > 1e4 and (np.delete(got, 2) < 1e3).all()
+        Gs = torch.tensor(G * dinv[:, :, None] * dinv[:, None, :])
+        eager = _condition_estimate(Gs, torch.linalg.inv(Gs))
+        torch.testing.assert_close(res.scaled_condition_number, eager, rtol=1e-6, atol=0)
+    # white-noise inputs only: the bound rules the warning out, nothing is estimated at once
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", PoorExcitationWarning)
+        res = fir_lls(u[[0, 1, 3]], y[[0, 1, 3]], nb)
+    np.testing.assert_allclose(res.scaled_condition_number.numpy(), np.delete(exact, 2), rtol=0.5)
+
+
+def test_fir_lls_singular_member_and_non_finite_samples_are_named():
+    """Singularity (a zero input) and non-finite samples are reported with their batch and
+    sample indices, also for samples that only the delay hides from the regressor."""
+    from sysid.lls import fir_lls
+
+    g = torch.Generator().manual_seed(6)
+    u = torch.randn(3, 60, generator=g, dtype=DT)
+    y = torch.randn(3, 60, generator=g, dtype=DT)
+    u0 = u.clone()
+    u0[1] = 0.0
+    with pytest.raises(SingularMatrixError, match=r"batch index \(1,\)"):
+        fir_lls(u0, y, 4)
+    for name, tensor, index in [("u", u, (2, 59)), ("y", y, (0, 3)), ("u", u, (1, 0))]:
+        bad = tensor.clone()
+        bad[index] = float("inf")
+        args = (bad, y) if name == "u" else (u, bad)
+        with pytest.raises(
+            InputValidationError, match=rf"{name} contains .* {re.escape(str(index))}"
+        ):
+            fir_lls(*args, 4, 2)
