@@ -105,21 +105,24 @@ def _lincomb(x, h, terms):
 def _make_chunk(f, kind, u_fn, scheme: _Scheme, substeps: int, n_out: int):
     """A function advancing ``n_out`` output intervals of ``substeps`` steps each.
 
-    chunk(x, t_stage, h, h_float, u0, du) -> (x_last, outputs)
+    chunk(x, t_stage, h, h_float, u0, du, out=None) -> (x_last, outputs)
         x: (*batch, nx) state at the chunk start.
         t_stage: (n_out * substeps, n_stages) stage times.
         h: (n_out * substeps,) step sizes (tensor, used when h_float is None).
         h_float: tuple of Python-float step sizes, or None (compiled chunks).
         u0, du: (..., n_out, nu) input at the interval start and its increment over the
             interval (du is None for zero-order hold), or None.
+        out: optional (n_out, *batch, nx) buffer slice (no autograd) that receives the states
+            at the output times in place; a compiled chunk then writes them straight from its
+            fused kernel instead of allocating (and page-faulting) a fresh tensor per call.
     Returns the state at the chunk end and the time-major (n_out, *batch, nx) states at the
-    output times (one tensor, so a compiled chunk allocates few outputs).
+    output times (``out`` when given; one tensor, so a compiled chunk allocates few outputs).
     """
     stages = scheme.stages
     a, b, c = scheme.a, scheme.b, scheme.c
     m = substeps
 
-    def chunk(x, t_stage, h, h_float, u0, du):
+    def chunk(x, t_stage, h, h_float, u0, du, out=None):
         outputs = []
         for q in range(n_out):
             if kind == "zoh":
@@ -146,7 +149,10 @@ def _make_chunk(f, kind, u_fn, scheme: _Scheme, substeps: int, n_out: int):
                         K.append(f(ts, xs, us))
                 x = _lincomb(x, hn, [(coef, K[r]) for r, coef in b])
             outputs.append(x)
-        return x, torch.stack(outputs, dim=0)
+        if out is None:
+            return x, torch.stack(outputs, dim=0)
+        out.copy_(outputs[0].unsqueeze(0) if n_out == 1 else torch.stack(outputs, dim=0))
+        return x, out
 
     return chunk
 
@@ -270,17 +276,20 @@ def solve_explicit(
     grad_mode = torch.is_grad_enabled()
     x = x0
     # With autograd the per-chunk outputs are kept and concatenated at the end; without it
-    # they are copied into one preallocated time-major buffer (half the memory, no big cat).
+    # the chunks write into one preallocated time-major buffer (half the memory, no big cat).
     outputs: list[torch.Tensor] = [x.unsqueeze(0)]
-    buffer = None
+    buffer = None if grad_mode else x0.new_empty((T, *x0.shape))
+    if buffer is not None:
+        buffer[0] = x0
     k = 0
     while k < n_int:
         n_c = n_out_chunk if k + n_out_chunk <= n_int else 1
         s0, s1 = k * m, (k + n_c) * m
         us = None if u0 is None else u0[..., k : k + n_c, :]
         ds = None if du is None else du[..., k : k + n_c, :]
+        out = None if buffer is None else buffer[k + 1 : k + 1 + n_c]
         if n_c == n_out_chunk and use_compiled and not entry.failed:
-            args = (x, t_stage[s0:s1], h[s0:s1], None, us, ds)
+            args = (x, t_stage[s0:s1], h[s0:s1], None, us, ds, out)
             signature = (tuple(x.shape), x.dtype, x.device, grad_mode, x.requires_grad)
             fresh = signature not in entry.signatures
             tic = time.perf_counter()
@@ -295,14 +304,9 @@ def solve_explicit(
         else:
             fn = chunk_eager if n_c == n_out_chunk else tail_eager
             hf = None if h_list is None else h_list[s0:s1]
-            x, ys = fn(x, t_stage[s0:s1], h[s0:s1], hf, us, ds)
-        if grad_mode:
+            x, ys = fn(x, t_stage[s0:s1], h[s0:s1], hf, us, ds, out)
+        if buffer is None:
             outputs.append(ys)
-        else:
-            if buffer is None:
-                buffer = ys.new_empty((T, *ys.shape[1:]))
-                buffer[0] = outputs[0][0]
-            buffer[k + 1 : k + 1 + n_c] = ys
         k += n_c
     x_time_major = torch.cat(outputs, dim=0) if buffer is None else buffer  # (T, *batch, nx)
     x_out = x_time_major.movedim(0, -2)  # (*batch, T, nx) view
