@@ -28,6 +28,39 @@ EPS = {
 }
 
 
+class StageTimes:
+    """The stage times ``t_k + c_i h`` of one step.
+
+    ``times[i]`` is stage ``i``'s time, shaped like ``t_k`` (0-dim for a shared time,
+    (*batch, 1) per sample); ``stacked`` holds all of them as (s, 1.., 1) / (s, *batch, 1) for
+    one call with the stage index as leading batch dimension. Both are built on first use.
+    """
+
+    def __init__(self, c: list, tk: torch.Tensor, h: torch.Tensor, batch_ndim: int, stacked=None):
+        self.c, self.tk, self.h, self.batch_ndim = c, tk, h, batch_ndim
+        self._per_stage, self._stacked = None, stacked
+
+    def __getitem__(self, i):
+        if self._per_stage is None:
+            self._per_stage = [self.tk + ci * self.h for ci in self.c]
+        return self._per_stage[i]
+
+    def __iter__(self):
+        return iter([self[i] for i in range(len(self.c))])
+
+    def __len__(self):
+        return len(self.c)
+
+    @property
+    def stacked(self) -> torch.Tensor:
+        if self._stacked is None:
+            tk, h = self.tk, self.h
+            shape = (len(self.c),) + (1,) * (self.batch_ndim + 1)
+            c = torch.as_tensor(self.c, dtype=h.dtype, device=h.device).reshape(shape)
+            self._stacked = tk + c * h
+        return self._stacked
+
+
 class FrozenLUSolve(torch.autograd.Function):
     """``y = M^{-1} b`` for a fixed LU factorisation; backward is ``M^{-T} grad`` (one solve)."""
 
@@ -94,25 +127,54 @@ class IRKCore:
         self.eps = EPS.get(dtype, EPS[torch.float32])
         self.n_f_evals = 0
         self.needs_grad = None
+        self.stack_stages = None
+        self._hA_key = self._hA = None
+        self._rms_scale = 1.0 / (self.s * system.p) ** 0.5
 
     # ------------------------------------------------------------------ stages
-    def stage_times(self, tk, h):
-        """Stage times ``t_k + c_i h``; ``tk``/``h`` 0-dim (shared) or (*batch, 1)."""
-        return [tk + ci * h for ci in self.c]
+    def stage_times(self, tk, h, batch_ndim: int, stacked=None):
+        """Stage times ``t_k + c_i h`` (:class:`StageTimes`); ``tk``/``h`` 0-dim (shared) or
+        (*batch, 1) with ``len(batch) = batch_ndim``; ``stacked`` (s, *batch, 1) when the
+        caller already has them."""
+        return StageTimes(self.c, tk, h, batch_ndim, stacked)
 
     def stage_inputs(self, times, tk, fixed: bool):
+        if self.signal.source is None or self.signal.source.kind == "none":
+            return [None] * self.s
         return [self.signal.at(ti, tk if fixed else None) for ti in times]
 
     def stage_states(self, xk, h, K):
         """``X_i = x_k + h sum_j a_ij K_j``: (*batch, s, n); h is (*batch,)."""
-        return xk[..., None, :] + h[..., None, None] * (self.A @ K)
+        return xk[..., None, :] + self._step_matrix(h) @ K
+
+    def _step_matrix(self, h):
+        """``h A`` (*batch, s, s), cached for the step-size tensor ``h`` of the current step."""
+        if self._hA_key is not h:
+            self._hA_key, self._hA = h, h[..., None, None] * self.A
+        return self._hA
 
     def residual(self, times, inputs, h, xk, W):
-        """Stage residuals (*batch, s, p) of the stage unknowns ``W`` (*batch, s, p)."""
+        """Stage residuals (*batch, s, p) of the stage unknowns ``W`` (*batch, s, p).
+
+        When the problem has no input and its functions accept a leading extra batch
+        dimension (tested once, see :meth:`_stacking_works`), all stages are evaluated in
+        one call with the stage index as leading batch dimension; otherwise stage by stage.
+        """
         n = self.system.n
-        K, Z = W[..., :n], W[..., n:]
-        X = self.stage_states(xk, h, K)
+        K = W[..., :n] if self.system.m else W
         self.n_f_evals += self.s
+        if self.stack_stages is None:
+            X = self.stage_states(xk, h, K)
+            self.stack_stages = self._stacking_works(times, inputs, K, X, W[..., n:])
+        if self.stack_stages:
+            Xs = (self._step_matrix(h) @ K).movedim(-2, 0) + xk
+            Zs = None if self.system.kind == "ode" else W[..., n:].movedim(-2, 0)
+            R = self.system.residual(times.stacked, K.movedim(-2, 0), Xs, Zs, None)
+            return R.movedim(0, -2)
+        X = self.stage_states(xk, h, K)
+        return self._residual_by_stage(times, inputs, K, X, W[..., n:])
+
+    def _residual_by_stage(self, times, inputs, K, X, Z):
         return torch.stack(
             [
                 self.system.residual(times[i], K[..., i, :], X[..., i, :], Z[..., i, :], inputs[i])
@@ -121,20 +183,50 @@ class IRKCore:
             dim=-2,
         )
 
+    def _stacking_works(self, times, inputs, K, X, Z) -> bool:
+        """Whether one call with stacked stages (s, *batch, .) reproduces the stage-by-stage
+        residuals, checked at a point near the first stage values perturbed differently in
+        every entry (so a function that mixes up batch and stage dimensions is caught). A
+        function that raises there is simply evaluated stage by stage (at the real stage
+        values, where its own errors surface)."""
+        if any(u is not None for u in inputs):
+            return False
+        with torch.no_grad():
+
+            def perturb(v):
+                pattern = torch.linspace(0.1, 0.2, v.numel(), dtype=v.dtype, device=v.device)
+                pattern = pattern.reshape(v.shape)
+                return v * (1 + 1e-3 * pattern) + 1e-3 * pattern
+
+            Kp, Xp, Zp = perturb(K), perturb(X), perturb(Z)
+            try:
+                ref = self._residual_by_stage(times, inputs, Kp, Xp, Zp)
+                got = self.system.residual(
+                    times.stacked, Kp.movedim(-2, 0), Xp.movedim(-2, 0), Zp.movedim(-2, 0), None
+                ).movedim(0, -2)
+            except Exception:  # noqa: BLE001 - any failure means "not stackable"
+                return False
+            if got.shape != ref.shape:
+                return False
+            tol = 1e3 * self.eps
+            return bool(torch.allclose(got, ref, rtol=tol, atol=tol, equal_nan=True))
+
     def step_end(self, xk, h, W):
         """``x_{k+1} = x_k + h sum_i b_i K_i`` (eq. 7.18): (*batch, n)."""
-        K = W[..., : self.system.n]
+        K = W[..., : self.system.n] if self.system.m else W
         return xk + h[..., None] * (self.b @ K)
 
     # ------------------------------------------------------------------ Newton
-    def scaled_norm(self, h, dW, sc_x, sc_z):
-        """RMS of the state increments ``h A dK / sc_x`` and ``dZ / sc_z``: (*batch,)."""
+    def _weighted_norm(self, dW, w_x, w_z):
+        """``||[(A dK) w_x, dZ w_z]||_2`` (*batch,) for weights ``w_x = h / sc_x``
+        (*batch, 1, n) and ``w_z = 1 / sc_z`` (*batch, 1, m); times ``_rms_scale`` it is the
+        RMS of the scaled state increments ``h A dK / sc_x`` and ``dZ / sc_z``."""
         n = self.system.n
-        dX = h[..., None, None] * (self.A @ dW[..., :n])
-        parts = [(dX / sc_x[..., None, :]).square().flatten(-2)]
+        dK = dW[..., :n] if self.system.m else dW
+        q = torch.linalg.vector_norm((self.A @ dK) * w_x, dim=(-2, -1))
         if self.system.m:
-            parts.append((dW[..., n:] / sc_z[..., None, :]).square().flatten(-2))
-        return torch.cat(parts, dim=-1).mean(-1).sqrt()
+            q = torch.hypot(q, torch.linalg.vector_norm(dW[..., n:] * w_z, dim=(-2, -1)))
+        return q
 
     def newton(
         self, times, inputs, h, xk, W, factors, sc_x, sc_z, tol, max_iter, active, predict=True
@@ -145,7 +237,8 @@ class IRKCore:
         scipy's Radau) unless the update is exactly zero: ``theta / (1 - theta) ||dW|| <= tol``.
         A member stops as failed when ``theta >= 1`` or (``predict=True``, used where a
         smaller step is the remedy) when the rate predicts that ``max_iter`` iterations will
-        not reach ``tol``.
+        not reach ``tol``. The per-sample bookkeeping runs on the host (numpy): one transfer
+        of the (*batch,) increment norms per iteration.
 
         Args:
             times, inputs: stage times and inputs.
@@ -154,11 +247,11 @@ class IRKCore:
             sc_x, sc_z: (*batch, n), (*batch, m) error scales ``atol + rtol |.|``.
             tol: convergence tolerance in the scaled norm.
             max_iter: iteration limit.
-            active: (*batch,) bool: samples to solve (others are left untouched).
+            active: (*batch,) numpy bool: samples to solve (others are left untouched).
 
         Returns:
-            ``(W, converged, iterations, theta, non_finite)``, per-sample tensors (no autograd
-            graph: gradients come from :meth:`ift`).
+            ``(W, converged, iterations, theta, non_finite)``: W a tensor without autograd
+            graph (gradients come from :meth:`ift`), the others (*batch,) numpy arrays.
         """
         with torch.no_grad():
             return self._newton(
@@ -166,44 +259,43 @@ class IRKCore:
             )
 
     def _newton(self, times, inputs, h, xk, W, factors, sc_x, sc_z, tol, max_iter, active, predict):
-        batch = h.shape
-        done = ~active
-        failed = torch.zeros(batch, dtype=torch.bool, device=h.device)
-        non_finite = torch.zeros_like(failed)
-        iters = torch.zeros(batch, dtype=torch.int64, device=h.device)
-        theta = torch.zeros(batch, dtype=h.dtype, device=h.device)
+        w_x = (h[..., None] / sc_x)[..., None, :]
+        w_z = (1.0 / sc_z)[..., None, :] if self.system.m else None
+        live = active.copy()  # still iterating
+        conv = np.zeros_like(live)
+        non_finite = np.zeros_like(live)
+        iters = np.zeros(live.shape, dtype=np.int64)
+        theta = np.zeros(live.shape)
+        tiny = torch.finfo(h.dtype).tiny
         norm_old = None
-        for it in range(max_iter):
-            R = self.residual(times, inputs, h, xk, W)
-            dW = self.solver.solve(factors, R, h)
-            finite = torch.isfinite(dW).flatten(-2).all(-1)
-            norm = self.scaled_norm(h, dW, sc_x, sc_z)
-            running = ~done & ~failed
-            bad = running & ~finite
-            non_finite |= bad
-            failed |= bad
-            running = running & ~bad
-            if norm_old is not None:
-                th = norm / norm_old.clamp_min(torch.finfo(h.dtype).tiny)
-                theta = torch.where(running, th, theta)
-                hopeless = th >= 1.0
-                if predict:
-                    slow = th.pow(max_iter - it) / (1.0 - th).clamp_min(1e-12) * norm > tol
-                    hopeless = hopeless | slow
-                hopeless = running & hopeless
-                failed |= hopeless
-                running = running & ~hopeless
-                conv = running & ((norm == 0) | (th / (1.0 - th) * norm <= tol))
-            else:
-                conv = running & (norm == 0)
-            W = torch.where(running[..., None, None], W + torch.nan_to_num(dW), W)
-            iters += running.long()
-            done |= conv
-            norm_old = norm
-            if not bool((~done & ~failed).any()):
-                break
-        converged = done & active
-        return W, converged, iters, theta, non_finite
+        with np.errstate(all="ignore"):
+            for it in range(max_iter):
+                R = self.residual(times, inputs, h, xk, W)
+                dW = self.solver.solve(factors, R, h)
+                norm = to_host(self._weighted_norm(dW, w_x, w_z), live.shape).astype(np.float64)
+                norm *= self._rms_scale
+                bad = live & ~np.isfinite(norm)
+                if bad.any():
+                    non_finite |= bad
+                    live &= ~bad
+                if norm_old is None:
+                    done = live & (norm == 0)
+                else:
+                    th = norm / np.maximum(norm_old, tiny)
+                    theta = np.where(live, th, theta)
+                    hopeless = th >= 1.0
+                    if predict:
+                        hopeless |= th ** (max_iter - it) / np.maximum(1.0 - th, 1e-12) * norm > tol
+                    live &= ~hopeless
+                    done = live & ((norm == 0) | (th / (1.0 - th) * norm <= tol))
+                W = masked_update(live, W + dW, W)
+                iters += live
+                conv |= done
+                live &= ~done
+                norm_old = norm
+                if not live.any():
+                    break
+        return W, conv, iters, theta, non_finite
 
     def damped_newton(self, times, inputs, h, xk, W, active, tol, max_iter=50):
         """Fallback for a fixed step whose simplified Newton failed (a fixed step cannot be
@@ -212,12 +304,13 @@ class IRKCore:
 
         Args:
             h (*batch,), xk (*batch, n), W (*batch, s, p): as in :meth:`newton`.
-            active: (*batch,) bool: the members to solve.
+            active: (*batch,) numpy bool: the members to solve.
             tol: residual tolerance ``||R||_inf`` (derivative units).
 
         Returns:
-            ``(W, converged, iterations)``; members outside ``active`` keep ``W`` and report
-            zero iterations. No autograd graph (gradients come from :meth:`ift`).
+            ``(W, converged, iterations)`` (the last two host arrays); members outside
+            ``active`` keep ``W`` and report zero iterations. No autograd graph (gradients
+            come from :meth:`ift`).
         """
         stage_shape = W.shape[-2:]
 
@@ -226,9 +319,9 @@ class IRKCore:
 
         with torch.no_grad():
             res = newton(phi, W.detach().flatten(-2), method="damped", tol=tol, max_iter=max_iter)
-        converged = res.converged & active
-        W_new = torch.where(active[..., None, None], res.x.detach().unflatten(-1, stage_shape), W)
-        return W_new, converged, res.iterations * active
+        converged = to_host(res.converged, active.shape) & active
+        W_new = masked_update(active, res.x.detach().unflatten(-1, stage_shape), W)
+        return W_new, converged, to_host(res.iterations, active.shape) * active
 
     # --------------------------------------------------------------- Jacobians
     def frozen_blocks(self, t, xk, zk, xdot):
@@ -238,8 +331,8 @@ class IRKCore:
     def ift(self, times, inputs, h, xk, W, valid=None):
         """Attach implicit-function-theorem gradients to converged stages (see module doc).
 
-        Samples outside ``valid`` (*batch,) (unconverged solves, discarded by the caller) get
-        zero derivatives instead of a solve with a possibly singular matrix.
+        Samples outside ``valid`` ((*batch,) numpy bool: unconverged solves, discarded by the
+        caller) get zero derivatives instead of a solve with a possibly singular matrix.
         """
         Wd = torch.nan_to_num(W.detach())
         if self.needs_grad is False or not torch.is_grad_enabled():
@@ -251,24 +344,29 @@ class IRKCore:
         if not R.requires_grad:
             return Wd
         n, s, p = self.system.n, self.s, self.system.p
+        if valid is not None:
+            if valid.all():
+                valid = None
+            else:
+                valid = to_device(valid, h, shape=h.shape)
         K, Z = Wd[..., :n], Wd[..., n:]
         X = self.stage_states(xk.detach(), h, K)
-        rows = []
         with torch.no_grad():
-            for i in range(s):
-                E_i, G_i, _, _ = self.system.blocks(
-                    times[i], K[..., i, :], X[..., i, :], Z[..., i, :], inputs[i]
+            if self.stack_stages:
+                E, G, _, _ = self.system.blocks(
+                    times.stacked, K.movedim(-2, 0), X.movedim(-2, 0), Z.movedim(-2, 0), None
                 )
-                coupling = (
-                    h[..., None, None, None] * self.A[i][:, None, None] * G_i[..., None, :, :]
-                )
-                row = (
-                    coupling
-                    + torch.eye(s, dtype=h.dtype, device=h.device)[i][:, None, None]
-                    * E_i[..., None, :, :]
-                )
-                rows.append(row.movedim(-3, -2).reshape(*h.shape, p, s * p))
-            J = torch.cat(rows, dim=-2)
+            else:
+                pairs = [
+                    self.system.blocks(times[i], K[..., i, :], X[..., i, :], Z[..., i, :], u)[:2]
+                    for i, u in enumerate(inputs)
+                ]
+                E, G = (torch.stack(v) for v in zip(*pairs, strict=True))
+            # J[(i, a), (j, c)] = delta_ij E_i[a, c] + h a_ij G_i[a, c]  (E_i, G_i at stage i)
+            E, G = E.movedim(0, -3)[..., :, :, None, :], G.movedim(0, -3)[..., :, :, None, :]
+            eye_s = torch.eye(s, dtype=h.dtype, device=h.device)[:, None, :, None]
+            hA = h[..., None, None, None, None] * self.A[:, None, :, None]
+            J = (eye_s * E + hA * G).reshape(*h.shape, s * p, s * p)
             if valid is not None:
                 eye = torch.eye(s * p, dtype=J.dtype, device=J.device)
                 J = torch.where(valid[..., None, None], J, eye)
@@ -278,6 +376,39 @@ class IRKCore:
             R = torch.where(valid[..., None, None], R, torch.zeros_like(R))
         D = -FrozenLUSolve.apply(lu, piv, R).reshape(Wd.shape)
         return Wd + (D - D.detach())
+
+
+def host_shape(batch) -> tuple:
+    """Shape of the host (numpy) per-sample arrays: the batch shape, (1,) for an unbatched
+    state (numpy turns 0-d results into scalars, which cannot be updated in place)."""
+    return tuple(batch) if len(batch) else (1,)
+
+
+def to_host(x: torch.Tensor, shape=None) -> np.ndarray:
+    """A detached host (numpy) copy of ``x`` (reshaped to ``shape``): the one device-to-host
+    transfer of a check."""
+    out = np.array(x.numpy(force=True))
+    return out if shape is None else out.reshape(shape)
+
+
+def to_device(a: np.ndarray, like: torch.Tensor, dtype=None, shape=None) -> torch.Tensor:
+    """Host array ``a`` as a tensor on ``like``'s device (``dtype`` default: ``a``'s),
+    reshaped to ``shape``."""
+    out = torch.from_numpy(np.ascontiguousarray(a))
+    if like.device.type != "cpu" or (dtype is not None and dtype != out.dtype):
+        out = out.to(device=like.device, dtype=dtype)
+    return out if shape is None else out.reshape(shape)
+
+
+def masked_update(mask: np.ndarray, new: torch.Tensor, old: torch.Tensor) -> torch.Tensor:
+    """``new`` where the host bool ``mask`` (*batch,) holds, else ``old``; no op when the mask
+    is uniform (the common case: every member moves together)."""
+    if mask.all():
+        return new
+    if not mask.any():
+        return old
+    expand = mask.reshape(*mask.shape, *([1] * (new.dim() - mask.ndim)))
+    return torch.where(to_device(expand, new), new, old)
 
 
 class IterationMatrix:
@@ -291,45 +422,43 @@ class IterationMatrix:
     def __init__(self, core: IRKCore, index_tol: float):
         self.core = core
         self.index_tol = index_tol
-        self.E = self.G = self.factors = None
+        self.E = self.G = self.factors = self.parts = None
         self.n_jac = 0
         self.n_lu = 0
 
     def update_jacobian(self, mask, t, x, z, xdot):
-        """Re-evaluate ``E, G`` at ``(t, x, z, xdot)`` for ``mask`` samples.
+        """Re-evaluate ``E, G`` at ``(t, x, z, xdot)`` for the host bool ``mask`` samples.
 
         Returns:
-            (*batch,) bool: samples whose index-check matrix is numerically rank deficient.
+            (*batch,) numpy bool: samples whose index-check matrix is numerically rank
+            deficient.
         """
         with torch.no_grad():
             E, G, index_matrix, reference = self.core.frozen_blocks(t, x, z, xdot)
         self.n_jac += 1
-        m3 = mask[..., None, None]
-        self.E = E if self.E is None else torch.where(m3, E, self.E)
-        self.G = G if self.G is None else torch.where(m3, G, self.G)
+        identity_E = self.core.system.kind == "ode"  # dR/dK = I for explicit ODEs
+        if self.E is None or not identity_E:
+            self.E = E if self.E is None else masked_update(mask, E, self.E)
+        self.G = G if self.G is None else masked_update(mask, G, self.G)
+        self.parts = self.core.solver.prepare(None if identity_E else self.E, self.G)
         if index_matrix is None:
-            return torch.zeros_like(mask)
-        return mask & (rank_ratio(index_matrix, reference) <= self.index_tol)
+            return np.zeros_like(mask)
+        return mask & (to_host(rank_ratio(index_matrix, reference), mask.shape) <= self.index_tol)
 
     def update_factors(self, mask, h):
-        """Factorise the Newton matrix with step ``h`` (*batch,) for ``mask`` samples.
+        """Factorise the Newton matrix with step ``h`` (*batch,) for the host bool ``mask``
+        samples.
 
         Returns:
-            (*batch,) bool: samples whose matrix is singular.
+            (*batch,) numpy bool: samples whose matrix is singular.
         """
-        factors, singular = self.core.solver.factorize(self.E, self.G, h)
+        factors, singular = self.core.solver.factorize(self.E, self.G, h, self.parts)
         self.n_lu += 1
-        if self.factors is None:
+        if self.factors is None or self.factors[0] != factors[0]:
             self.factors = factors
         else:
             self.factors = tuple(
-                new
-                if not isinstance(new, torch.Tensor)
-                else torch.where(_expand_mask(mask, new), new, old)
+                masked_update(mask, new, old) if isinstance(new, torch.Tensor) else new
                 for new, old in zip(factors, self.factors, strict=True)
             )
-        return mask & singular
-
-
-def _expand_mask(mask, like):
-    return mask.reshape(*mask.shape, *([1] * (like.dim() - mask.dim())))
+        return mask & to_host(singular, mask.shape)

@@ -9,6 +9,8 @@ past ``tau = 1`` gives the starting guess of the next step's Newton iteration.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 
@@ -26,18 +28,28 @@ def lagrange_basis(nodes: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
     return torch.where(eye, torch.ones_like(factors), factors).prod(-1)
 
 
-def extrapolate_stages(c: torch.Tensor, W: torch.Tensor, ratio: torch.Tensor) -> torch.Tensor:
-    """Next step's stage guess from the previous step's stage polynomial.
+def extrapolation_matrix(c: np.ndarray, ratio) -> np.ndarray:
+    """Lagrange matrix of the next step's stage guess, computed on the host.
+
+    The previous step's stage polynomial ``sum_j W_j l_j(tau)`` evaluated at the next step's
+    nodes ``tau_i = 1 + c_i ratio`` is ``L @ W`` with ``L[i, j] = l_j(1 + c_i ratio)``.
 
     Args:
-        c: (s,) nodes; W: (*batch, s, p) previous stages; ratio: (*batch,) ``h_new / h_old``.
+        c: (s,) nodes; ratio: float or (*batch,) array ``h_new / h_old``.
 
     Returns:
-        (*batch, s, p) values of the previous polynomial at ``1 + c_i ratio``.
+        (*batch, s, s) ``L``.
     """
-    tau = 1.0 + c * ratio[..., None]  # (*batch, s)
-    L = lagrange_basis(c, tau)  # (*batch, s, s)
-    return L @ W
+    s = c.shape[0]
+    tau = 1.0 + c * np.asarray(ratio, dtype=np.float64)[..., None]  # (*batch, s)
+    return (tau[..., None] ** np.arange(s)) @ _lagrange_coefficients(tuple(c))
+
+
+@functools.lru_cache(maxsize=16)
+def _lagrange_coefficients(c: tuple) -> np.ndarray:
+    """``C`` with ``l_j(tau) = sum_q C[q, j] tau^q``: the inverse of the Vandermonde matrix
+    ``c_m^q`` of the nodes (``l_j(c_m) = delta_jm``)."""
+    return np.linalg.inv(np.vander(np.array(c), len(c), increasing=True))
 
 
 def is_collocation(tab) -> bool:
@@ -52,9 +64,9 @@ def is_collocation(tab) -> bool:
 class StepRecords:
     """Per-step data of an integration, one record per driver iteration for every sample.
 
-    A sample that did not advance in an iteration repeats its previous record, so each
-    sample's start times are non-decreasing and the last record starting at or before a query
-    time is the step containing it.
+    A sample that did not advance in an iteration has start time ``+inf`` in that record;
+    the other start times of a sample increase, so the last record starting at or before a
+    query time is the step containing it.
     """
 
     def __init__(self, tab, n: int):
@@ -62,7 +74,8 @@ class StepRecords:
         self.t0, self.h, self.x, self.W, self.z = [], [], [], [], []
 
     def append(self, t0, h, x, W, z):
-        """Add a record: t0, h (*batch,), x (*batch, n), W (*batch, s, p), z (*batch, m)."""
+        """Add a record: t0, h (*batch,) (tensors or host arrays), x (*batch, n),
+        W (*batch, s, p), z (*batch, m)."""
         self.t0.append(t0)
         self.h.append(h)
         self.x.append(x)
@@ -71,20 +84,21 @@ class StepRecords:
 
     def evaluate(self, tq: torch.Tensor):
         """States at times ``tq`` (M,): ``(x (*batch, M, n), z (*batch, M, m))``."""
-        t0 = torch.stack(self.t0)  # (L, *batch)
+        t0 = _stack(self.t0, tq)  # (L, *batch)
         batch = t0.shape[1:]
         L = t0.shape[0]
         t0f = t0.reshape(L, -1)
         B = t0f.shape[1]
-        idx = (t0f[None, :, :] <= tq[:, None, None]).sum(1) - 1  # (M, B)
-        idx = idx.clamp(0, L - 1)
+        started = t0f[None, :, :] <= tq[:, None, None]  # (M, L, B)
+        idx = (L - 1) - started.flip(1).to(torch.uint8).argmax(1)  # last record started
+        idx = torch.where(started.any(1), idx, 0)  # (M, B)
         cols = torch.arange(B, device=tq.device)[None, :].expand_as(idx)
 
         def take(seq):
             stacked = torch.stack(seq).reshape(L, B, *seq[0].shape[len(batch) :])
             return stacked[idx, cols]  # (M, B, ...)
 
-        h = take(self.h)
+        h = _stack(self.h, tq).reshape(L, B)[idx, cols]
         start = t0f[idx, cols]
         theta = ((tq[:, None] - start) / h).clamp(0.0, 1.0)
         W = take(self.W)
@@ -106,3 +120,10 @@ class StepRecords:
             x.permute(1, 0, 2).reshape(*batch, M, n),
             z.permute(1, 0, 2).reshape(*batch, M, z.shape[-1]),
         )
+
+
+def _stack(seq, like: torch.Tensor) -> torch.Tensor:
+    """Stack per-step (*batch,) times or steps, given as tensors or host arrays: (L, *batch)."""
+    if isinstance(seq[0], np.ndarray):
+        return torch.as_tensor(np.stack(seq), dtype=like.dtype, device=like.device)
+    return torch.stack(seq)

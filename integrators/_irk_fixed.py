@@ -3,30 +3,26 @@ and its implicit-ODE / DAE variants eq. 7.51-7.60).
 
 Every output interval ``[t_k, t_{k+1}]`` is split into ``substeps`` equal steps. The Newton
 matrix is reused from step to step while the previous stage solve contracted fast
-(``theta <= 1e-3``); a slow or failed solve re-evaluates the Jacobian at the current state and
-a failed solve with a fresh Jacobian marks the sample NEWTON_FAILED (its state is then held).
+(``theta <= 1e-3``) and the step size is unchanged (steps equal to rounding, as on a uniform
+grid, count as equal); a slow or failed solve re-evaluates the Jacobian at the current state
+and a failed solve with a fresh Jacobian marks the sample NEWTON_FAILED (its state is then
+held). Per-sample flags and counters are host (numpy) arrays, so the only device-to-host
+transfers are one per Newton iteration (the increment norms).
 """
 
 from __future__ import annotations
 
 import warnings
 
+import numpy as np
 import torch
 
-from ._irk_core import IRKCore, IterationMatrix
-from ._irk_dense import StepRecords, extrapolate_stages, is_collocation, lagrange_basis
+from ._irk_core import IRKCore, IterationMatrix, host_shape, masked_update, to_host
+from ._irk_dense import StepRecords, extrapolation_matrix, is_collocation, lagrange_basis
 from .errors import HighIndexWarning
 from .solution import Status
 
 _REUSE_THETA = 1e-3
-
-
-def stage_guess(core: IRKCore, prev_W, ratio, xdot, z):
-    """Starting stages: extrapolated previous polynomial, else constant ``(xdot, z)``."""
-    if prev_W is not None:
-        c = torch.as_tensor(core.c, dtype=xdot.dtype, device=xdot.device)
-        return extrapolate_stages(c, prev_W, ratio)
-    return torch.cat([xdot, z], dim=-1)[..., None, :].expand(*xdot.shape[:-1], core.s, -1)
 
 
 def end_algebraic(core: IRKCore, W, z):
@@ -58,57 +54,67 @@ def integrate_fixed(
 ):
     """Run the fixed-step method; returns a dict of outputs, status, counters and messages."""
     batch = x0.shape[:-1]
-    dev = x0.device
-    status = torch.zeros(batch, dtype=torch.int8, device=dev)
-    active = torch.ones(batch, dtype=torch.bool, device=dev)
-    n_newton = torch.zeros(batch, dtype=torch.int64, device=dev)
-    n_steps = torch.zeros(batch, dtype=torch.int64, device=dev)
+    hshape = host_shape(batch)
+    status = np.zeros(hshape, dtype=np.int8)
+    active = np.ones(hshape, dtype=bool)
+    n_newton = np.zeros(hshape, dtype=np.int64)
+    n_steps = np.zeros(hshape, dtype=np.int64)
     messages: list[str] = []
     mat = IterationMatrix(core, index_tol)
     records = StepRecords(core.tab, core.system.n) if is_collocation(core.tab) else None
     x, z, xdot = x0, z0, xdot0
     xs, zs = [x0], [z0]
-    need_jac = torch.ones(batch, dtype=torch.bool, device=dev)
-    fresh = torch.zeros(batch, dtype=torch.bool, device=dev)
-    h_fact = None
+    need_jac = np.ones(hshape, dtype=bool)
+    fresh = np.zeros(hshape, dtype=bool)
+    h_fact = h_prev = None
     prev_W = None
-    one = torch.ones(batch, dtype=x0.dtype, device=dev)
+    guess = _StageExtrapolation(core, x0)
+    t_host = to_host(t).astype(np.float64)
+    # every step's size, start time and stage times, computed for the whole grid at once
+    steps = (t[1:] - t[:-1]) / substeps  # (K,)
+    starts = t[:-1, None] + torch.arange(substeps, dtype=t.dtype, device=t.device) * steps[:, None]
+    c = torch.as_tensor(core.c, dtype=t.dtype, device=t.device)
+    stage_grid = (starts[..., None] + c * steps[:, None, None]).reshape(
+        *starts.shape, core.s, *([1] * (len(batch) + 1))
+    )
     for k in range(t.shape[0] - 1):
-        h = (t[k + 1] - t[k]) / substeps
+        h = steps[k]
+        h_val = float((t_host[k + 1] - t_host[k]) / substeps)
         hb = h.expand(batch)
         for j in range(substeps):
-            tk = t[k] + j * h
-            times = core.stage_times(tk, h)
+            tk = starts[k, j]
+            times = core.stage_times(tk, h, len(batch), stacked=stage_grid[k, j])
             inputs = core.stage_inputs(times, tk, fixed=True)
-            sc_x = atol + rtol * x.detach().abs()
-            sc_z = atol + rtol * z.detach().abs()
-            ratio = one if h_fact is None else one * (float(h) / h_fact)
-            W0 = stage_guess(core, prev_W, ratio, xdot.detach(), z.detach())
+            xd, zd = x.detach(), z.detach()
+            sc_x = atol + rtol * xd.abs()
+            sc_z = atol + rtol * zd.abs() if core.system.m else zd
+            W0 = guess(prev_W, 1.0 if h_prev is None else _ratio(h_val, h_prev), xdot.detach(), zd)
+            h_prev = h_val
             W_ok = W0
-            conv_all = torch.zeros_like(active)
-            theta_all = torch.zeros_like(one)
-            todo = active
+            conv_all = np.zeros_like(active)
+            theta_all = np.zeros(hshape)
+            todo = active.copy()
             for attempt in range(2):
                 if attempt == 1:  # a stale Jacobian failed: refresh it and retry those samples
                     todo = active & ~conv_all & ~fresh
-                    if not bool(todo.any()):
+                    if not todo.any():
                         break
                     need_jac = todo
-                refactor = need_jac.clone()
-                if bool(need_jac.any()):
-                    high = mat.update_jacobian(need_jac, tk, x.detach(), z.detach(), xdot.detach())
-                    fresh = fresh | need_jac
+                refactor = need_jac.copy()
+                if need_jac.any():
+                    high = mat.update_jacobian(need_jac, tk, xd, zd, xdot.detach())
+                    fresh |= need_jac
                     _flag_high_index(high & active, status, active, messages, tk)
-                if h_fact is None or float(h) != h_fact:
-                    refactor = refactor | active
-                    h_fact = float(h)
-                if bool(refactor.any()):
+                if h_fact is None or _ratio(h_val, h_fact) != 1.0:
+                    refactor |= active
+                    h_fact = h_val
+                if refactor.any():
                     mat.update_factors(refactor, hb)
                 W, converged, iters, theta, _ = core.newton(
                     times,
                     inputs,
                     hb,
-                    x.detach(),
+                    xd,
                     W0,
                     mat.factors,
                     sc_x,
@@ -119,53 +125,57 @@ def integrate_fixed(
                     predict=False,
                 )
                 n_newton += iters
-                W_ok = torch.where(todo[..., None, None], W, W_ok)
-                conv_all = conv_all | converged
-                theta_all = torch.where(todo, theta, theta_all)
+                W_ok = masked_update(todo, W, W_ok)
+                conv_all |= converged
+                theta_all = np.where(todo, theta, theta_all)
             failed = active & ~conv_all
-            if bool(failed.any()):  # last resort: damped Newton with exact Jacobians
-                residual_tol = newton_tol * float(sc_x.min()) / float(h)
+            if failed.any():  # last resort: damped Newton with exact Jacobians
+                residual_tol = newton_tol * float(sc_x.min()) / h_val
                 W_fb, rescued, iters = core.damped_newton(
-                    times, inputs, hb, x.detach(), W_ok, failed, residual_tol
+                    times, inputs, hb, xd, W_ok, failed, residual_tol
                 )
                 n_newton += iters
-                W_ok = torch.where(rescued[..., None, None], W_fb, W_ok)
-                conv_all = conv_all | rescued
+                W_ok = masked_update(rescued, W_fb, W_ok)
+                conv_all |= rescued
                 failed = active & ~conv_all
-            if bool(failed.any()):
-                for idx in torch.nonzero(failed).tolist():
+            if failed.any():
+                for idx in np.argwhere(failed).tolist():
                     messages.append(
                         f"sample {tuple(idx)}: the implicit stage equations did not converge at "
-                        f"t = {float(tk):.6g} (step {k}, substep {j}, dt = {float(h):.3g}); try "
+                        f"t = {float(tk):.6g} (step {k}, substep {j}, dt = {h_val:.3g}); try "
                         "more substeps, an adaptive method or a better-scaled model."
                     )
-                status = torch.where(failed, torch.full_like(status, Status.NEWTON_FAILED), status)
-                active = active & ~failed
+                status[failed] = int(Status.NEWTON_FAILED)
+                active &= ~failed
             W = core.ift(times, inputs, hb, x, W_ok, valid=active)
             x_new = core.step_end(x, hb, W)
             z_new = end_algebraic(core, W, z)
-            xdot_new = W[..., -1, : core.system.n].detach()
             if records is not None:
-                records.append(tk.expand(batch), hb, x, W, z)
-            a1 = active[..., None]
-            x = torch.where(a1, x_new, x)
-            z = torch.where(a1, z_new, z)
-            xdot = torch.where(a1, xdot_new, xdot)
-            n_steps += active.long()
-            fresh = torch.zeros_like(fresh)
+                records.append(
+                    np.full(batch, t_host[k] + j * h_val), np.full(batch, h_val), x, W, z
+                )
+            x = masked_update(active, x_new, x)
+            z = masked_update(active, z_new, z)
+            xdot = masked_update(active, W[..., -1, : core.system.n].detach(), xdot)
+            n_steps += active
+            fresh = np.zeros_like(fresh)
             need_jac = active & (theta_all > _REUSE_THETA)
             if core.system.kind != "ode":  # periodic index check (Theorem 9)
-                need_jac = need_jac | (active & (n_steps % index_check_every == 0))
+                need_jac |= active & (n_steps % index_check_every == 0)
             prev_W = W.detach()
         xs.append(x)
         zs.append(z)
+
+    def dev(a):
+        return torch.from_numpy(a).to(x0.device).reshape(batch)
+
     return dict(
         x=torch.stack(xs, dim=-2),
         z=torch.stack(zs, dim=-2),
-        status=status,
+        status=dev(status),
         messages=messages,
-        n_steps=n_steps,
-        n_newton=n_newton,
+        n_steps=dev(n_steps),
+        n_newton=dev(n_newton),
         n_jac=mat.n_jac,
         n_lu=mat.n_lu,
         n_f=core.n_f_evals,
@@ -173,18 +183,52 @@ def integrate_fixed(
     )
 
 
+def _ratio(h_new: float, h_old: float) -> float:
+    """``h_new / h_old``, snapped to 1 when the steps agree to rounding (the steps of a uniform
+    grid differ in the last bits): the factorisation and the extrapolation matrix are reused.
+    """
+    ratio = h_new / h_old
+    return 1.0 if abs(ratio - 1.0) <= 1e-12 else ratio
+
+
+class _StageExtrapolation:
+    """Starting stages of a fixed step: the previous stage polynomial extrapolated by the
+    step ratio (the Lagrange matrix of the last ratio is kept), else constant ``(x', z)``."""
+
+    def __init__(self, core: IRKCore, like: torch.Tensor):
+        self.s = core.s
+        self.c = np.array(core.c)
+        self.like = like
+        self.ratio, self.L = None, None
+
+    def __call__(self, prev_W, ratio: float, xdot, z):
+        if prev_W is None:
+            const = torch.cat([xdot, z], dim=-1)[..., None, :]
+            return const.expand(*xdot.shape[:-1], self.s, const.shape[-1])
+        if ratio != self.ratio:
+            L = extrapolation_matrix(self.c, ratio)
+            self.ratio = ratio
+            self.L = torch.as_tensor(L, dtype=self.like.dtype, device=self.like.device)
+        return self.L @ prev_W
+
+
 def _flag_high_index(high, status, active, messages, t):
-    """Warn and stop samples whose algebraic Jacobian became rank deficient (Theorem 9)."""
-    if not bool(high.any()):
+    """Warn and stop samples whose algebraic Jacobian became rank deficient (Theorem 9).
+
+    ``high``, ``status``, ``active`` are host (numpy) arrays (the last two updated in place);
+    ``t`` the time(s) of the check (tensor or host array).
+    """
+    if not high.any():
         return
-    idx = [tuple(i) for i in torch.nonzero(high).tolist()]
+    idx = [tuple(i) for i in np.argwhere(high).tolist()]
+    t_first = float(np.asarray(t.detach().cpu() if isinstance(t, torch.Tensor) else t).flat[0])
     msg = (
         f"the DAE's algebraic Jacobian (dg/dz, or [dF/dx' dF/dz]) became rank deficient at "
-        f"t = {float(t.reshape(-1)[0]):.6g} for samples {idx[:10]}: the DAE is of index > 1 "
+        f"t = {t_first:.6g} for samples {idx[:10]}: the DAE is of index > 1 "
         "there (Theorem 9, Corollary 1) and implicit RK results would be meaningless; "
         "index-reduce the model (notes §5.4, §7.6.1)."
     )
     warnings.warn(msg, HighIndexWarning, stacklevel=4)
     messages.append(msg)
-    status.masked_fill_(high, int(Status.NEWTON_FAILED))
-    active.masked_fill_(high, False)
+    status[high] = int(Status.NEWTON_FAILED)
+    active[high] = False

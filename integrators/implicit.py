@@ -12,10 +12,16 @@ Public entry points:
 Stage equations are solved by simplified Newton with the factorisation reused across
 iterations and steps; for tableaus with invertible, diagonalisable ``A`` (Radau IIA, Gauss) the
 ``s p x s p`` Newton system is split into one real / complex ``p x p`` solve per eigenvalue
-(pair) of ``A^{-1}``. Reverse-mode gradients use the implicit function theorem at every step
-(one transposed linear solve per step; memory independent of the number of Newton
-iterations): they reach ``x0`` and every tensor requiring grad that the model uses
-(``nn.Module`` parameters or captured tensors). Step sizes and times are not differentiated.
+(pair) of ``A^{-1}``, and small systems (``s p <= 24``) are inverted once per factorisation so
+that a Newton iteration is one batched matrix-vector product. When the model takes no input and
+accepts an extra leading batch dimension (checked once per call against stage-by-stage
+evaluation), all ``s`` stages are evaluated in one call (``stats.extra["stacked_stages"]``).
+Per-sample step control and Newton bookkeeping run on the host (numpy), one device-to-host
+transfer per Newton iteration and step. Reverse-mode gradients use the implicit function
+theorem at every step (one transposed linear solve per step; memory independent of the
+number of Newton iterations): they reach ``x0`` and every tensor requiring grad that the
+model uses (``nn.Module`` parameters or captured tensors). Step sizes and times are not
+differentiated.
 """
 
 from __future__ import annotations
@@ -180,7 +186,12 @@ def _run(
         n_newton_iters=out["n_newton"],
         n_factorizations=out["n_lu"],
         n_jac_evals=out["n_jac"],
-        extra=dict(extra, linear_solver=core.solver.mode, tableau=core.tab.name),
+        extra=dict(
+            extra,
+            linear_solver=core.solver.mode,
+            tableau=core.tab.name,
+            stacked_stages=bool(core.stack_stages),
+        ),
     )
     return Solution(
         t=t,

@@ -17,8 +17,9 @@ is refined once by re-evaluating ``f`` at ``x_k + err`` (explicit ODEs).
 
 Step size: ``h_new = h * min(10, safety * min(1, pred) * err^(-1/(s+1)))`` with Gustafsson's
 predictive factor ``pred`` and ``safety = 0.9 (2 k_max + 1) / (2 k_max + k)`` (``k`` Newton
-iterations). The Jacobian is re-evaluated only when Newton contracted slowly
-(``theta > 1e-3``) or failed; the factorisation is kept when the step would grow by < 20 %.
+iterations). The Jacobian is re-evaluated only when Newton failed or needed more than two
+iterations and contracted slowly (``theta > 1e-3``; scipy's rule); the factorisation is kept
+when the step would grow by < 20 %.
 """
 
 from __future__ import annotations
@@ -26,8 +27,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ._irk_core import IRKCore, IterationMatrix
-from ._irk_dense import StepRecords, extrapolate_stages
+from ._irk_core import IRKCore, IterationMatrix, host_shape, masked_update, to_device, to_host
+from ._irk_dense import StepRecords, extrapolation_matrix
 from ._irk_fixed import _flag_high_index
 from .solution import Status
 
@@ -66,60 +67,70 @@ def integrate_adaptive(
     index_check_every=10,
     dt0=None,
 ):
-    """Run adaptive Radau IIA; returns a dict of outputs, status, counters and messages."""
+    """Run adaptive Radau IIA; returns a dict of outputs, status, counters and messages.
+
+    The per-sample scalars (times, step sizes, flags, counters) live on the host as numpy
+    arrays: the step-size control costs no device kernels, and each step needs one
+    device-to-host transfer of the error norms (plus one per Newton iteration).
+    """
     batch = x0.shape[:-1]
-    dev, dtype = x0.device, x0.dtype
+    dtype = x0.dtype
+    hdt = np.float64 if dtype == torch.float64 else np.float32
     n, m, s = core.system.n, core.system.m, core.s
     gamma, e_np = embedded_weights(core.tab)
-    e = torch.as_tensor(e_np, dtype=dtype, device=dev)
-    c = torch.as_tensor(core.c, dtype=dtype, device=dev)
+    gamma_e = torch.as_tensor(gamma * e_np, dtype=dtype, device=x0.device)
+    rms = 1.0 / (n + m) ** 0.5
+    c_np = np.array(core.c)
+    c_col = c_np.reshape(s, *([1] * max(len(batch), 1)))
     expo = 1.0 / (s + 1)
-    t_end = t[-1]
-    span = float(t[-1] - t[0])
+    t_host = to_host(t).astype(hdt)
+    t_end = t_host[-1]
+    span = float(t_host[-1] - t_host[0])
     min_step = 16 * core.eps
 
-    def zeros(kind=torch.bool):
-        return torch.zeros(batch, dtype=kind, device=dev)
+    hshape = host_shape(batch)
 
-    tcur = t[0].expand(batch).clone()
+    def flags(value=False):
+        return np.full(hshape, value, dtype=bool)
+
+    def counts():
+        return np.zeros(hshape, dtype=np.int64)
+
+    tcur = np.full(hshape, t_host[0], dtype=hdt)
     x, z, xdot = x0, z0, xdot0
-    status = zeros(torch.int8)
-    active = torch.ones(batch, dtype=torch.bool, device=dev)
-    need_jac = torch.ones(batch, dtype=torch.bool, device=dev)
-    fresh = zeros()
-    need_lu = torch.ones(batch, dtype=torch.bool, device=dev)
-    h_fact = torch.zeros(batch, dtype=dtype, device=dev)
-    first = torch.ones(batch, dtype=torch.bool, device=dev)
-    rejected_last = zeros()
-    nonfinite_last = zeros()
-    have_prev = zeros()
-    prev_W = torch.zeros(*batch, s, n + m, dtype=dtype, device=dev)
-    prev_h = torch.ones(batch, dtype=dtype, device=dev)
-    err_old = torch.ones(batch, dtype=dtype, device=dev)
-    h_old = torch.zeros(batch, dtype=dtype, device=dev)
-    n_steps, n_rej, n_newton, attempts = (zeros(torch.int64) for _ in range(4))
+    status = np.zeros(hshape, dtype=np.int8)
+    active, need_jac, need_lu, first = flags(True), flags(True), flags(True), flags(True)
+    fresh, rejected_last, nonfinite_last, have_prev = flags(), flags(), flags(), flags()
+    h_fact = np.zeros(hshape, dtype=hdt)
+    prev_W = None
+    prev_h = np.ones(hshape, dtype=hdt)
+    err_old = np.ones(hshape)
+    h_old = np.zeros(hshape)
+    n_steps, n_rej, n_newton, attempts = counts(), counts(), counts(), counts()
     messages: list[str] = []
     mat = IterationMatrix(core, index_tol)
+    core.solver.want_real_block = True  # the error filter solves with the real block
     records = StepRecords(core.tab, n)
     dummy_W = torch.cat([torch.zeros_like(x0), z0], -1)[..., None, :].expand(*batch, s, n + m)
-    records.append(tcur.clone(), torch.ones_like(tcur), x0, dummy_W, z0)
+    records.append(tcur.reshape(batch), np.ones(batch, dtype=hdt), x0, dummy_W, z0)
 
     h = _initial_step(core, x0, z0, xdot0, t[0], span, rtol, atol, expo, dt0)
+    h = to_host(h, hshape).astype(hdt)
 
-    while bool(active.any()):
-        remaining = t_end - tcur
-        h = torch.where(active & (tcur + h >= t_end), remaining, h)
-        tiny = active & (h <= min_step * torch.maximum(tcur.abs(), torch.ones_like(tcur)))
-        _stop(
-            tiny,
-            torch.where(nonfinite_last, Status.NON_FINITE, Status.STEP_TOO_SMALL),
-            status,
-            active,
-            messages,
-            tcur,
-            "the step size fell below the time resolution; the problem may be non-smooth, "
-            "of index > 1, or blow up there — loosen the tolerances or check the model",
-        )
+    while active.any():
+        h = np.where(active & (tcur + h >= t_end), t_end - tcur, h)
+        tiny = active & (h <= min_step * np.maximum(np.abs(tcur), 1.0))
+        if tiny.any():
+            _stop(
+                tiny,
+                np.where(nonfinite_last, Status.NON_FINITE, Status.STEP_TOO_SMALL),
+                status,
+                active,
+                messages,
+                tcur,
+                "the step size fell below the time resolution; the problem may be non-smooth, "
+                "of index > 1, or blow up there — loosen the tolerances or check the model",
+            )
         over = active & (attempts >= max_steps)
         _stop(
             over,
@@ -130,37 +141,45 @@ def integrate_adaptive(
             tcur,
             f"max_steps = {max_steps} step attempts were used; raise max_steps",
         )
-        if not bool(active.any()):
+        if not active.any():
             break
-        tcol = tcur[..., None]
+        h_step = h
+        # one transfer: t_k, h, t_k + h and the stage times t_k + c_i h, each (*batch,)
+        host = np.empty((3 + s, *hshape), dtype=hdt)
+        host[0], host[1], host[2], host[3:] = tcur, h, tcur + h, tcur + c_col * h
+        on_dev = to_device(host, x0, dtype, shape=(3 + s, *batch))[..., None]
+        tcol, h_t, t_next = on_dev[0], on_dev[1, ..., 0], on_dev[2]
+        xd, zd = x.detach(), z.detach()
         jac_mask = active & need_jac
-        if bool(jac_mask.any()):
-            high = mat.update_jacobian(jac_mask, tcol, x.detach(), z.detach(), xdot.detach())
-            _flag_high_index(high & active, status, active, messages, tcol)
-            fresh = fresh | jac_mask
-            need_lu = need_lu | jac_mask
-            need_jac = need_jac & ~jac_mask
+        if jac_mask.any():
+            high = mat.update_jacobian(jac_mask, tcol, xd, zd, xdot.detach())
+            _flag_high_index(high & active, status, active, messages, tcur)
+            fresh |= jac_mask
+            need_lu |= jac_mask
+            need_jac &= ~jac_mask
         lu_mask = active & (need_lu | (h != h_fact))
-        singular = zeros()
-        if bool(lu_mask.any()):
-            singular = mat.update_factors(
-                lu_mask, torch.where(lu_mask, h, h_fact.clamp_min(1e-300))
+        singular = flags()
+        if lu_mask.any():
+            h_lu = (
+                h_t
+                if lu_mask.all()
+                else to_device(
+                    np.where(lu_mask, h, np.where(h_fact > 0, h_fact, h)), x0, dtype, batch
+                )
             )
-            h_fact = torch.where(lu_mask, h, h_fact)
-            need_lu = need_lu & ~lu_mask
-        times = core.stage_times(tcol, h[..., None])
+            singular = mat.update_factors(lu_mask, h_lu)
+            h_fact = np.where(lu_mask, h, h_fact)
+            need_lu &= ~lu_mask
+        times = core.stage_times(tcol, h_t[..., None], len(batch), stacked=on_dev[3:])
         inputs = core.stage_inputs(times, tcol, fixed=False)
-        sc_x = atol + rtol * x.detach().abs()
-        sc_z = atol + rtol * z.detach().abs()
-        const = torch.cat([xdot.detach(), z.detach()], -1)[..., None, :].expand(*batch, s, n + m)
-        W0 = torch.where(
-            have_prev[..., None, None], extrapolate_stages(c, prev_W, h / prev_h), const
-        )
+        sc_x = atol + rtol * xd.abs()
+        sc_z = atol + rtol * zd.abs() if m else zd
+        W0 = _stage_guess(c_np, prev_W, have_prev, h / prev_h, xdot.detach(), zd, s)
         W, conv, iters, theta, nonfin = core.newton(
             times,
             inputs,
-            h,
-            x.detach(),
+            h_t,
+            xd,
             W0,
             mat.factors,
             sc_x,
@@ -170,100 +189,95 @@ def integrate_adaptive(
             active & ~singular,
         )
         n_newton += iters
-        attempts += active.long()
+        attempts += active
         failed = active & (~conv | singular)
         # Newton failure: refresh a stale Jacobian at the same step, else halve the step.
-        stale = failed & ~fresh
-        need_jac = need_jac | stale
-        halve = failed & fresh
-        h = torch.where(halve, 0.5 * h, h)
-        nonfinite_last = torch.where(failed, nonfin, nonfinite_last)
-        rejected_last = rejected_last | failed
-        n_rej += failed.long()
+        need_jac |= failed & ~fresh
+        h = np.where(failed & fresh, 0.5 * h, h)
+        nonfinite_last = np.where(failed, nonfin, nonfinite_last)
+        rejected_last |= failed
+        n_rej += failed
 
         ok = active & conv & ~singular
-        Wg = core.ift(times, inputs, h, x, W, valid=ok)
-        x_new = core.step_end(x, h, Wg)
+        Wg = core.ift(times, inputs, h_t, x, W, valid=ok)
+        x_new = core.step_end(x, h_t, Wg)
         err = _error_norm(
             core,
             mat,
-            x,
             x_new,
             xdot,
             W,
-            h,
+            h_t,
+            gamma_e,
             gamma,
-            e,
             tcol,
-            inputs,
-            sc_scale=(atol, rtol),
-            z=z,
+            xd,
+            sc_x,
+            (atol, rtol),
+            z=zd,
             retry=ok & (first | rejected_last),
         )
-        finite = torch.isfinite(x_new.detach()).all(-1) & torch.isfinite(err)
-        err = torch.where(finite, err, torch.full_like(err, float("inf")))
+        finite_x = torch.isfinite(x_new.detach()).all(-1).to(err.dtype)
+        err, finite_x = to_host(torch.stack([err, finite_x]), (2, *hshape)).astype(np.float64)
+        err *= rms
+        finite = (finite_x > 0) & np.isfinite(err)
+        err = np.where(finite, err, np.inf)
         accept = ok & (err < 1.0)
         reject = ok & ~accept
-        n_rej += reject.long()
+        n_rej += reject
 
-        safety = 0.9 * (2 * max_iter + 1) / (2 * max_iter + iters.to(dtype))
-        err_c = err.clamp_min(1e-10)
-        basic = err_c.pow(-expo)
-        pred = torch.where(
-            first | (h_old <= 0),
-            torch.ones_like(h),
-            h / h_old.clamp_min(1e-300) * (err_old / err_c).pow(expo),
-        )
-        factor = pred.clamp(max=1.0) * basic
-        h_rej = h * torch.clamp(safety * factor, min=_MIN_FACTOR, max=1.0)
-        h_rej = torch.where(finite, h_rej, 0.25 * h)
-        grow = torch.clamp(safety * factor, max=_MAX_FACTOR)
-        keep_lu = (theta <= _REUSE_THETA) & (grow < 1.2) & (grow >= 1.0)
-        h_acc = torch.where(keep_lu, h, h * grow)
+        hh = h_step.astype(np.float64)
+        with np.errstate(all="ignore"):
+            safety = 0.9 * (2 * max_iter + 1) / (2 * max_iter + iters)
+            err_c = np.maximum(err, 1e-10)
+            pred = hh / np.maximum(h_old, 1e-300) * (err_old / err_c) ** expo
+            pred[first | (h_old <= 0)] = 1.0
+            scaled = safety * np.minimum(pred, 1.0) * err_c**-expo
+            h_rej = hh * np.minimum(np.maximum(scaled, _MIN_FACTOR), 1.0)
+            h_rej[~finite] = 0.25 * hh[~finite]
+            grow = np.minimum(scaled, _MAX_FACTOR)
+        slow = (theta > _REUSE_THETA) & (iters > 2)  # Newton contracted slowly: new Jacobian
+        keep_lu = ~slow & (grow < 1.2) & (grow >= 1.0)
+        h_acc = np.where(keep_lu, hh, hh * grow)
 
-        # accepted samples advance
-        z_new = W[..., -1, n:] if m else z
-        zg = Wg[..., -1, n:] if m else z
-        a1 = accept[..., None]
-        if bool(accept.any()):
-            records.append(
-                torch.where(accept, tcur, records.t0[-1]),
-                torch.where(accept, h, records.h[-1]),
-                torch.where(a1, x, records.x[-1]),
-                torch.where(accept[..., None, None], Wg, records.W[-1]),
-                torch.where(a1, z, records.z[-1]),
-            )
-        xdot_new = _derivative(core, tcol + h[..., None], x_new.detach(), z_new, W, inputs)
-        tcur = torch.where(accept, tcur + h, tcur)
-        tcur = torch.where(accept & (tcur >= t_end - 1e-14 * abs(float(t_end))), t_end, tcur)
-        x = torch.where(a1, x_new, x)
-        z = torch.where(a1, zg, z)
-        xdot = torch.where(a1, xdot_new, xdot)
-        prev_W = torch.where(accept[..., None, None], W.detach(), prev_W)
-        prev_h = torch.where(accept, h, prev_h)
-        have_prev = have_prev | accept
-        h_old = torch.where(accept, h, h_old)
-        err_old = torch.where(accept, err_c.clamp_min(1e-2), err_old)
-        need_jac = need_jac | (accept & (theta > _REUSE_THETA))
-        fresh = fresh & ~accept
-        first = first & ~accept
-        rejected_last = torch.where(accept, zeros(), rejected_last | reject)
-        n_steps += accept.long()
+        if accept.any():  # accepted samples advance
+            t0 = np.where(accept, tcur, np.inf).astype(hdt)
+            records.append(t0.reshape(batch), h_step.reshape(batch), x, Wg, z)
+            z_new = W[..., -1, n:] if m else z
+            xdot_new = _derivative(core, t_next, x_new.detach(), z_new, W)
+            x = masked_update(accept, x_new, x)
+            z = masked_update(accept, Wg[..., -1, n:], z) if m else z
+            xdot = masked_update(accept, xdot_new, xdot)
+            prev_W = W if prev_W is None else masked_update(accept, W, prev_W)
+        tcur = np.where(accept, tcur + h_step, tcur)
+        tcur = np.where(accept & (tcur >= t_end - 1e-14 * abs(float(t_end))), t_end, tcur)
+        prev_h = np.where(accept, h_step, prev_h)
+        have_prev |= accept
+        h_old = np.where(accept, hh, h_old)
+        err_old = np.where(accept, np.maximum(err_c, 1e-2), err_old)
+        need_jac |= accept & slow
+        fresh &= ~accept
+        first &= ~accept
+        rejected_last = ~accept & (rejected_last | reject)
+        n_steps += accept
         if core.system.kind != "ode":  # periodic index check (Theorem 9) with a fresh Jacobian
-            need_jac = need_jac | (accept & (n_steps % index_check_every == 0))
-        h = torch.where(accept, h_acc, torch.where(reject, h_rej, h))
-        done = accept & (tcur >= t_end)
-        active = active & ~done
+            need_jac |= accept & (n_steps % index_check_every == 0)
+        h = np.where(accept, h_acc, np.where(reject, h_rej, h)).astype(hdt)
+        active &= ~(accept & (tcur >= t_end))
 
     x_out, z_out = records.evaluate(t)
+
+    def dev(a):
+        return torch.from_numpy(a).to(x0.device).reshape(batch)
+
     return dict(
         x=x_out,
         z=z_out,
-        status=status,
+        status=dev(status),
         messages=messages,
-        n_steps=n_steps,
-        n_rejected=n_rej,
-        n_newton=n_newton,
+        n_steps=dev(n_steps),
+        n_rejected=dev(n_rej),
+        n_newton=dev(n_newton),
         n_jac=mat.n_jac,
         n_lu=mat.n_lu,
         n_f=core.n_f_evals,
@@ -271,7 +285,22 @@ def integrate_adaptive(
     )
 
 
-def _derivative(core, t, x, z, W, inputs):
+def _stage_guess(c, prev_W, have_prev, ratio, xdot, z, s):
+    """Newton start: the previous step's extrapolated stage polynomial, else ``(x', z)``."""
+    if have_prev.any():
+        L = extrapolation_matrix(c, ratio)
+        L = to_device(L, prev_W, prev_W.dtype, shape=(*prev_W.shape[:-2], *L.shape[-2:]))
+        ext = L @ prev_W
+        if have_prev.all():
+            return ext
+    const = torch.cat([xdot, z], -1)[..., None, :]
+    const = const.expand(*xdot.shape[:-1], s, const.shape[-1])
+    if not have_prev.any():
+        return const
+    return masked_update(have_prev, ext, const)
+
+
+def _derivative(core, t, x, z, W):
     """``x'`` at the end of a step: ``f`` for the explicit kinds, ``K_s`` otherwise."""
     n = core.system.n
     if core.system.kind == "ode":
@@ -281,29 +310,34 @@ def _derivative(core, t, x, z, W, inputs):
     return W[..., -1, :n].detach()
 
 
-def _error_norm(core, mat, x, x_new, xdot, W, h, gamma, e, tcol, inputs, sc_scale, z, retry):
-    """Scaled RMS norm (*batch,) of the filtered embedded error estimate."""
-    atol, rtol = sc_scale
+def _error_norm(core, mat, x_new, xdot, W, h, gamma_e, gamma, tcol, x, sc_x, tol, z, retry):
+    """Scaled norm (*batch,) of the filtered embedded error estimate, times ``sqrt(n + m)``
+    (the RMS factor is applied on the host); ``retry`` (host bool) marks the samples whose
+    estimate is refined by one more ``f`` evaluation. ``gamma_e = gamma e``, ``x`` the
+    detached step start, ``sc_x = atol + rtol |x|``, ``tol = (atol, rtol)``."""
+    atol, rtol = tol
     n, m = core.system.n, core.system.m
+    ode = core.system.kind == "ode"
     with torch.no_grad():
-        K = W[..., :n]
-        eK = gamma * (e @ K)
-        M = mat.E[..., :, :n]
-        sol = core.solver.solve_real_block(mat.factors, (M @ (xdot + eK)[..., None])[..., 0])
-        sc = atol + rtol * torch.maximum(x.detach().abs(), x_new.detach().abs())
-        err_x = sol[..., :n]
-        if core.system.kind == "ode" and bool(retry.any()):
+        eK = gamma_e @ (W[..., :n] if m else W)
+        rhs = xdot + eK
+        if not ode:  # M = dR/dK (the identity for explicit ODEs)
+            rhs = (mat.E[..., :, :n] @ rhs[..., None])[..., 0]
+        sol = core.solver.solve_real_block(mat.factors, rhs)
+        sc = torch.maximum(sc_x, atol + rtol * x_new.detach().abs())
+        err_x = sol[..., :n] if m else sol
+        if ode and retry.any():
             core.n_f_evals += 1
-            f_err = core.system.rhs_f(tcol, x.detach() + err_x, z, core.signal.at(tcol))
+            f_err = core.system.rhs_f(tcol, x + err_x, z, core.signal.at(tcol))
             sol2 = core.solver.solve_real_block(mat.factors, f_err + eK)
-            err_x = torch.where(retry[..., None], sol2, err_x)
-        parts = [(err_x / sc).square()]
+            err_x = masked_update(retry, sol2, err_x)
+        q = torch.linalg.vector_norm(err_x / sc, dim=-1)
         if m:
             z_new = W[..., -1, n:]
             sc_z = atol + rtol * torch.maximum(z.abs(), z_new.abs())
             err_z = (gamma / h)[..., None] * sol[..., n:]
-            parts.append((err_z / sc_z).square())
-        return torch.cat(parts, -1).mean(-1).sqrt()
+            q = torch.hypot(q, torch.linalg.vector_norm(err_z / sc_z, dim=-1))
+        return q
 
 
 def _initial_step(core, x0, z0, xdot0, t0, span, rtol, atol, expo, dt0):
@@ -336,13 +370,14 @@ def _initial_step(core, x0, z0, xdot0, t0, span, rtol, atol, expo, dt0):
 
 
 def _stop(mask, code, status, active, messages, tcur, why):
-    """Stop ``mask`` samples with status ``code`` (int or per-sample tensor) and a message."""
-    if not bool(mask.any()):
+    """Stop ``mask`` samples with status ``code`` (int or per-sample array) and a message; the
+    other arguments but the strings are host (numpy) arrays, updated in place."""
+    if not mask.any():
         return
-    codes = code if isinstance(code, torch.Tensor) else torch.full_like(status, int(code))
-    status.copy_(torch.where(mask, codes.to(status.dtype), status))
-    for idx in torch.nonzero(mask).tolist():
+    codes = np.broadcast_to(np.asarray(code, dtype=np.int8), status.shape)
+    status[mask] = codes[mask]
+    for idx in np.argwhere(mask).tolist():
         idx = tuple(idx)
         name = Status(int(status[idx])).name
         messages.append(f"sample {idx}: {name} at t = {float(tcur[idx]):.6g}: {why}.")
-    active.masked_fill_(mask, False)
+    active[mask] = False

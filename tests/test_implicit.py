@@ -55,21 +55,56 @@ def test_transformed_solve_equals_full_kronecker_solve(tab):
     torch.testing.assert_close(dW, ref, rtol=1e-10, atol=1e-10)
 
 
-def test_vectorised_gauss_jordan_blocks_match_lapack():
-    """Big batches of small blocks use a pivoting Gauss-Jordan inverse (real and complex)."""
-    from integrators._irk_linalg import _factor_blocks, _solve_blocks
-
+def test_dense_small_system_path_pivots_and_flags_singular_members():
+    """For s p <= 24 the Newton matrix J is inverted once and each solve is one matmul. In a
+    batch of 64, a member whose J needs row pivoting (E a permutation, G = 0) still matches
+    the direct solve of (I (x) E + h A (x) G) dW = -R, the real-block solve of the error
+    estimate matches (gamma/h E + G)^{-1}, and only the member with E = G = 0 is flagged
+    singular."""
+    tab = radau_iia(3)
     gen = torch.Generator().manual_seed(1)
-    mats = torch.randn(64, 1, 4, 4, generator=gen)
-    mats[0, 0] = torch.tensor([[0.0, 1, 0, 0], [1, 0, 0, 0], [0, 0, 0, 2], [0, 0, 3, 0]])
-    cmats = torch.complex(mats, torch.randn(64, 1, 4, 4, generator=gen))
-    for m in (mats, cmats):
-        fac, singular = _factor_blocks(m)
-        assert fac[0] == "inv" and not singular.any()
-        rhs = torch.randn(64, 1, 4, generator=gen).to(m.dtype)
-        torch.testing.assert_close(_solve_blocks(fac, rhs), torch.linalg.solve(m, rhs))
-    _, singular = _factor_blocks(torch.zeros(64, 1, 3, 3))
-    assert singular.all()
+    B, p = 64, 4
+    E = torch.eye(p) + 0.1 * torch.randn(B, p, p, generator=gen)
+    G = torch.randn(B, p, p, generator=gen)
+    E[0], G[0] = torch.eye(p)[[1, 0, 3, 2]], 0.0
+    h = 0.05 + torch.rand(B, generator=gen)
+    R = torch.randn(B, 3, p, generator=gen)
+    solver = StageLinearSolver(tab.A, torch.float64, "cpu")
+    solver.want_real_block = True
+    factors, singular = solver.factorize(E, G, h)
+    assert factors[0] == "dense" and not singular.any()
+    A = torch.as_tensor(np.array(tab.A))
+    big = _kron(torch.eye(3), E) + h[:, None, None] * _kron(A, G)
+    ref = -torch.linalg.solve(big, R.reshape(B, -1, 1)).reshape(R.shape)
+    torch.testing.assert_close(solver.solve(factors, R, h), ref, rtol=1e-10, atol=1e-10)
+    gamma, _ = embedded_weights(tab)
+    rhs = torch.randn(B, p, generator=gen)
+    real_block = gamma / h[:, None, None] * E + G
+    torch.testing.assert_close(
+        solver.solve_real_block(factors, rhs), torch.linalg.solve(real_block, rhs)
+    )
+    E[3], G[3] = 0.0, 0.0
+    _, singular = solver.factorize(E, G, h)
+    assert singular.tolist() == [i == 3 for i in range(B)]
+
+
+@pytest.mark.parametrize("tab", [radau_iia(1), radau_iia(3), gauss_legendre(2)])
+def test_large_blocks_use_the_transformed_lu_path(tab):
+    """s p > 24: per-eigenvalue LU of the real / complex blocks, same solution as the full
+    solve."""
+    gen = torch.Generator().manual_seed(2)
+    B, p = 3, 25
+    E = torch.eye(p) + 0.1 * torch.randn(B, p, p, generator=gen)
+    G = torch.randn(B, p, p, generator=gen)
+    h = 0.05 + torch.rand(B, generator=gen)
+    R = torch.randn(B, tab.stages, p, generator=gen)
+    solver = StageLinearSolver(tab.A, torch.float64, "cpu")
+    factors, singular = solver.factorize(E, G, h)
+    assert factors[0] == "transformed" and not singular.any()
+    A = torch.as_tensor(np.array(tab.A))
+    big = _kron(torch.eye(tab.stages), E) + h[:, None, None] * _kron(A, G)
+    ref = -torch.linalg.solve(big, R.reshape(B, -1, 1)).reshape(R.shape)
+    torch.testing.assert_close(solver.solve(factors, R, h), ref, rtol=1e-10, atol=1e-10)
 
 
 def test_radau3_error_estimate_matches_radau5_constants():
@@ -338,6 +373,97 @@ def test_batch_invariance_of_adaptive_radau():
         assert int(alone.stats.n_steps[0]) == int(batch.stats.n_steps[i])
         assert int(alone.stats.n_rejected[0]) == int(batch.stats.n_rejected[i])
     assert int(batch.stats.n_steps[0]) > 3 * int(batch.stats.n_steps[2])
+
+
+def test_dense_output_of_a_batch_equals_each_member_alone():
+    """Members of a batch reject and accept different steps (a rejected or idle member's step
+    record is skipped by the dense output): sol.at of the batch equals each member's own."""
+    eps = torch.tensor([[1e-5], [3e-3], [0.3]])
+    x0 = torch.tensor([[2.0, 0.0], [2.0, 0.0], [1.0, 0.5]])
+    t = torch.tensor([0.0, 0.5])
+    tq = torch.linspace(0.0, 0.5, 23)
+    batch = solve_implicit_ode(
+        StiffVanDerPol(eps).requires_grad_(False), x0, t, "radau_iia", rtol=1e-5, atol=1e-5
+    )
+    assert int(batch.stats.n_rejected.sum()) > 0
+    assert len(set(batch.stats.n_steps.tolist())) == 3
+    for i in range(3):
+        alone = solve_implicit_ode(
+            StiffVanDerPol(eps[i : i + 1]).requires_grad_(False),
+            x0[i : i + 1],
+            t,
+            "radau_iia",
+            rtol=1e-5,
+            atol=1e-5,
+        )
+        torch.testing.assert_close(alone.at(tq)[0], batch.at(tq)[i], rtol=1e-11, atol=1e-11)
+
+
+def _rotation_first_axis_only(t, x):
+    """rotation_rhs written for 2-D inputs only (x[:, 0]): wrong for an extra stage dimension."""
+    w = 1 + x.square().sum(-1, keepdim=True)
+    return w * torch.stack([x[:, 1], -x[:, 0]], -1)
+
+
+def _rotation_scalar_time(t, x):
+    """rotation_rhs that needs a one-element t (float(t)): fails on stacked stage times."""
+    return rotation_rhs(t, x) * (1.0 + 0.0 * float(t))
+
+
+@pytest.mark.parametrize("adaptive", [False, True])
+def test_stage_stacking_probe_falls_back_for_functions_that_need_it(adaptive):
+    """All stages are evaluated in one call (stage index as leading batch dimension) only when
+    a probe reproduces the stage-by-stage residuals; a function indexing x[:, 0] (wrong
+    values when stacked, for a batch of 2 even with the right shape) or calling float(t)
+    (raises when stacked) is evaluated stage by stage, with the same results."""
+    x0 = torch.tensor([[1.0, 0.0], [0.3, -0.4]])
+    t = torch.linspace(0.0, 1.0, 6)
+    opts = dict(adaptive=adaptive, substeps=4, rtol=1e-8, atol=1e-10)
+    ref = solve_implicit_ode(rotation_rhs, x0, t, "radau_iia", **opts)
+    assert ref.stats.extra["stacked_stages"]
+    for fn in (_rotation_first_axis_only, _rotation_scalar_time):
+        if fn is _rotation_scalar_time and adaptive:
+            continue  # adaptive times are per sample, (*batch, 1): float(t) is not defined
+        sol = solve_implicit_ode(fn, x0, t, "radau_iia", **opts)
+        assert not sol.stats.extra["stacked_stages"]
+        torch.testing.assert_close(sol.x, ref.x, rtol=1e-12, atol=1e-12)
+    exact = rotation_exact(1.0, x0)
+    assert float((ref.x[:, -1] - exact).abs().max()) < 1e-6
+
+
+@pytest.mark.parametrize("adaptive", [False, True])
+def test_unbatched_state_equals_a_batch_of_one(adaptive):
+    """x0 of shape (n,) (no batch dimension): same numbers and statuses as (1, n), with the
+    exact rotation as reference."""
+    t = torch.linspace(0.0, 1.0, 5)
+    x0 = torch.tensor([1.0, 0.0])
+    opts = dict(adaptive=adaptive, substeps=4, rtol=1e-8, atol=1e-10)
+    alone = solve_implicit_ode(rotation_rhs, x0, t, "radau_iia", **opts)
+    batch = solve_implicit_ode(rotation_rhs, x0[None], t, "radau_iia", **opts)
+    assert alone.x.shape == (5, 2) and alone.status.shape == ()
+    torch.testing.assert_close(alone.x, batch.x[0], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(alone.at(t[1:3]), batch.at(t[1:3])[0], rtol=1e-12, atol=1e-12)
+    assert int(alone.stats.n_steps) == int(batch.stats.n_steps[0])
+    assert float((alone.x[-1] - rotation_exact(1.0, x0[None])[0]).abs().max()) < 1e-6
+
+
+@pytest.mark.parametrize("adaptive", [False, True])
+def test_grad_mode_does_not_change_the_solution(adaptive):
+    """With autograd on (IFT graph attached) or off, the numbers are the same."""
+    mu = torch.tensor(1.5, requires_grad=True)
+
+    def vdp(t, x):
+        return torch.stack([mu * (1 - x[..., 1] ** 2) * x[..., 0] - x[..., 1], x[..., 0]], -1)
+
+    x0 = torch.tensor([[0.5, 1.0], [1.0, -0.5]])
+    t = torch.linspace(0.0, 2.0, 11)
+    opts = dict(adaptive=adaptive, rtol=1e-7, atol=1e-9)
+    with_grad = solve_implicit_ode(vdp, x0, t, "radau_iia", **opts)
+    with torch.no_grad():
+        without = solve_implicit_ode(vdp, x0, t, "radau_iia", **opts)
+    assert with_grad.x.requires_grad and not without.x.requires_grad
+    torch.testing.assert_close(with_grad.x.detach(), without.x, rtol=0, atol=0)
+    assert with_grad.stats.n_steps.tolist() == without.stats.n_steps.tolist()
 
 
 @settings(max_examples=6, deadline=None)
