@@ -130,6 +130,10 @@ class IRKCore:
         self.stack_stages = None
         self._hA_key = self._hA = None
         self._rms_scale = 1.0 / (self.s * system.p) ** 0.5
+        # (A (x) I_n)^T: ``K.flatten(-2) @ _A_kron_T`` is ``A @ K`` flattened, one plain matrix
+        # product for the whole batch instead of a batched product of tiny matrices
+        eye_n = torch.eye(system.n, dtype=dtype, device=device)
+        self._A_kron_T = torch.kron(self.A, eye_n).T.contiguous()
 
     # ------------------------------------------------------------------ stages
     def stage_times(self, tk, h, batch_ndim: int, stacked=None):
@@ -146,6 +150,10 @@ class IRKCore:
     def stage_states(self, xk, h, K):
         """``X_i = x_k + h sum_j a_ij K_j``: (*batch, s, n); h is (*batch,)."""
         return xk[..., None, :] + self._step_matrix(h) @ K
+
+    def _apply_A(self, K):
+        """``A @ K`` (*batch, s, n) as one flat matrix product (see ``_A_kron_T``)."""
+        return (K.reshape(*K.shape[:-2], -1) @ self._A_kron_T).reshape(K.shape)
 
     def _step_matrix(self, h):
         """``h A`` (*batch, s, s), cached for the step-size tensor ``h`` of the current step."""
@@ -167,7 +175,9 @@ class IRKCore:
             X = self.stage_states(xk, h, K)
             self.stack_stages = self._stacking_works(times, inputs, K, X, W[..., n:])
         if self.stack_stages:
-            Xs = (self._step_matrix(h) @ K).movedim(-2, 0) + xk
+            Xs = torch.addcmul(xk, h[..., None], self._apply_A(K).movedim(-2, 0))
+            if self.system.kind == "ode":  # K - f(t, X) (eq. 7.14), laid out like K
+                return K - self.system.rhs_f(times.stacked, Xs, None, None).movedim(0, -2)
             Zs = None if self.system.kind == "ode" else W[..., n:].movedim(-2, 0)
             R = self.system.residual(times.stacked, K.movedim(-2, 0), Xs, Zs, None)
             return R.movedim(0, -2)
@@ -223,7 +233,7 @@ class IRKCore:
         RMS of the scaled state increments ``h A dK / sc_x`` and ``dZ / sc_z``."""
         n = self.system.n
         dK = dW[..., :n] if self.system.m else dW
-        q = torch.linalg.vector_norm((self.A @ dK) * w_x, dim=(-2, -1))
+        q = torch.linalg.vector_norm(self._apply_A(dK) * w_x, dim=(-2, -1))
         if self.system.m:
             q = torch.hypot(q, torch.linalg.vector_norm(dW[..., n:] * w_z, dim=(-2, -1)))
         return q
@@ -272,22 +282,24 @@ class IRKCore:
             for it in range(max_iter):
                 R = self.residual(times, inputs, h, xk, W)
                 dW = self.solver.solve(factors, R, h)
-                norm = to_host(self._weighted_norm(dW, w_x, w_z), live.shape).astype(np.float64)
-                norm *= self._rms_scale
-                bad = live & ~np.isfinite(norm)
-                if bad.any():
+                norm = to_host(self._weighted_norm(dW, w_x, w_z), live.shape)
+                norm = norm.astype(np.float64, copy=False) * self._rms_scale
+                finite = np.isfinite(norm)
+                if not finite.all():
+                    bad = live & ~finite
                     non_finite |= bad
                     live &= ~bad
                 if norm_old is None:
                     done = live & (norm == 0)
                 else:
                     th = norm / np.maximum(norm_old, tiny)
-                    theta = np.where(live, th, theta)
+                    np.copyto(theta, th, where=live)
+                    gap = 1.0 - th
                     hopeless = th >= 1.0
                     if predict:
-                        hopeless |= th ** (max_iter - it) / np.maximum(1.0 - th, 1e-12) * norm > tol
+                        hopeless |= th ** (max_iter - it) / np.maximum(gap, 1e-12) * norm > tol
                     live &= ~hopeless
-                    done = live & ((norm == 0) | (th / (1.0 - th) * norm <= tol))
+                    done = live & ((norm == 0) | (th / gap * norm <= tol))
                 W = masked_update(live, W + dW, W)
                 iters += live
                 conv |= done

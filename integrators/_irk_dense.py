@@ -42,7 +42,8 @@ def extrapolation_matrix(c: np.ndarray, ratio) -> np.ndarray:
     """
     s = c.shape[0]
     tau = 1.0 + c * np.asarray(ratio, dtype=np.float64)[..., None]  # (*batch, s)
-    return (tau[..., None] ** np.arange(s)) @ _lagrange_coefficients(tuple(c))
+    powers = np.vander(tau.ravel(), s, increasing=True)  # (batch * s, s): one 2-D product
+    return (powers @ _lagrange_coefficients(tuple(c))).reshape(*tau.shape, s)
 
 
 @functools.lru_cache(maxsize=16)

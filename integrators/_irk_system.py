@@ -9,9 +9,10 @@ residual ``R_i = r(t_i, K_i, X_i, Z_i, u_i)`` is
 - implicit ODE / DAE ``F(t, x', x[, z], u) = 0``: ``F(t, K, X[, Z], u)``         (eq. 7.52, 7.56)
 
 and its derivative blocks ``E = [dr/dK, dr/dZ]``, ``G = [dr/dX, 0]`` (both (p, p)) define the
-Newton matrix (see ``_irk_linalg``). Jacobians are computed by reverse-mode autograd, one
-backward pass per residual component for the whole batch (the batch stays a batch, so
-parameters that broadcast against it keep working).
+Newton matrix (see ``_irk_linalg``). Jacobians are computed by reverse-mode autograd for the
+whole batch (the batch stays a batch, so parameters that broadcast against it keep working):
+one backward pass on ``p`` stacked copies of the point when the functions broadcast over a
+leading extra dimension, else one backward pass per residual component.
 """
 
 from __future__ import annotations
@@ -21,14 +22,20 @@ from collections.abc import Callable
 import torch
 
 
-def batched_jacobian(fun: Callable, v: torch.Tensor) -> torch.Tensor:
+def batched_jacobian(fun: Callable, v: torch.Tensor, rows: int | None = None) -> torch.Tensor:
     """Jacobian of a sample-wise map ``fun: (*batch, d) -> (*batch, q)``: (*batch, q, d).
 
-    One forward evaluation and ``q`` backward passes of summed output components (members of
-    the batch are independent, so the gradient of ``sum_batch y_i`` is row ``i`` of every
-    member's Jacobian). No functorch transform is involved, so any differentiable ``fun``
-    works.
+    Members of the batch are independent, so the gradient of ``sum_batch y_i`` is row ``i`` of
+    every member's Jacobian. With ``rows = None``: one forward evaluation and ``q`` backward
+    passes. With ``rows = q``: ``fun`` is evaluated once on ``q`` stacked copies of ``v``
+    ((q, *batch, d), the copy index as leading batch dimension) and one backward pass with the
+    unit vectors ``e_i`` as output cotangents of copy ``i`` yields all rows at once; this needs
+    a ``fun`` that broadcasts over a leading extra dimension (see
+    :meth:`StageSystem.jacobian`). No functorch transform is involved, so any differentiable
+    ``fun`` works.
     """
+    if rows is not None:
+        return _stacked_jacobian(fun, v, rows)
     with torch.enable_grad():
         vg = v.detach().requires_grad_(True)
         y = fun(vg)
@@ -45,6 +52,21 @@ def batched_jacobian(fun: Callable, v: torch.Tensor) -> torch.Tensor:
     return torch.stack(rows, dim=-2)
 
 
+def _stacked_jacobian(fun: Callable, v: torch.Tensor, q: int) -> torch.Tensor:
+    """``batched_jacobian`` by one forward and one backward pass on ``q`` stacked copies."""
+    batch, d = v.shape[:-1], v.shape[-1]
+    with torch.enable_grad():
+        vg = v.detach().expand(q, *batch, d).requires_grad_(True)
+        y = fun(vg).expand(q, *batch, q)
+        if not y.requires_grad:
+            return torch.zeros(*batch, q, d, dtype=v.dtype, device=v.device)
+        basis = torch.eye(q, dtype=y.dtype, device=y.device).reshape(q, *([1] * len(batch)), q)
+        (g,) = torch.autograd.grad(y, vg, basis.expand(q, *batch, q), allow_unused=True)
+    if g is None:
+        return torch.zeros(*batch, q, d, dtype=v.dtype, device=v.device)
+    return g.movedim(0, -2)
+
+
 class StageSystem:
     """The residual ``r`` of one problem class.
 
@@ -59,6 +81,7 @@ class StageSystem:
         self.kind, self.n, self.m = kind, n, m
         self.fns = fns
         self.has_input = has_input
+        self.stack_jacobian: dict = {}  # v.dim() -> whether the stacked Jacobian matches
 
     @property
     def p(self) -> int:
@@ -85,6 +108,29 @@ class StageSystem:
             return self._call(self.fns[0], t, K, X, u=u)
         return self._call(self.fns[0], t, K, X, Z, u=u)
 
+    def jacobian(self, fun: Callable, v: torch.Tensor, u) -> torch.Tensor:
+        """``batched_jacobian(fun, v)`` (*batch, p, d), by the stacked single backward pass
+        when the problem has no input and the stacked result reproduced the row-by-row one
+        at the first call with that number of dimensions of ``v`` (checked once per system,
+        like the stage stacking of ``IRKCore.residual``; the two agree to the last bit for
+        elementwise models)."""
+        stackable = self.stack_jacobian.get(v.dim())
+        if u is not None or stackable is False:
+            return batched_jacobian(fun, v)
+        if stackable:
+            return batched_jacobian(fun, v, rows=self.p)
+        ref = batched_jacobian(fun, v)
+        try:
+            got = batched_jacobian(fun, v, rows=self.p)
+            tol = 1e3 * torch.finfo(v.dtype).eps
+            stackable = got.shape == ref.shape and bool(
+                torch.allclose(got, ref, rtol=tol, atol=tol, equal_nan=True)
+            )
+        except Exception:  # noqa: BLE001 - any failure means "not stackable"
+            stackable = False
+        self.stack_jacobian[v.dim()] = stackable
+        return ref
+
     def blocks(self, t, K, X, Z, u):
         """Derivative blocks ``E, G`` (*batch, p, p) and the index-check matrix.
 
@@ -98,7 +144,7 @@ class StageSystem:
         batch = X.shape[:-1]
         eye_n = torch.eye(n, dtype=X.dtype, device=X.device).expand(*batch, n, n)
         if self.kind == "ode":
-            Jf = batched_jacobian(lambda x: self._call(self.fns[0], t, x, u=u), X)
+            Jf = self.jacobian(lambda x: self._call(self.fns[0], t, x, u=u), X, u)
             return eye_n, -Jf, None, None
         if self.kind == "semi":
 
@@ -108,7 +154,7 @@ class StageSystem:
                 g = self._call(self.fns[1], t, x, z, u=u)
                 return torch.cat([f, g], dim=-1)
 
-            J = batched_jacobian(fg, torch.cat([X, Z], dim=-1))
+            J = self.jacobian(fg, torch.cat([X, Z], dim=-1), u)
             fx, fz, gx, gz = J[..., :n, :n], J[..., :n, n:], J[..., n:, :n], J[..., n:, n:]
             zeros_mn = torch.zeros(*batch, m, n, dtype=X.dtype, device=X.device)
             E = torch.cat(
@@ -122,7 +168,7 @@ class StageSystem:
             k, x, z = v[..., :n], v[..., n : 2 * n], v[..., 2 * n :]
             return self.residual(t, k, x, z, u)
 
-        J = batched_jacobian(F, torch.cat([K, X, Z], dim=-1))
+        J = self.jacobian(F, torch.cat([K, X, Z], dim=-1), u)
         FK, FX, FZ = J[..., :n], J[..., n : 2 * n], J[..., 2 * n :]
         E = torch.cat([FK, FZ], dim=-1)
         G = torch.cat([FX, torch.zeros_like(FZ)], dim=-1)
