@@ -149,10 +149,31 @@ class StageLinearSolver:
         )
         real_inv = None
         if self.want_real_block and self.lam_r.numel():
-            lam = self._lam_r0 / hb
-            real_inv, info_r = torch.linalg.inv_ex(torch.addcmul(G, E, lam))
-            info = info | info_r
+            real_inv = self._real_block_inverse(inverse, h)
         return ("dense", inverse.neg(), real_inv), info != 0
+
+    def _real_block_inverse(self, inverse: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        """``(lambda_r / h E + G)^{-1}`` (*batch, p, p) read off ``J^{-1}`` (*batch, s p, s p).
+
+        With ``T = V (x) I`` and ``A^{-1} V = V Lambda``,
+        ``T^{-1} ((h A)^{-1} (x) I) J T = blockdiag(lambda_j / h E + G)``, so the inverse of
+        block ``r`` is ``(h / lambda_r) sum_ij (V^{-1})_ri V_jr (J^{-1})_ij`` over the
+        (p, p) blocks of ``J^{-1}``: one product with a constant 0/weight matrix (a singular
+        block makes ``J`` singular, which ``inv_ex`` already reports)."""
+        sp = inverse.shape[-1]
+        p = sp // self.s
+        key = ("real_block", p, inverse.dtype, inverse.device)
+        if key not in self._eyes:
+            v_inv_row = self.P_r[0] @ self.A  # row r of V^{-1} = P A
+            weights = torch.outer(v_inv_row, self.V_r[:, 0]).to(inverse.dtype)  # (s, s)
+            eye_p = torch.eye(p, dtype=inverse.dtype, device=inverse.device)
+            # M[(i, a, j, b), (a', b')] = w_ij delta_aa' delta_bb'
+            M = weights[:, None, :, None, None, None] * (
+                eye_p[None, :, None, None, :, None] * eye_p[None, None, None, :, None, :]
+            )
+            self._eyes[key] = (M.reshape(sp * sp, p * p) / self._lam_r0).contiguous()
+        block = inverse.reshape(*inverse.shape[:-2], sp * sp) @ self._eyes[key]
+        return block.reshape(*inverse.shape[:-2], p, p) * h[..., None, None]
 
     def _eye(self, like: torch.Tensor) -> torch.Tensor:
         """Identity of ``like``'s matrix size, dtype and device (cached)."""

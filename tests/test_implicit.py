@@ -88,6 +88,26 @@ def test_dense_small_system_path_pivots_and_flags_singular_members():
     assert singular.tolist() == [i == 3 for i in range(B)]
 
 
+@pytest.mark.parametrize("stages, p", [(1, 3), (3, 2), (5, 4)])
+def test_real_block_inverse_read_off_the_full_inverse(stages, p):
+    """The error filter's (gamma/h E + G)^{-1} is taken from J^{-1} (no second inverse); it
+    equals the direct inverse, also for a singular E (DAE-like) and stiff G."""
+    tab = radau_iia(stages)
+    gen = torch.Generator().manual_seed(stages)
+    B = 8
+    E = torch.eye(p) + 0.1 * torch.randn(B, p, p, generator=gen)
+    E[:2, -1, :] = 0.0  # algebraic row: E singular
+    G = 1e4 * torch.randn(B, p, p, generator=gen)
+    h = 1e-3 + torch.rand(B, generator=gen)
+    solver = StageLinearSolver(np.array(tab.A), torch.float64, "cpu")
+    solver.want_real_block = True
+    factors, singular = solver.factorize(E, G, h)
+    assert factors[0] == "dense" and not singular.any()
+    gamma, _ = embedded_weights(tab)
+    direct = torch.linalg.inv(gamma / h[:, None, None] * E + G)
+    torch.testing.assert_close(factors[2], direct, rtol=1e-9, atol=1e-9 * direct.abs().max())
+
+
 @pytest.mark.parametrize("tab", [radau_iia(1), radau_iia(3), gauss_legendre(2)])
 def test_large_blocks_use_the_transformed_lu_path(tab):
     """s p > 24: per-eigenvalue LU of the real / complex blocks, same solution as the full
