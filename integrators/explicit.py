@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ._buffers import empty_buffer
 from .errors import InputValidationError, TableauError
 from .inputs import BoundRHS
 from .solution import Solution, SolverStats, Status
@@ -278,7 +279,7 @@ def solve_explicit(
     # With autograd the per-chunk outputs are kept and concatenated at the end; without it
     # the chunks write into one preallocated time-major buffer (half the memory, no big cat).
     outputs: list[torch.Tensor] = [x.unsqueeze(0)]
-    buffer = None if grad_mode else x0.new_empty((T, *x0.shape))
+    buffer = None if grad_mode else empty_buffer((T, *x0.shape), x0.dtype, x0.device)
     if buffer is not None:
         buffer[0] = x0
     k = 0

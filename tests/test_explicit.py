@@ -260,6 +260,37 @@ def test_compiled_chunks_match_eager():
     assert compiled.stats.extra["compile_s"] >= 0.0
 
 
+def test_huge_page_output_buffer_gives_the_same_solution(monkeypatch):
+    """With the huge-page threshold lowered, the no-grad output buffer comes from an anonymous
+    mapping (``torch.frombuffer``): the solution equals the ordinary buffer's exactly, the
+    failure search still works on it, and the tensor outlives every other reference."""
+    import gc
+
+    from integrators import _buffers
+
+    def f(t, x):
+        return x**2
+
+    x0 = torch.tensor([[1.0], [-1.0], [0.25]], dtype=torch.float64)
+    t = torch.linspace(0.0, 2.0, 41, dtype=torch.float64)
+    with torch.no_grad():
+        plain = odeint(f, x0, t, method="rk4", substeps=4)
+        monkeypatch.setattr(_buffers, "HUGE_PAGE_MIN_BYTES", 0)
+        mapped = odeint(f, x0, t, method="rk4", substeps=4)
+        benign = odeint(f, x0[1:], t, method="rk4", substeps=4)
+    if hasattr(__import__("mmap"), "MADV_HUGEPAGE"):  # Linux: the mapped path really ran
+        assert benign.x.untyped_storage().data_ptr() % 4096 == 0  # a fresh page mapping
+    torch.testing.assert_close(mapped.x, plain.x, rtol=0, atol=0, equal_nan=True)
+    torch.testing.assert_close(benign.x, plain.x[1:], rtol=0, atol=0)
+    assert mapped.status.tolist() == plain.status.tolist() and mapped.messages == plain.messages
+    view = benign.x[:, 5:, 0]
+    expected = view.clone()
+    del benign
+    gc.collect()
+    view.add_(1.0)  # the mapping is still alive and writable
+    torch.testing.assert_close(view, expected + 1.0)
+
+
 class Pendulum(torch.nn.Module):
     def __init__(self):
         super().__init__()
