@@ -18,8 +18,9 @@ model ``f`` and the stage sums into one kernel). Compiled chunks are cached per 
 one-off compile time is paid once per model and shape (reported in
 ``stats.extra["compile_s"]``).
 
-Outputs are collected time-major (without autograd, in one preallocated buffer) and returned
-as a (*batch, T, nx) view of it: no strided copy per output. Finiteness costs nothing per
+Outputs are collected time-major (without autograd, in one preallocated buffer, on huge
+pages when it is large: see ``_buffers``) and returned as a (*batch, T, nx) view of it: no
+strided copy per output. Finiteness costs nothing per
 step: a non-finite state stays non-finite under ``x_{k+1} = x_k + h sum_i b_i K_i``
 (inf + finite = inf, inf - inf = nan), so one check of the final state (the only host
 synchronisation) finds the failed samples, and only then are their outputs searched.

@@ -40,7 +40,15 @@ from .tableau import ButcherTableau, tableau
 __all__ = ["daeint", "solve_implicit_ode"]
 
 _DEFAULT_STAGES = {"gauss_legendre": 2, "radau_iia": 3}
-_NEWTON_KEYS = {"max_iter", "newton_tol", "linear_solver", "dt0", "index_tol", "index_check_every"}
+_NEWTON_KEYS = {
+    "max_iter",
+    "newton_tol",
+    "linear_solver",
+    "dt0",
+    "index_tol",
+    "index_check_every",
+    "host_loop",
+}
 
 
 def resolve_tableau(method, stages=None) -> ButcherTableau:
@@ -143,7 +151,24 @@ def _run(
     tol = newton_tolerance(rtol, x0.dtype, options.get("newton_tol"))
     index_tol = float(options.get("index_tol", 1e-10))
     every = int(options.get("index_check_every", 10))
-    if adaptive:
+    from ._radau_host import integrate_adaptive_host, use_host_loop
+
+    host_loop = use_host_loop(core, x0, options.get("host_loop", "auto"), adaptive)
+    if host_loop:
+        out = integrate_adaptive_host(
+            core,
+            x0,
+            z0,
+            xdot0,
+            t,
+            rtol=rtol,
+            atol=atol,
+            max_steps=max_steps,
+            max_iter=max_iter,
+            newton_tol=tol,
+            dt0=options.get("dt0"),
+        )
+    elif adaptive:
         from .radau import integrate_adaptive
 
         out = integrate_adaptive(
@@ -191,6 +216,7 @@ def _run(
             linear_solver=core.solver.mode,
             tableau=core.tab.name,
             stacked_stages=bool(core.stack_stages),
+            host_loop=host_loop,
         ),
     )
     return Solution(
@@ -237,7 +263,12 @@ def solve_implicit_ode(
         max_steps: adaptive mode: step attempts per sample before MAX_STEPS.
         **newton_options: ``max_iter`` (Newton iterations per stage solve, 7 adaptive / 15
             fixed), ``newton_tol`` (override of the stopping tolerance), ``linear_solver``
-            ("auto", "transformed", "full"), ``dt0`` (first step, adaptive); for DAEs
+            ("auto", "transformed", "full"), ``dt0`` (first step, adaptive), ``host_loop``
+            (adaptive explicit ODEs on the CPU: "auto" (default) runs the step loop in numpy
+            when ``s n <= 24`` and ``x0.numel() <= 256``, where it takes the same steps
+            1.4-1.9x faster than the vectorised torch loop; True forces it (an error where
+            impossible), False keeps the torch loop; the choice is in
+            ``stats.extra["host_loop"]``); for DAEs
             ``index_tol`` and ``index_check_every`` (steps between forced Jacobian
             re-evaluations for the rank test, default 10).
 

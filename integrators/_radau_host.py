@@ -1,0 +1,559 @@
+"""Adaptive Radau IIA with the per-step arithmetic on the host (numpy), for small CPU problems.
+
+The algorithm is the one of :func:`integrators.radau.integrate_adaptive` (notes §7.4,
+simplified Newton eq. 7.14-7.16, step eq. 7.18; see that module for the error estimate and
+the step-size rule), step for step and counter for counter: the same initial step, stage
+guess by extrapolation of the previous collocation polynomial, theta-controlled simplified
+Newton, Jacobian and factorisation reuse, filtered embedded error estimate with its retry,
+Gustafsson step control and the same statuses and messages. Only the user's model runs in
+torch (on ``torch.from_numpy`` views of the host arrays, all stages in one call when the model
+allows it); its Jacobian comes from :meth:`IRKCore.frozen_blocks` (autograd). A batch of a few
+samples spends 1-2 us per numpy operation instead of 3-8 us per tiny torch kernel.
+
+Gradients: the host loop finds the accepted steps ``(t_k, h_k)`` and converged stages ``W_k``
+without autograd; when anything requires grad, those steps are replayed in torch with the
+implicit-function-theorem stages ``core.ift`` and ``x_{k+1} = x_k + h_k sum_i b_i K_i``
+(eq. 7.18), exactly as the torch driver builds them, so gradients are the same.
+
+Only explicit ODEs whose Newton matrix is inverted explicitly (``s n <= 24``) take this path
+(:func:`host_loop_supported`); everything else stays on the torch driver.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ._irk_core import IRKCore, host_shape, masked_update
+from ._irk_dense import StepRecords
+from .errors import InputValidationError
+from .radau import _MAX_FACTOR, _MIN_FACTOR, _REUSE_THETA, _initial_step, _stop, embedded_weights
+from .solution import Status
+
+# Largest ``x0.numel()`` that "auto" sends to the host loop. Measured with one thread
+# (same steps on both drivers), host / torch driver time: stiff Van der Pol (n = 2) 0.6 at
+# batch 1-64, 0.72 at 128, 0.75-0.82 at 256 (numel 512), 1.16 at 1024 (numel 2048); a stiff
+# 8-state system 0.6 at batch 1-8, 0.67 at 32 (numel 256), 0.86 at 128 (numel 1024). The
+# crossover lies near numel 1500.
+HOST_MAX_NUMEL = 1024
+
+
+def host_loop_supported(core: IRKCore, x0: torch.Tensor, adaptive: bool = True) -> str | None:
+    """None when the host loop can run this problem, else the reason it cannot."""
+    if not adaptive:
+        return "the host loop runs adaptive Radau IIA only, not fixed steps"
+    if x0.dtype not in (torch.float32, torch.float64):
+        return f"the state is {x0.dtype}, the host loop computes in float32 or float64"
+    if x0.device.type != "cpu":
+        return f"the state lives on {x0.device}, the host loop runs on the CPU only"
+    if core.system.kind != "ode":
+        return "implicit ODEs and DAEs use the torch driver"
+    if not core.solver.dense(core.system.n):
+        return (
+            f"the Newton matrix has s n = {core.s * core.system.n} > 24 rows (or linear_solver "
+            "is not 'auto'/'transformed'); only small systems take the host loop"
+        )
+    return None
+
+
+def use_host_loop(core: IRKCore, x0: torch.Tensor, option, adaptive: bool = True) -> bool:
+    """Decide the driver from the ``host_loop`` option ("auto", True or False) of an
+    integration with (``adaptive``) or without step-size control.
+
+    Raises:
+        InputValidationError: ``host_loop=True`` for a problem the host loop cannot run, or an
+            unknown option value.
+    """
+    if option is False:
+        return False
+    why = host_loop_supported(core, x0, adaptive)
+    if option is True:
+        if why is not None:
+            raise InputValidationError(f"host_loop=True is not possible here: {why}.")
+        return True
+    if option != "auto":
+        raise InputValidationError(f"host_loop must be 'auto', True or False, got {option!r}.")
+    return why is None and x0.numel() <= HOST_MAX_NUMEL
+
+
+class _HostModel:
+    """The user's ``f`` on host arrays. Host arrays carry the flattened batch ``B`` as one
+    axis; the model sees zero-copy tensor views with the caller's batch shape, and its
+    outputs come back as numpy arrays of the state dtype."""
+
+    def __init__(self, core: IRKCore, batch, npdt):
+        self.core, self.batch, self.npdt = core, tuple(batch), npdt
+        self.B = int(np.prod(batch)) if len(batch) else 1
+
+    def times(self, tt: np.ndarray) -> torch.Tensor:
+        """Host times (*lead, B) as a tensor (*lead, *batch, 1)."""
+        return torch.from_numpy(_writable(tt).reshape(*tt.shape[:-1], *self.batch, 1))
+
+    def state(self, x: np.ndarray) -> torch.Tensor:
+        """Host states (*lead, B, k) as a tensor (*lead, *batch, k)."""
+        return torch.from_numpy(_writable(x).reshape(*x.shape[:-2], *self.batch, x.shape[-1]))
+
+    def back(self, y: torch.Tensor, like: np.ndarray) -> np.ndarray:
+        """A model output (*lead, *batch, k) as a host array shaped like ``like``
+        (*lead, B, k)."""
+        out = y.detach().numpy()
+        if out.dtype != self.npdt:
+            out = out.astype(self.npdt)
+        if out.size != like.size:  # an output that broadcasts against the batch
+            out = np.broadcast_to(out, (*like.shape[:-2], *self.batch, like.shape[-1]))
+        return out.reshape(like.shape)
+
+    def f(self, tt: np.ndarray, x: np.ndarray, z: torch.Tensor) -> np.ndarray:
+        """``f(t, x)`` at host times (B,) and states (B, n); counts one call. Runs under the
+        caller's ``torch.no_grad``."""
+        self.core.n_f_evals += 1
+        t_t = self.times(tt)
+        y = self.core.system.rhs_f(t_t, self.state(x), z, self.core.signal.at(t_t))
+        return self.back(y, x)
+
+    def stages(self, t_stage: torch.Tensor, X: np.ndarray, z: torch.Tensor) -> np.ndarray:
+        """``f`` at the stage times ``t_stage`` (s, *batch, 1) (:meth:`times`) and stage states
+        (s, B, n) (a strided view is fine): one stacked call when ``core.stack_stages``, else
+        one call per stage; counts ``s`` calls. Runs under the caller's ``torch.no_grad``."""
+        core = self.core
+        core.n_f_evals += core.s
+        if core.stack_stages:
+            return self.back(core.system.rhs_f(t_stage, self.state(X), None, None), X)
+        out = np.empty(X.shape, dtype=self.npdt)
+        for i in range(core.s):
+            t_i = t_stage[i]
+            y = core.system.rhs_f(t_i, self.state(X[i]), z, core.signal.at(t_i))
+            out[i] = self.back(y, X[i])
+        return out
+
+    def decide_stacking(self, tk, h, t_stage, K, X) -> None:
+        """Set ``core.stack_stages`` once, by the torch driver's own test
+        (:meth:`IRKCore._stacking_works`) at the first stage values ``K, X`` (B, s, n);
+        ``tk, h`` (B,), ``t_stage`` (s, *batch, 1) tensor."""
+        core, batch = self.core, self.batch
+        tk_t, h_t = self.times(tk), torch.from_numpy(h).reshape(batch)
+        times = core.stage_times(tk_t, h_t[..., None], len(batch), stacked=t_stage)
+        inputs = core.stage_inputs(times, tk_t, fixed=False)
+        K_t, X_t = (torch.from_numpy(np.array(v)).reshape(*batch, *v.shape[-2:]) for v in (K, X))
+        Z_t = K_t.new_zeros(*K_t.shape[:-1], 0)
+        core.stack_stages = core._stacking_works(times, inputs, K_t, X_t, Z_t)
+
+
+def _writable(a: np.ndarray) -> np.ndarray:
+    """``a``, or a copy of it when it is a read-only view (``torch.from_numpy`` needs a
+    writable array)."""
+    return a if a.flags.writeable else a.copy()
+
+
+def _inverse(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched inverse of (B, q, q) matrices and a (B,) mask of the singular ones (their
+    entries are garbage and never used)."""
+    try:
+        return np.linalg.inv(M), np.zeros(M.shape[0], dtype=bool)
+    except np.linalg.LinAlgError:  # some member singular: per-member info from LAPACK
+        inv, info = torch.linalg.inv_ex(torch.from_numpy(M))
+        return inv.numpy(), info.numpy() != 0
+
+
+def _pick(mask: np.ndarray, new: np.ndarray, old: np.ndarray) -> np.ndarray:
+    """``new`` where the (B,) ``mask`` holds, else ``old`` (trailing axes broadcast); ``new``
+    itself when every member moves (the common case, one check instead of a select)."""
+    if mask.all():
+        return new
+    return np.where(mask.reshape(-1, *([1] * (np.ndim(new) - 1))), new, old)
+
+
+def integrate_adaptive_host(
+    core: IRKCore,
+    x0,
+    z0,
+    xdot0,
+    t,
+    *,
+    rtol,
+    atol,
+    max_steps,
+    max_iter,
+    newton_tol,
+    dt0=None,
+):
+    """Run adaptive Radau IIA with a host loop; same arguments (less the DAE index options)
+    and the same returned dict as :func:`integrators.radau.integrate_adaptive`.
+
+    Args:
+        core: :class:`IRKCore` of an explicit ODE with ``core.solver.dense(n)``.
+        x0: (*batch, n) initial states (CPU); z0: (*batch, 0); xdot0: (*batch, n) ``f(t0, x0)``.
+        t: (T,) output times.
+        rtol, atol, max_steps, max_iter, newton_tol, dt0: as in ``integrate_adaptive``.
+    """
+    batch = x0.shape[:-1]
+    hshape = host_shape(batch)
+    dtype = x0.dtype
+    npdt = np.float64 if dtype == torch.float64 else np.float32
+    n, s = core.system.n, core.s
+    model = _HostModel(core, batch, npdt)
+    B = model.B
+    gamma, e_np = embedded_weights(core.tab)
+    gamma_e = (gamma * e_np).astype(npdt)
+    filt = _filter_weights(core, npdt)
+    A = np.array(core.tab.A, dtype=npdt)
+    b = np.array(core.tab.b, dtype=npdt)
+    c_np = np.array(core.c)
+    c_col = c_np[:, None]
+    lagrange = np.linalg.inv(np.vander(c_np, s, increasing=True))
+    powers = np.arange(s)
+    rms = 1.0 / n**0.5
+    rms_newton = 1.0 / (s * n) ** 0.5
+    expo = 1.0 / (s + 1)
+    t_host = t.detach().numpy().astype(npdt)
+    t_end = t_host[-1]
+    t_snap = t_end - 1e-14 * abs(float(t_end))  # a step ending this close lands on t_end
+    span = float(t_host[-1] - t_host[0])
+    min_step = 16 * core.eps
+    tiny = float(np.finfo(npdt).tiny)
+    # tolerances: floats, or tensors broadcasting against the state (n,) as in the torch driver
+    atol_, rtol_ = (
+        np.asarray(v.detach().cpu().numpy() if isinstance(v, torch.Tensor) else v, dtype=npdt)
+        for v in (atol, rtol)
+    )
+
+    def flags(value=False):
+        return np.full(B, value, dtype=bool)
+
+    def counts():
+        return np.zeros(B, dtype=np.int64)
+
+    tcur = np.full(B, t_host[0], dtype=npdt)
+    x = x0.detach().numpy().astype(npdt).reshape(B, n)
+    xdot = xdot0.detach().numpy().astype(npdt).reshape(B, n)
+    z = z0.detach()
+    status = np.zeros(B, dtype=np.int8)
+    active, need_jac, need_lu, first = flags(True), flags(True), flags(True), flags(True)
+    fresh, rejected_last, nonfinite_last, have_prev = flags(), flags(), flags(), flags()
+    h_fact = np.zeros(B, dtype=npdt)
+    G = J_inv = real_inv = prev_W = None
+    prev_h = np.ones(B, dtype=npdt)
+    err_old = np.ones(B)
+    h_old = np.zeros(B)
+    n_steps, n_rej, n_newton, attempts = counts(), counts(), counts(), counts()
+    n_jac = n_lu = 0
+    messages: list[str] = []
+    accepted: list[tuple] = []  # per advancing iteration: what the records / replay need
+
+    def stop(mask, code, why):
+        _stop(
+            mask.reshape(hshape),
+            np.broadcast_to(code, (B,)).reshape(hshape),
+            status.reshape(hshape),
+            active.reshape(hshape),
+            messages,
+            tcur.reshape(hshape),
+            why,
+        )
+
+    h = _initial_step(core, x0, z0, xdot0, t[0], span, rtol, atol, expo, dt0)
+    h = h.detach().numpy().reshape(B).astype(npdt)
+
+    with np.errstate(all="ignore"), torch.no_grad():
+        while active.any():
+            h = np.where(active & (tcur + h >= t_end), t_end - tcur, h)
+            tiny_h = active & (h <= min_step * np.maximum(np.abs(tcur), 1.0))
+            if tiny_h.any():
+                code = np.where(nonfinite_last, Status.NON_FINITE, Status.STEP_TOO_SMALL)
+                stop(
+                    tiny_h,
+                    code.astype(np.int8),
+                    "the step size fell below the time resolution; the problem may be "
+                    "non-smooth, of index > 1, or blow up there — loosen the tolerances or "
+                    "check the model",
+                )
+            over = active & (attempts >= max_steps)
+            if over.any():
+                stop(
+                    over,
+                    np.int8(Status.MAX_STEPS),
+                    f"max_steps = {max_steps} step attempts were used; raise max_steps",
+                )
+            if not active.any():
+                break
+            h_step = h
+            # t_k, t_k + h and the stage times t_k + c_i h, rounded as the torch driver does
+            host = np.empty((2 + s, B), dtype=npdt)
+            host[0], host[1], host[2:] = tcur, tcur + h, tcur + c_col * h
+            if need_jac.any() and (active & need_jac).any():
+                jac_mask = active & need_jac
+                G = _jacobian(core, model, host[0], x, z, xdot, jac_mask, G)
+                n_jac += 1
+                fresh |= jac_mask
+                need_lu |= jac_mask
+                need_jac &= ~jac_mask
+            lu_mask = active & (need_lu | (h != h_fact))
+            singular = flags()
+            if lu_mask.any():
+                h_lu = np.where(lu_mask, h, np.where(h_fact > 0, h_fact, h))
+                inv, inv_r, sing = _factorize(A, filt, G, h_lu)
+                J_inv = inv if J_inv is None else _pick(lu_mask, inv, J_inv)
+                real_inv = inv_r if real_inv is None else _pick(lu_mask, inv_r, real_inv)
+                singular = lu_mask & sing
+                n_lu += 1
+                h_fact = np.where(lu_mask, h, h_fact)
+                need_lu &= ~lu_mask
+            sc_x = atol_ + rtol_ * np.abs(x)
+            W0 = _stage_guess(lagrange, powers, c_np, prev_W, have_prev, h / prev_h, xdot)
+            W, conv, iters, theta, nonfin = _newton(
+                model,
+                A,
+                model.times(host[2:]),
+                host[0],
+                h,
+                x,
+                z,
+                W0,
+                J_inv,
+                sc_x,
+                newton_tol,
+                max_iter,
+                active & ~singular,
+                rms_newton,
+                tiny,
+            )
+            n_newton += iters
+            attempts += active
+            failed = active & (~conv | singular)
+            if failed.any():  # refresh a stale Jacobian at the same step, else halve the step
+                need_jac |= failed & ~fresh
+                h = np.where(failed & fresh, 0.5 * h, h)
+                nonfinite_last = np.where(failed, nonfin, nonfinite_last)
+                rejected_last |= failed
+                n_rej += failed
+
+            ok = active & conv & ~singular
+            Wg = W if np.isfinite(W).all() else np.nan_to_num(W)
+            x_new = x + h_step[:, None] * (b @ Wg)  # eq. 7.18
+            # filtered embedded error estimate (see integrators.radau), refined after rejections
+            eK = gamma_e @ W
+            err_x = (real_inv @ (xdot + eK)[:, :, None])[:, :, 0]
+            retry = ok & (first | rejected_last)
+            if retry.any():
+                f_err = model.f(host[0], x + err_x, z)
+                err_retry = (real_inv @ (f_err + eK)[:, :, None])[:, :, 0]
+                err_x = _pick(retry, err_retry, err_x)
+            sc = np.maximum(sc_x, atol_ + rtol_ * np.abs(x_new))
+            err = np.sqrt(np.square(err_x / sc).sum(-1)).astype(np.float64, copy=False) * rms
+            finite = np.isfinite(x_new).all(-1) & np.isfinite(err)
+            err = np.where(finite, err, np.inf)
+            accept = ok & (err < 1.0)
+            reject = ok & ~accept
+            n_rej += reject
+
+            hh = h_step.astype(np.float64, copy=False)
+            safety = 0.9 * (2 * max_iter + 1) / (2 * max_iter + iters)
+            err_c = np.maximum(err, 1e-10)
+            pred = hh / np.maximum(h_old, 1e-300) * (err_old / err_c) ** expo
+            pred[first | (h_old <= 0)] = 1.0
+            scaled = safety * np.minimum(pred, 1.0) * err_c**-expo
+            h_rej = hh * np.minimum(np.maximum(scaled, _MIN_FACTOR), 1.0)
+            h_rej[~finite] = 0.25 * hh[~finite]
+            grow = np.minimum(scaled, _MAX_FACTOR)
+            slow = (theta > _REUSE_THETA) & (iters > 2)  # slow contraction: new Jacobian
+            keep_lu = ~slow & (grow < 1.2) & (grow >= 1.0)
+            h_acc = np.where(keep_lu, hh, hh * grow)
+
+            if accept.any():  # accepted samples advance
+                t_start = np.where(accept, tcur, np.inf).astype(npdt)
+                accepted.append((t_start, h_step, accept, W, host, Wg))
+                xdot_new = model.f(host[1], x_new, z)
+                x = _pick(accept, x_new, x)
+                xdot = _pick(accept, xdot_new, xdot)
+                prev_W = W if prev_W is None else _pick(accept, W, prev_W)
+                tcur = _pick(accept, tcur + h_step, tcur)
+                tcur = np.where(accept & (tcur >= t_snap), t_end, tcur)
+                prev_h = _pick(accept, h_step, prev_h)
+                have_prev |= accept
+                h_old = _pick(accept, hh, h_old)
+                err_old = _pick(accept, np.maximum(err_c, 1e-2), err_old)
+                need_jac |= accept & slow
+                fresh &= ~accept
+                first &= ~accept
+                n_steps += accept
+            rejected_last = ~accept & (rejected_last | reject)
+            h = np.where(accept, h_acc, np.where(reject, h_rej, h)).astype(npdt)
+            active &= ~(accept & (tcur >= t_end))
+
+    records = _records(core, model, x0, z0, t_host[0], accepted)
+    x_out, z_out = records.evaluate(t)
+
+    def dev(a):
+        return torch.from_numpy(a).reshape(batch)
+
+    return dict(
+        x=x_out,
+        z=z_out,
+        status=dev(status),
+        messages=messages,
+        n_steps=dev(n_steps),
+        n_rejected=dev(n_rej),
+        n_newton=dev(n_newton),
+        n_jac=n_jac,
+        n_lu=n_lu,
+        n_f=core.n_f_evals,
+        records=records,
+    )
+
+
+def _jacobian(core, model, tk, x, z, xdot, mask, G_old):
+    """``G = -df/dx`` (B, n, n) at the step start for the ``mask`` samples (autograd, through
+    :meth:`IRKCore.frozen_blocks`); the others keep ``G_old``."""
+    with torch.no_grad():
+        _, G_t, _, _ = core.frozen_blocks(model.times(tk), model.state(x), z, model.state(xdot))
+    G = model.back(G_t, np.empty((model.B, *G_t.shape[-2:])))
+    return G if G_old is None else _pick(mask, G, G_old)
+
+
+def _filter_weights(core: IRKCore, npdt) -> np.ndarray:
+    """``M`` ((s n)^2, n^2) with ``(lambda_0 / h I + G)^{-1} = h vec(J^{-1}) M``: the sum
+    ``sum_ij w_ij (J^{-1})_ij`` over the (n, n) blocks of ``J^{-1}`` with
+    ``w_ij = (V^{-1})_0i V_j0 / lambda_0`` for the eigenvectors ``V`` of ``A^{-1}`` (the
+    transformation of ``StageLinearSolver``, whose dense path reads the error filter's block
+    off ``J^{-1}`` the same way), as one matrix product."""
+    solver, n = core.solver, core.system.n
+    P_r, V_r = (v.detach().cpu().numpy().astype(np.float64) for v in (solver.P_r, solver.V_r))
+    v_inv_row = P_r[0] @ np.array(core.tab.A)  # row 0 of V^{-1} = P A
+    w = np.outer(v_inv_row, V_r[:, 0]) / solver._lam_r0
+    eye = np.eye(n)
+    M = np.einsum("ij,ac,bd->iajbcd", w, eye, eye)  # M[(i, a, j, b), (c, d)] = w_ij d_ac d_bd
+    return M.reshape(-1, n * n).astype(npdt)
+
+
+def _factorize(A, filt, G, h):
+    """Inverse of the simplified-Newton matrix ``J = I + h A (x) G`` (eq. 7.16, ``G = -df/dx``)
+    and the error filter's real block ``(lambda_0 / h I + G)^{-1}`` read off it.
+
+    Args:
+        A: (s, s); filt: ((s n)^2, n^2) :func:`_filter_weights`; G: (B, n, n); h: (B,).
+
+    Returns:
+        ``(-J^{-1}`` stacked over ``(A (x) I)(-J^{-1})`` (B, 2 s n, s n), so that one product
+        gives the Newton increment and its stage-state image; the real block's inverse
+        (B, n, n); a (B,) mask of singular members (a singular real block makes ``J``
+        singular)).
+    """
+    B, n, s = G.shape[0], G.shape[-1], A.shape[0]
+    hb = h[:, None, None]
+    J = (A[:, None, :, None] * G[:, None, :, None, :]).reshape(B, s * n, s * n) * hb
+    J[:, range(s * n), range(s * n)] += 1.0
+    inv, sing = _inverse(J)
+    inv_r = (inv.reshape(B, -1) @ filt).reshape(B, n, n) * hb
+    out = np.empty((B, 2 * s * n, s * n), dtype=inv.dtype)
+    np.negative(inv, out=out[:, : s * n])
+    # (A (x) I) (-J^{-1}): block row i is sum_j a_ij (block row j of -J^{-1})
+    np.matmul(A, out[:, : s * n].reshape(B, s, n * s * n), out=out[:, s * n :].reshape(B, s, -1))
+    return out, inv_r, sing
+
+
+def _stage_guess(lagrange, powers, c, prev_W, have_prev, ratio, xdot):
+    """Newton start (B, s, n): the previous step's stage polynomial ``sum_j W_j l_j(tau)``
+    at the new nodes ``tau_i = 1 + c_i h_new / h_old`` (as ``extrapolation_matrix``), else
+    ``x'_k`` at every stage. ``lagrange`` (s, s) holds the coefficients of ``l_j``,
+    ``powers`` is ``0..s-1``."""
+    s = len(c)
+    if not have_prev.any():
+        return np.repeat(xdot[:, None, :], s, axis=1)
+    tau = 1.0 + c * ratio[:, None].astype(np.float64, copy=False)  # (B, s)
+    L = (tau[:, :, None] ** powers) @ lagrange  # L[b, i, j] = l_j(tau_bi)
+    ext = (L @ prev_W).astype(prev_W.dtype, copy=False)
+    if have_prev.all():
+        return ext
+    return _pick(have_prev, ext, np.repeat(xdot[:, None, :], s, axis=1))
+
+
+def _newton(model, A, t_stage, tk, h, xk, z, W, J_inv, sc_x, tol, max_iter, active, rms, tiny):
+    """Simplified Newton on ``R(W) = K - f(t_k + c h, x_k + h A K)`` (eq. 7.14-7.16), per
+    sample, as :meth:`IRKCore.newton` with ``predict=True``: converged when
+    ``theta / (1 - theta) ||dW|| <= tol``, failed when ``theta >= 1`` or the rate predicts
+    that ``max_iter`` iterations will not do.
+
+    Args:
+        A: (s, s); t_stage: (s, *batch, 1) stage-time tensor (:meth:`_HostModel.times`);
+            tk, h: (B,) host step start and size; xk, sc_x: (B, n); W: (B, s, n) initial guess;
+            z: the (empty) algebraic state tensor; J_inv: (B, 2 s n, s n) ``-J^{-1}`` stacked over
+            ``(A (x) I) (-J^{-1})``; active: (B,) bool; rms: ``1 / sqrt(s n)``; tiny: the
+            smallest normal number of the dtype.
+
+    Returns:
+        ``(W, converged, iterations, theta, non_finite)`` host arrays.
+    """
+    B, s, n = W.shape
+    sn = s * n
+    # weights of the stage increments h (A dK)_i / sc_x, times the RMS factor: (B, s n)
+    w = np.concatenate([h[:, None] / sc_x] * s, axis=1) * W.dtype.type(rms)
+    live = active.copy()
+    conv = np.zeros_like(live)
+    non_finite = np.zeros_like(live)
+    iters = np.zeros(B, dtype=np.int64)
+    theta = np.zeros(B)
+    norm_old = None
+    hA = h[:, None, None] * A
+    xk = xk[:, None, :]
+    for it in range(max_iter):
+        X = hA @ W
+        X += xk  # stage states (B, s, n)
+        if model.core.stack_stages is None:
+            model.decide_stacking(tk, h, t_stage, W, X)
+        R = W - model.stages(t_stage, X.transpose(1, 0, 2), z).transpose(1, 0, 2)
+        both = J_inv @ R.reshape(B, sn, 1)  # (dW, A dK) in one product
+        v = both[:, sn:, 0] * w
+        norm = np.sqrt(np.einsum("bi,bi->b", v, v)).astype(np.float64, copy=False)
+        if not np.isfinite(norm).all():
+            bad = live & ~np.isfinite(norm)
+            non_finite |= bad
+            live &= ~bad
+        if norm_old is None:
+            done = live & (norm == 0)
+        else:  # contraction theta; eta ||dW|| = theta / (1 - theta) ||dW|| <= tol converges
+            th = norm / np.maximum(norm_old, tiny)
+            np.copyto(theta, th, where=live)
+            rate = norm / np.maximum(1.0 - th, 1e-12)
+            # diverging, or predicted to miss tol within max_iter iterations: give up
+            live &= (th < 1.0) & (th ** (max_iter - it) * rate <= tol)
+            done = live & (th * rate <= tol)
+        dW = both[:, :sn].reshape(B, s, n)
+        W = W + dW if live.all() else _pick(live, W + dW, W)
+        iters += live
+        conv |= done
+        live &= ~done
+        norm_old = norm
+        if not live.any():
+            break
+    return W, conv, iters, theta, non_finite
+
+
+def _records(core, model, x0, z0, t0, accepted):
+    """:class:`StepRecords` (dense output) of the accepted steps, one record per driver
+    iteration that advanced a sample, as the torch driver keeps them.
+
+    The steps are replayed in torch, ``x_{k+1} = x_k + h sum_i b_i K_i`` (eq. 7.18) with the
+    converged stages; when anything requires grad (decided by the first ``core.ift``, as in the
+    torch driver) the stages carry implicit-function-theorem gradients, so the states have the
+    torch driver's graph. ``ift`` changes no value, so the outputs are identical with and
+    without autograd (a few tensor operations per step either way)."""
+    batch, s, n = model.batch, core.s, core.system.n
+    hshape = host_shape(batch)
+    records = StepRecords(core.tab, n)
+    start = np.full(batch, t0, dtype=model.npdt)
+    records.append(start, np.ones(batch, dtype=model.npdt), x0, x0.new_zeros(*batch, s, n), z0)
+    with_grad = torch.is_grad_enabled() and core.needs_grad is not False
+    x = x0
+    for t_start, h, accept, W, host, Wg in accepted:
+        t_start, h_rec = t_start.reshape(batch), h.reshape(batch)
+        h_t, mask = torch.from_numpy(h_rec), accept.reshape(hshape)
+        W_t = torch.from_numpy(Wg).reshape(*batch, s, n)
+        if with_grad:
+            tk = model.times(host[0])
+            times = core.stage_times(tk, h_t[..., None], len(batch), stacked=model.times(host[2:]))
+            inputs = core.stage_inputs(times, tk, fixed=False)
+            W_t = core.ift(times, inputs, h_t, x, torch.from_numpy(W).reshape(W_t.shape), mask)
+            with_grad = core.needs_grad is not False
+        records.append(t_start, h_rec, x, W_t, z0)
+        x = masked_update(mask, core.step_end(x, h_t, W_t), x)
+    return records

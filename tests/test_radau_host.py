@@ -1,0 +1,355 @@
+"""Host (numpy) loop of adaptive Radau IIA (integrators/_radau_host.py) against the torch
+driver (integrators/radau.py), closed forms, scipy's Radau and finite differences.
+
+The host loop is the same algorithm, so on every problem here it takes the same steps,
+rejections, Newton iterations, Jacobians and factorisations as the torch driver; only the
+rounding of tiny products differs (numpy vs torch kernels, summation order), which keeps the
+results within ~1e-12 relative at the same steps.
+"""
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.integrate import solve_ivp
+from scipy.linalg import expm
+
+from integrators import (
+    InputValidationError,
+    SemiExplicitDAE,
+    Status,
+    daeint,
+    odeint,
+    radau_iia,
+    solve_implicit_ode,
+)
+from integrators._irk_core import InputSignal, IRKCore
+from integrators._irk_system import StageSystem
+from integrators._radau_host import HOST_MAX_NUMEL, _factorize, _filter_weights
+from integrators.inputs import bind_rhs
+from integrators.radau import embedded_weights
+
+pytestmark = pytest.mark.usefixtures("float64_default")
+
+COUNTERS = ("n_steps", "n_rejected", "n_newton_iters")
+
+
+def vdp(eps):
+    """Stiff Van der Pol y1' = y2, eps y2' = (1 - y1^2) y2 - y1 (eps a float or (B, 1))."""
+
+    def rhs(t, y):
+        y1, y2 = y[..., 0:1], y[..., 1:2]
+        return torch.cat([y2, ((1 - y1**2) * y2 - y1) / eps], -1)
+
+    return rhs
+
+
+def vdp_scipy(eps, t_end, y0=(2.0, 0.0)):
+    """Reference: scipy Radau at rtol = atol = 1e-12."""
+    ref = solve_ivp(
+        lambda t, y: [y[1], ((1 - y[0] ** 2) * y[1] - y[0]) / eps],
+        (0.0, t_end),
+        list(y0),
+        method="Radau",
+        rtol=1e-12,
+        atol=1e-12,
+    )
+    return ref.y[:, -1]
+
+
+def both_paths(f, x0, t, **opts):
+    """The same integration by the host loop and by the torch driver."""
+    host = solve_implicit_ode(f, x0, t, "radau_iia", host_loop=True, **opts)
+    dev = solve_implicit_ode(f, x0, t, "radau_iia", host_loop=False, **opts)
+    assert host.stats.extra["host_loop"] and not dev.stats.extra["host_loop"]
+    return host, dev
+
+
+def assert_same_run(host, dev, rtol=1e-10):
+    """Same step sequence and counters, same statuses, results agreeing to ``rtol``."""
+    for name in COUNTERS:
+        assert getattr(host.stats, name).tolist() == getattr(dev.stats, name).tolist(), name
+    for name in ("n_f_evals", "n_jac_evals", "n_factorizations"):
+        assert getattr(host.stats, name) == getattr(dev.stats, name), name
+    assert host.status.tolist() == dev.status.tolist()
+    torch.testing.assert_close(host.x, dev.x, rtol=rtol, atol=rtol * float(dev.x.abs().max()))
+
+
+def test_factorisation_and_error_filter_block_against_direct_inverses():
+    """The host factorisation: ``-J^{-1}`` for ``J = I + h A (x) G`` (eq. 7.16), its image
+    under ``A (x) I`` and the error filter's block ``(gamma / h I + G)^{-1}`` read off
+    ``J^{-1}`` (gamma the real eigenvalue of A^{-1}) equal the direct inverses."""
+    tab, n, B = radau_iia(3), 3, 4
+    system = StageSystem("ode", n, 0, (lambda t, x: x,), False)
+    core = IRKCore(tab, system, InputSignal(None), torch.float64, "cpu")
+    rng = np.random.default_rng(0)
+    G, h = rng.normal(size=(B, n, n)) * 10, rng.uniform(0.01, 1.0, B)
+    A = np.array(tab.A)
+    stacked, real_inv, singular = _factorize(A, _filter_weights(core, np.float64), G, h)
+    J = np.eye(3 * n) + h[:, None, None] * np.stack([np.kron(A, g) for g in G])
+    np.testing.assert_allclose(-stacked[:, : 3 * n], np.linalg.inv(J), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(
+        stacked[:, 3 * n :], np.kron(A, np.eye(n)) @ stacked[:, : 3 * n], rtol=1e-12, atol=1e-14
+    )
+    gamma, _ = embedded_weights(tab)
+    direct = np.linalg.inv(G + np.eye(n) * (gamma / h)[:, None, None])
+    np.testing.assert_allclose(real_inv, direct, rtol=1e-9, atol=1e-12)
+    assert not singular.any()
+
+
+def test_stiff_van_der_pol_same_steps_as_torch_driver_and_accurate():
+    """eps = 1e-3, t in [0, 1], rtol = atol = 1e-6: identical step sequences and counters,
+    results equal to 1e-10 relative and within the tolerance of scipy's rtol 1e-12 Radau."""
+    eps, t = 1e-3, torch.tensor([0.0, 0.5, 1.0])
+    host, dev = both_paths(vdp(eps), torch.tensor([[2.0, 0.0]]), t, rtol=1e-6, atol=1e-6)
+    assert host.success and int(host.stats.n_steps[0]) > 50
+    assert_same_run(host, dev)
+    ref = vdp_scipy(eps, 1.0)
+    assert np.abs(host.x[0, -1].numpy() - ref).max() / np.abs(ref).max() < 1e-4
+
+
+def test_stiff_linear_system_against_matrix_exponential():
+    """x' = M x with eigenvalues -1 and -1e4 (stiffness ratio 1e4): closed form expm(M t) x0;
+    dense output ``sol.at`` between the steps too."""
+    M = torch.tensor([[-1.0, 1.0], [0.0, -1e4]])
+    x0 = torch.tensor([[1.0, 2.0], [-0.5, 1.0]])
+    t = torch.linspace(0.0, 2.0, 5)
+    host, dev = both_paths(lambda t, x: x @ M.T, x0, t, rtol=1e-8, atol=1e-10)
+    assert_same_run(host, dev)
+    tq = torch.tensor([0.013, 0.37, 1.21, 1.9])
+    exact = np.stack([x0.numpy() @ expm(M.numpy() * float(s)).T for s in tq], 1)
+    assert np.abs(host.at(tq).numpy() - exact).max() < 1e-7
+    torch.testing.assert_close(host.at(tq), dev.at(tq), rtol=1e-10, atol=1e-13)
+    torch.testing.assert_close(host.at(t), host.x, rtol=1e-12, atol=1e-14)
+
+
+def robertson(t, y):
+    y1, y2, y3 = y[..., 0], y[..., 1], y[..., 2]
+    return torch.stack(
+        [-0.04 * y1 + 1e4 * y2 * y3, 0.04 * y1 - 1e4 * y2 * y3 - 3e7 * y2**2, 3e7 * y2**2], -1
+    )
+
+
+def test_robertson_kinetics_same_as_torch_driver_and_scipy():
+    """Robertson's stiff kinetics (n = 3, s n = 9) to t = 40 against scipy's BDF at 1e-12."""
+    t = torch.tensor([0.0, 0.4, 40.0])
+    y0 = torch.tensor([[1.0, 0.0, 0.0]])
+    host, dev = both_paths(robertson, y0, t, rtol=1e-6, atol=1e-10)
+    assert_same_run(host, dev)
+    ref = solve_ivp(
+        lambda t, y: robertson(t, torch.as_tensor(y)).numpy(),
+        (0.0, 40.0),
+        [1.0, 0.0, 0.0],
+        method="BDF",
+        rtol=1e-12,
+        atol=1e-16,
+    ).y[:, -1]
+    assert np.abs(host.x[0, -1].numpy() - ref).max() < 1e-5 * np.abs(ref).max()
+    # mass conservation y1 + y2 + y3 = 1 (a linear invariant every RK method keeps)
+    assert float((host.x.sum(-1) - 1).abs().max()) < 1e-12
+
+
+def test_batch_members_of_very_different_stiffness_equal_their_solo_runs():
+    """Per-sample steps: in a batch with eps = 1e-1, 1e-3, 1e-5 each member takes exactly the
+    steps it takes alone (bit for bit the same host arithmetic per member)."""
+    eps = [1e-1, 1e-3, 1e-5]
+    t = torch.tensor([0.0, 0.3])
+    x0 = torch.tensor([2.0, 0.0])
+    opts = dict(rtol=1e-6, atol=1e-6, host_loop=True)
+    batch = solve_implicit_ode(
+        vdp(torch.tensor(eps)[:, None]), x0.expand(3, 2), t, "radau_iia", **opts
+    )
+    steps = batch.stats.n_steps.tolist()
+    assert steps[0] < steps[1] < steps[2]
+    for i, e in enumerate(eps):
+        alone = solve_implicit_ode(vdp(torch.tensor([[e]])), x0[None], t, "radau_iia", **opts)
+        for name in COUNTERS:
+            assert getattr(alone.stats, name)[0] == getattr(batch.stats, name)[i], (name, i)
+        torch.testing.assert_close(alone.x[0], batch.x[i], rtol=1e-13, atol=1e-13)
+
+
+def test_multi_dimensional_batch_and_unbatched_state():
+    """Batch shape (2, 2) and an unbatched state (n,) give the numbers of a flat batch."""
+    eps = torch.tensor([1e-1, 1e-2, 1e-3, 1e-4])[:, None]
+    x0 = torch.tensor([[2.0, 0.0], [1.5, 0.1], [2.0, -0.2], [1.0, 0.0]])
+    t = torch.tensor([0.0, 0.2, 0.4])
+    opts = dict(rtol=1e-6, atol=1e-8, host_loop=True)
+    flat = solve_implicit_ode(vdp(eps), x0, t, "radau_iia", **opts)
+    grid = solve_implicit_ode(vdp(eps.reshape(2, 2, 1)), x0.reshape(2, 2, 2), t, **opts)
+    assert grid.x.shape == (2, 2, 3, 2) and grid.status.shape == (2, 2)
+    torch.testing.assert_close(grid.x.reshape(4, 3, 2), flat.x, rtol=1e-13, atol=1e-13)
+    assert grid.stats.n_steps.reshape(4).tolist() == flat.stats.n_steps.tolist()
+    alone = solve_implicit_ode(vdp(1e-3), x0[2], t, **opts)
+    assert alone.x.shape == (3, 2) and alone.status.shape == ()
+    torch.testing.assert_close(alone.x, flat.x[2], rtol=1e-13, atol=1e-13)
+
+
+def test_float32_host_loop_matches_torch_driver_and_reference():
+    """float32 end to end: dtype kept, same accuracy as the torch driver against scipy."""
+    eps, t = 1e-2, torch.tensor([0.0, 1.0], dtype=torch.float32)
+    x0 = torch.tensor([[2.0, 0.0]], dtype=torch.float32)
+    host, dev = both_paths(vdp(eps), x0, t, rtol=1e-4, atol=1e-4)
+    assert host.x.dtype == torch.float32 and host.success
+    # float32 rounding differs between numpy and torch kernels: a step or two may differ
+    assert abs(int(host.stats.n_steps[0]) - int(dev.stats.n_steps[0])) <= 2
+    ref = vdp_scipy(eps, 1.0)
+    for sol in (host, dev):
+        assert np.abs(sol.x[0, -1].double().numpy() - ref).max() < 2e-3
+
+
+def test_blow_up_and_max_steps_statuses_and_messages_as_torch_driver():
+    """x' = x^2 escapes to infinity at t = 1 from x0 = 1 (the other member, x0 = -1, decays
+    to -1 / (1 + t)); max_steps stops a long stiff run. Statuses and messages as the torch
+    driver's."""
+    x0 = torch.tensor([[1.0], [-1.0]])
+    host, dev = both_paths(lambda t, x: x**2, x0, torch.tensor([0.0, 2.0]))
+    assert host.status[0] in (Status.NON_FINITE, Status.STEP_TOO_SMALL)
+    assert host.status[1] == Status.SUCCESS
+    assert host.status.tolist() == dev.status.tolist()
+    assert host.messages == dev.messages
+    assert any("sample (0,)" in m and "t = 1" in m for m in host.messages)
+    torch.testing.assert_close(host.x[1, -1], torch.tensor([-1 / 3]), rtol=1e-5, atol=1e-6)
+    few, few_dev = both_paths(
+        vdp(1e-6), torch.tensor([[2.0, 0.0]]), torch.tensor([0.0, 2.0]), max_steps=5
+    )
+    assert few.status[0] == Status.MAX_STEPS and few.messages == few_dev.messages
+    assert int(few.stats.n_steps[0]) + int(few.stats.n_rejected[0]) == 5
+
+
+class Decay(torch.nn.Module):
+    """x' = -k x (x1) and a nonlinear damped oscillator (x2, x3) with parameters k."""
+
+    def __init__(self):
+        super().__init__()
+        self.k = torch.nn.Parameter(torch.tensor([3.0, 2.0, 0.5]))
+
+    def forward(self, t, x):
+        k = self.k
+        x1, x2, x3 = x[..., 0], x[..., 1], x[..., 2]
+        return torch.stack([-k[0] * x1, x3, -k[1] * x2 - k[2] * x3 * (1 + x2**2)], -1)
+
+
+def test_gradients_match_closed_form_finite_differences_and_torch_driver(central_difference):
+    """d loss / d (x0, k) by the implicit function theorem on the replayed steps: equal to the
+    torch driver's, to central differences, and for x1 = x0 e^{-k0 T} to the closed form."""
+    model = Decay()
+    x0 = torch.tensor([[1.0, 0.5, -0.2]], requires_grad=True)
+    t = torch.tensor([0.0, 0.7, 1.5])
+    opts = dict(rtol=1e-10, atol=1e-10)
+
+    def loss(host_loop):
+        sol = solve_implicit_ode(model, x0, t, "radau_iia", host_loop=host_loop, **opts)
+        assert sol.stats.extra["host_loop"] == host_loop
+        return sol.x[..., -1, :].pow(2).sum() + sol.at(torch.tensor([1.1])).sum()
+
+    g_host = torch.autograd.grad(loss(True), (x0, model.k))
+    g_dev = torch.autograd.grad(loss(False), (x0, model.k))
+    for a, b in zip(g_host, g_dev, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
+    fd_x = central_difference(lambda: loss(True), x0)
+    fd_k = central_difference(lambda: loss(True), model.k)
+    # adaptive steps move with the perturbation: FD agrees to about the tolerance
+    assert float((g_host[0] - fd_x).abs().max() / fd_x.abs().max()) < 1e-5
+    assert float((g_host[1] - fd_k).abs().max() / fd_k.abs().max()) < 1e-5
+    # closed form of the x1 part: d/dk0 [x1(T)^2 + x1(1.1)] with x1 = x0 e^{-k0 t}
+    k0, a = 3.0, 1.0
+    exact = -2 * 1.5 * a**2 * np.exp(-2 * k0 * 1.5) - 1.1 * a * np.exp(-k0 * 1.1)
+    assert abs(float(g_host[1][0]) - exact) < 1e-7 * abs(exact)
+
+
+def test_grad_mode_does_not_change_the_numbers():
+    """With the IFT graph (replay) or without it, the outputs are bit for bit the same."""
+    mu = torch.tensor(1.5, requires_grad=True)
+
+    def osc(t, x):
+        return torch.stack([mu * (1 - x[..., 1] ** 2) * x[..., 0] - x[..., 1], x[..., 0]], -1)
+
+    x0 = torch.tensor([[0.5, 1.0], [1.0, -0.5]])
+    t = torch.linspace(0.0, 2.0, 6)
+    with_grad = solve_implicit_ode(osc, x0, t, rtol=1e-7, atol=1e-9, host_loop=True)
+    with torch.no_grad():
+        without = solve_implicit_ode(osc, x0, t, rtol=1e-7, atol=1e-9, host_loop=True)
+    assert with_grad.x.requires_grad and not without.x.requires_grad
+    torch.testing.assert_close(with_grad.x.detach(), without.x, rtol=0, atol=0)
+
+
+def _rotation_first_axis_only(t, x):
+    """x' = w [x2, -x1], w = 1 + |x|^2, written with x[:, i]: wrong when stages are stacked
+    on a leading axis, so it is evaluated stage by stage."""
+    w = 1 + x.square().sum(-1, keepdim=True)
+    return w * torch.stack([x[:, 1], -x[:, 0]], -1)
+
+
+def test_stage_by_stage_models_and_exact_rotation():
+    """A model that cannot take stacked stages runs stage by stage on the host too; |x| is
+    conserved, so the exact solution is a rotation by the angle w(x0) t."""
+    x0 = torch.tensor([[1.0, 0.0], [0.3, -0.4]])
+    t = torch.tensor([0.0, 1.0])
+    host, dev = both_paths(_rotation_first_axis_only, x0, t, rtol=1e-9, atol=1e-11)
+    assert not host.stats.extra["stacked_stages"]
+    assert_same_run(host, dev)
+    w = 1 + x0.square().sum(-1)
+    c, s = torch.cos(w), torch.sin(w)
+    exact = torch.stack([c * x0[:, 0] + s * x0[:, 1], -s * x0[:, 0] + c * x0[:, 1]], -1)
+    assert float((host.x[:, -1] - exact).abs().max()) < 1e-7
+
+
+def test_sampled_input_held_per_interval_against_exact_discretisation():
+    """x' = -50 (x - u) with a zero-order-hold input (eq. 8.34): exact x_{k+1} = u_k +
+    (x_k - u_k) e^{-50 dt}. Inputs disable stage stacking; the host loop evaluates stage by
+    stage at the torch driver's stage times. Near the input jumps the step control rejects
+    many steps and a rounding-level difference in the error estimate (a difference of
+    nearly equal numbers, where ulps of the stages become ~1e-10 relative) can flip one
+    accept/reject decision, after which the two step sequences differ a little: both meet
+    the tolerance."""
+    t = torch.linspace(0.0, 1.0, 5)
+    u = torch.sin(3 * t)[:, None]
+    rhs = bind_rhs(lambda t, x, u: -50 * (x - u), u, t)
+    x0 = torch.tensor([[0.5], [1.0]])
+    host, dev = both_paths(rhs, x0, t, rtol=1e-7, atol=1e-9)
+    assert not host.stats.extra["stacked_stages"] and host.success
+    x, exact = x0[:, 0].clone(), [x0[:, 0].clone()]
+    for k in range(4):
+        x = u[k] + (x - u[k]) * np.exp(-50 * float(t[k + 1] - t[k]))
+        exact.append(x)
+    exact = torch.stack(exact, -1)
+    assert float((host.x[..., 0] - exact).abs().max()) < 1e-6
+    assert float((host.x - dev.x).abs().max()) < 1e-6
+    steps_host, steps_dev = host.stats.n_steps.double(), dev.stats.n_steps.double()
+    assert float(((steps_host - steps_dev).abs() / steps_dev).max()) < 0.05
+
+
+@settings(max_examples=5, deadline=None)
+@given(lam=st.floats(-1e6, -1e-2), x0=st.floats(-3.0, 3.0))
+def test_linear_test_equation_any_stiffness_same_as_torch_driver(lam, x0):
+    """x' = lam x (eq. 6.40) for any stiffness: same steps as the torch driver, exact to tol."""
+    t = torch.tensor([0.0, 0.3, 1.0])
+    host, dev = both_paths(lambda t, x: lam * x, torch.tensor([[x0]]), t, rtol=1e-8, atol=1e-10)
+    assert_same_run(host, dev, rtol=1e-9)
+    exact = x0 * np.exp(lam * t.numpy())
+    assert np.abs(host.x[0, :, 0].numpy() - exact).max() < 1e-7 * (1 + abs(x0))
+
+
+def test_dispatch_auto_option_and_errors():
+    """ "auto" takes the host loop for small CPU explicit ODEs only; odeint passes the option;
+    host_loop=True where impossible and unknown values are errors."""
+    t = torch.tensor([0.0, 0.1])
+    small = torch.tensor([[2.0, 0.0]])
+    big = small.expand(HOST_MAX_NUMEL // 2 + 1, 2)
+    assert solve_implicit_ode(vdp(1e-2), small, t).stats.extra["host_loop"]
+    assert not solve_implicit_ode(vdp(1e-2), big, t).stats.extra["host_loop"]
+    assert not solve_implicit_ode(vdp(1e-2), small, t, adaptive=False).stats.extra["host_loop"]
+    with pytest.raises(InputValidationError, match="not fixed steps"):
+        solve_implicit_ode(vdp(1e-2), small, t, adaptive=False, host_loop=True)
+    via = odeint(vdp(1e-2), small, t, method="radau_iia", host_loop=False)
+    assert not via.stats.extra["host_loop"]
+    dae = SemiExplicitDAE(lambda t, x, z: -z, lambda t, x, z: z - x)
+    sol = daeint(dae, small[:, :1], small[:, :1], t)
+    assert not sol.stats.extra["host_loop"]
+    with pytest.raises(InputValidationError, match="DAEs use the torch driver"):
+        daeint(dae, small[:, :1], small[:, :1], t, host_loop=True)
+    with pytest.raises(InputValidationError, match="s n = 27 > 24"):
+        solve_implicit_ode(lambda t, x: -x, torch.ones(1, 9), t, host_loop=True)
+    with pytest.raises(InputValidationError, match="host_loop must be"):
+        solve_implicit_ode(vdp(1e-2), small, t, host_loop="yes")
