@@ -260,6 +260,36 @@ def test_compiled_chunks_match_eager():
     assert compiled.stats.extra["compile_s"] >= 0.0
 
 
+def test_big_states_take_fewer_steps_per_compiled_chunk(monkeypatch):
+    """Chunk length follows the state size (cache budget ``CHUNK_STATE_BYTES``), at least one
+    output interval; a model compiled at two chunk lengths keeps both and matches eager."""
+    from integrators import explicit
+
+    def chunk_len(batch, substeps=1, dtype=torch.float64):
+        return explicit._outputs_per_chunk(torch.zeros(batch, 2, dtype=dtype), substeps)
+
+    assert chunk_len(1) == chunk_len(1024) == explicit.CHUNK_STEPS == 8
+    assert (chunk_len(16384), chunk_len(32768), chunk_len(65536)) == (4, 2, 1)
+    assert chunk_len(65536, dtype=torch.float32) == 2
+    assert chunk_len(1024, substeps=4) == 2 and chunk_len(65536, substeps=4) == 1
+
+    def f(t, x):
+        return torch.stack([x[..., 1], -torch.sin(x[..., 0])], dim=-1)
+
+    x0 = torch.tensor([[1.0, 0.0], [0.5, 2.0], [-1.0, 0.3]], dtype=torch.float64)
+    t = torch.linspace(0, 2, 12, dtype=torch.float64)
+    with torch.no_grad():
+        eager = odeint(f, x0, t, method="rk4", compile=False)
+        long_chunks = odeint(f, x0[:2], t, method="rk4", compile=True)
+        monkeypatch.setattr(explicit, "CHUNK_STATE_BYTES", 48)  # 3 x 2 float64: one step
+        short_chunks = odeint(f, x0, t, method="rk4", compile=True)
+    if short_chunks.stats.extra["compiled"]:  # (compilation may be unavailable)
+        (entry,) = explicit._CACHE[f].values()
+        assert sorted(entry.compiled) == [1, 8]
+    torch.testing.assert_close(long_chunks.x, eager.x[:2], rtol=1e-13, atol=1e-13)
+    torch.testing.assert_close(short_chunks.x, eager.x, rtol=1e-13, atol=1e-13)
+
+
 def test_huge_page_output_buffer_gives_the_same_solution(monkeypatch):
     """With the huge-page threshold lowered, the no-grad output buffer comes from an anonymous
     mapping (``torch.frombuffer``): the solution equals the ordinary buffer's exactly, the
