@@ -27,7 +27,7 @@ import torch
 from ._irk_core import IRKCore, host_shape, masked_update
 from ._irk_dense import StepRecords
 from .errors import InputValidationError
-from .radau import _MAX_FACTOR, _MIN_FACTOR, _REUSE_THETA, _initial_step, _stop, embedded_weights
+from .radau import _initial_step, _stop, embedded_weights, next_step_sizes
 from .solution import Status
 
 # Largest ``x0.numel()`` that "auto" sends to the host loop. Measured with one thread
@@ -349,17 +349,9 @@ def integrate_adaptive_host(
             n_rej += reject
 
             hh = h_step.astype(np.float64, copy=False)
-            safety = 0.9 * (2 * max_iter + 1) / (2 * max_iter + iters)
-            err_c = np.maximum(err, 1e-10)
-            pred = hh / np.maximum(h_old, 1e-300) * (err_old / err_c) ** expo
-            pred[first | (h_old <= 0)] = 1.0
-            scaled = safety * np.minimum(pred, 1.0) * err_c**-expo
-            h_rej = hh * np.minimum(np.maximum(scaled, _MIN_FACTOR), 1.0)
-            h_rej[~finite] = 0.25 * hh[~finite]
-            grow = np.minimum(scaled, _MAX_FACTOR)
-            slow = (theta > _REUSE_THETA) & (iters > 2)  # slow contraction: new Jacobian
-            keep_lu = ~slow & (grow < 1.2) & (grow >= 1.0)
-            h_acc = np.where(keep_lu, hh, hh * grow)
+            err_c, h_acc, h_rej, slow = next_step_sizes(
+                hh, err, finite, err_old, h_old, first, iters, theta, max_iter, expo
+            )
 
             if accept.any():  # accepted samples advance
                 t_start = np.where(accept, tcur, np.inf).astype(npdt)

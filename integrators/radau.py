@@ -227,18 +227,9 @@ def integrate_adaptive(
         n_rej += reject
 
         hh = h_step.astype(np.float64)
-        with np.errstate(all="ignore"):
-            safety = 0.9 * (2 * max_iter + 1) / (2 * max_iter + iters)
-            err_c = np.maximum(err, 1e-10)
-            pred = hh / np.maximum(h_old, 1e-300) * (err_old / err_c) ** expo
-            pred[first | (h_old <= 0)] = 1.0
-            scaled = safety * np.minimum(pred, 1.0) * err_c**-expo
-            h_rej = hh * np.minimum(np.maximum(scaled, _MIN_FACTOR), 1.0)
-            h_rej[~finite] = 0.25 * hh[~finite]
-            grow = np.minimum(scaled, _MAX_FACTOR)
-        slow = (theta > _REUSE_THETA) & (iters > 2)  # Newton contracted slowly: new Jacobian
-        keep_lu = ~slow & (grow < 1.2) & (grow >= 1.0)
-        h_acc = np.where(keep_lu, hh, hh * grow)
+        err_c, h_acc, h_rej, slow = next_step_sizes(
+            hh, err, finite, err_old, h_old, first, iters, theta, max_iter, expo
+        )
 
         if accept.any():  # accepted samples advance
             t0 = np.where(accept, tcur, np.inf).astype(hdt)
@@ -283,6 +274,36 @@ def integrate_adaptive(
         n_f=core.n_f_evals,
         records=records,
     )
+
+
+def next_step_sizes(h, err, finite, err_old, h_old, first, iters, theta, max_iter, expo):
+    """The step-size rule of the module docstring, per sample (host arrays (*batch,)).
+
+    Args:
+        h: float64 step just attempted; err: its scaled error norm (inf where not finite);
+        finite: whether the step's state and error are finite; err_old, h_old: error (floored
+        at 1e-2) and size of the sample's last accepted step (h_old <= 0: none yet); first:
+        no step accepted yet; iters, theta: Newton iterations and contraction rate;
+        max_iter: Newton iteration limit; expo: ``1 / (s + 1)``.
+
+    Returns:
+        ``(err_c, h_accept, h_reject, slow)``: the error floored at 1e-10, the next step after
+        acceptance (``h`` itself when the factorisation is kept: growth in [1, 1.2) and fast
+        Newton), the retry step after rejection (``h / 4`` where non-finite) and whether
+        Newton contracted so slowly that the Jacobian must be re-evaluated.
+    """
+    with np.errstate(all="ignore"):
+        safety = 0.9 * (2 * max_iter + 1) / (2 * max_iter + iters)
+        err_c = np.maximum(err, 1e-10)
+        pred = h / np.maximum(h_old, 1e-300) * (err_old / err_c) ** expo
+        pred[first | (h_old <= 0)] = 1.0
+        scaled = safety * np.minimum(pred, 1.0) * err_c**-expo
+        h_rej = h * np.minimum(np.maximum(scaled, _MIN_FACTOR), 1.0)
+        h_rej[~finite] = 0.25 * h[~finite]
+        grow = np.minimum(scaled, _MAX_FACTOR)
+    slow = (theta > _REUSE_THETA) & (iters > 2)
+    keep_lu = ~slow & (grow < 1.2) & (grow >= 1.0)
+    return err_c, np.where(keep_lu, h, h * grow), h_rej, slow
 
 
 def _stage_guess(c, prev_W, have_prev, ratio, xdot, z, s):
