@@ -292,6 +292,7 @@ def solve_implicit_ode(
     t0 = t[0].expand(*x0.shape[:-1], 1) if adaptive else t[0]
     with torch.no_grad():
         xdot0 = system.rhs_f(t0, x0, z0, signal.at(t0))
+    _check_derivative_shape(xdot0, x0)
     return _run(
         core,
         x0,
@@ -308,6 +309,18 @@ def solve_implicit_ode(
         messages=[],
         method_name=tab.name,
     )
+
+
+def _check_derivative_shape(xdot0, x0) -> None:
+    """The model's output at (t0, x0) must be a tensor of the state's shape."""
+    if not isinstance(xdot0, torch.Tensor):
+        raise InputValidationError(f"rhs must return a tensor, got {type(xdot0).__name__}.")
+    if xdot0.shape != x0.shape:
+        raise InputValidationError(
+            f"rhs(t0, x0) returned shape {tuple(xdot0.shape)} for x0 of shape "
+            f"{tuple(x0.shape)}; it must return the state derivative, shape (*batch, n) "
+            "(odeint expands x0 when the model's parameters carry a larger batch)."
+        )
 
 
 def _check_adaptive(tab, adaptive):

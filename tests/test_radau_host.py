@@ -353,3 +353,16 @@ def test_dispatch_auto_option_and_errors():
         solve_implicit_ode(lambda t, x: -x, torch.ones(1, 9), t, host_loop=True)
     with pytest.raises(InputValidationError, match="host_loop must be"):
         solve_implicit_ode(vdp(1e-2), small, t, host_loop="yes")
+
+
+@pytest.mark.parametrize("host_loop", [True, False])
+def test_wrong_model_output_shape_is_named_on_both_drivers(host_loop):
+    """A model returning the wrong number of states, or one derivative for the whole batch,
+    fails before the first step with both shapes in the message."""
+    x0 = torch.tensor([[1.0, 2.0], [0.0, -1.0]])
+    t = torch.tensor([0.0, 0.5])
+    with pytest.raises(InputValidationError, match=r"returned shape \(2, 3\) for x0 of shape"):
+        solve_implicit_ode(lambda t, x: torch.cat([x, x[..., :1]], -1), x0, t, host_loop=host_loop)
+    rate = torch.tensor([1.0, -2.0])
+    with pytest.raises(InputValidationError, match=r"returned shape \(2,\) for x0 of shape"):
+        solve_implicit_ode(lambda t, x: rate, x0, t, host_loop=host_loop)
