@@ -355,7 +355,7 @@ def integrate_adaptive_host(
 
             if accept.any():  # accepted samples advance
                 t_start = np.where(accept, tcur, np.inf).astype(npdt)
-                accepted.append((t_start, h_step, accept, W, host, Wg))
+                accepted.append((t_start, h_step, accept, W, host, Wg, x))
                 xdot_new = model.f(host[1], x_new, z)
                 x = _pick(accept, x_new, x)
                 xdot = _pick(accept, xdot_new, xdot)
@@ -419,6 +419,20 @@ def _filter_weights(core: IRKCore, npdt) -> np.ndarray:
     return M.reshape(-1, n * n).astype(npdt)
 
 
+def _kron_map(A: np.ndarray, n: int) -> np.ndarray:
+    """``P`` (n^2, (s n)^2) with ``vec(A (x) G) = vec(G) @ P`` (cached per ``A`` and ``n``):
+    every column has one nonzero ``a_ij``, so the entries are the exact products."""
+    key = (A.tobytes(), A.dtype.str, n)
+    if key not in _KRON_MAPS:
+        units = np.eye(n * n, dtype=A.dtype).reshape(n * n, n, n)
+        P = A[None, :, None, :, None] * units[:, None, :, None, :]  # (n^2, s, n, s, n)
+        _KRON_MAPS[key] = P.reshape(n * n, -1)
+    return _KRON_MAPS[key]
+
+
+_KRON_MAPS: dict = {}
+
+
 def _factorize(A, filt, G, h):
     """Inverse of the simplified-Newton matrix ``J = I + h A (x) G`` (eq. 7.16, ``G = -df/dx``)
     and the error filter's real block ``(lambda_0 / h I + G)^{-1}`` read off it.
@@ -433,9 +447,11 @@ def _factorize(A, filt, G, h):
         singular)).
     """
     B, n, s = G.shape[0], G.shape[-1], A.shape[0]
+    sn = s * n
     hb = h[:, None, None]
-    J = (A[:, None, :, None] * G[:, None, :, None, :]).reshape(B, s * n, s * n) * hb
-    J[:, range(s * n), range(s * n)] += 1.0
+    J = (G.reshape(B, n * n) @ _kron_map(A, n)).reshape(B, sn, sn)
+    J *= hb
+    J += np.eye(sn, dtype=J.dtype)
     inv, sing = _inverse(J)
     inv_r = (inv.reshape(B, -1) @ filt).reshape(B, n, n) * hb
     out = np.empty((B, 2 * s * n, s * n), dtype=inv.dtype)
@@ -526,11 +542,12 @@ def _records(core, model, x0, z0, t0, accepted):
     """:class:`StepRecords` (dense output) of the accepted steps, one record per driver
     iteration that advanced a sample, as the torch driver keeps them.
 
-    The steps are replayed in torch, ``x_{k+1} = x_k + h sum_i b_i K_i`` (eq. 7.18) with the
-    converged stages; when anything requires grad (decided by the first ``core.ift``, as in the
-    torch driver) the stages carry implicit-function-theorem gradients, so the states have the
-    torch driver's graph. ``ift`` changes no value, so the outputs are identical with and
-    without autograd (a few tensor operations per step either way)."""
+    Values come from the host loop (the step-start states and converged stages it kept).
+    When anything requires grad (decided by the first ``core.ift``, as in the torch driver)
+    the steps are also replayed in torch, ``x_{k+1} = x_k + h sum_i b_i K_i`` (eq. 7.18) with
+    implicit-function-theorem stages, and each recorded state is the host value plus the
+    replay's zero-valued ``x - stop_grad(x)``: the torch driver's gradients, and outputs
+    identical with and without autograd."""
     batch, s, n = model.batch, core.s, core.system.n
     hshape = host_shape(batch)
     records = StepRecords(core.tab, n)
@@ -538,16 +555,18 @@ def _records(core, model, x0, z0, t0, accepted):
     records.append(start, np.ones(batch, dtype=model.npdt), x0, x0.new_zeros(*batch, s, n), z0)
     with_grad = torch.is_grad_enabled() and core.needs_grad is not False
     x = x0
-    for t_start, h, accept, W, host, Wg in accepted:
+    for t_start, h, accept, W, host, Wg, x_host in accepted:
         t_start, h_rec = t_start.reshape(batch), h.reshape(batch)
-        h_t, mask = torch.from_numpy(h_rec), accept.reshape(hshape)
         W_t = torch.from_numpy(Wg).reshape(*batch, s, n)
+        x_rec = torch.from_numpy(x_host).reshape(*batch, n)
         if with_grad:
+            h_t, mask = torch.from_numpy(h_rec), accept.reshape(hshape)
             tk = model.times(host[0])
             times = core.stage_times(tk, h_t[..., None], len(batch), stacked=model.times(host[2:]))
             inputs = core.stage_inputs(times, tk, fixed=False)
             W_t = core.ift(times, inputs, h_t, x, torch.from_numpy(W).reshape(W_t.shape), mask)
             with_grad = core.needs_grad is not False
-        records.append(t_start, h_rec, x, W_t, z0)
-        x = masked_update(mask, core.step_end(x, h_t, W_t), x)
+            x_rec = x_rec + (x - x.detach())
+            x = masked_update(mask, core.step_end(x, h_t, W_t), x)
+        records.append(t_start, h_rec, x_rec, W_t, z0)
     return records
