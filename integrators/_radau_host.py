@@ -155,10 +155,21 @@ def _inverse(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return inv.numpy(), info.numpy() != 0
 
 
+def _any(mask: np.ndarray) -> bool:
+    """``mask.any()`` for a host bool array, without the method's Python-level wrapper (the
+    step loop asks this some 25 times per step)."""
+    return np.count_nonzero(mask) > 0
+
+
+def _all(mask: np.ndarray) -> bool:
+    """``mask.all()`` for a host bool array (see :func:`_any`)."""
+    return np.count_nonzero(mask) == mask.size
+
+
 def _pick(mask: np.ndarray, new: np.ndarray, old: np.ndarray) -> np.ndarray:
     """``new`` where the (B,) ``mask`` holds, else ``old`` (trailing axes broadcast); ``new``
     itself when every member moves (the common case, one check instead of a select)."""
-    if mask.all():
+    if _all(mask):
         return new
     return np.where(mask.reshape(-1, *([1] * (np.ndim(new) - 1))), new, old)
 
@@ -257,10 +268,10 @@ def integrate_adaptive_host(
     # the model runs in inference mode (no autograd bookkeeping: ~25 % less per call); only
     # the Jacobian leaves it, because it needs autograd
     with np.errstate(all="ignore"), torch.inference_mode():
-        while active.any():
+        while _any(active):
             h = np.where(active & (tcur + h >= t_end), t_end - tcur, h)
             tiny_h = active & (h <= min_step * np.maximum(np.abs(tcur), 1.0))
-            if tiny_h.any():
+            if _any(tiny_h):
                 code = np.where(nonfinite_last, Status.NON_FINITE, Status.STEP_TOO_SMALL)
                 stop(
                     tiny_h,
@@ -270,19 +281,19 @@ def integrate_adaptive_host(
                     "check the model",
                 )
             over = active & (attempts >= max_steps)
-            if over.any():
+            if _any(over):
                 stop(
                     over,
                     np.int8(Status.MAX_STEPS),
                     f"max_steps = {max_steps} step attempts were used; raise max_steps",
                 )
-            if not active.any():
+            if not _any(active):
                 break
             h_step = h
             # t_k, t_k + h and the stage times t_k + c_i h, rounded as the torch driver does
             host = np.empty((2 + s, B), dtype=npdt)
             host[0], host[1], host[2:] = tcur, tcur + h, tcur + c_col * h
-            if need_jac.any() and (active & need_jac).any():
+            if _any(need_jac) and _any(active & need_jac):
                 jac_mask = active & need_jac
                 G = _jacobian(core, model, host[0], x, z, xdot, jac_mask, G)
                 n_jac += 1
@@ -291,7 +302,7 @@ def integrate_adaptive_host(
                 need_jac &= ~jac_mask
             lu_mask = active & (need_lu | (h != h_fact))
             singular = flags()
-            if lu_mask.any():
+            if _any(lu_mask):
                 h_lu = np.where(lu_mask, h, np.where(h_fact > 0, h_fact, h))
                 inv, inv_r, sing = _factorize(A, filt, G, h_lu)
                 J_inv = inv if J_inv is None else _pick(lu_mask, inv, J_inv)
@@ -322,7 +333,7 @@ def integrate_adaptive_host(
             n_newton += iters
             attempts += active
             failed = active & (~conv | singular)
-            if failed.any():  # refresh a stale Jacobian at the same step, else halve the step
+            if _any(failed):  # refresh a stale Jacobian at the same step, else halve the step
                 need_jac |= failed & ~fresh
                 h = np.where(failed & fresh, 0.5 * h, h)
                 nonfinite_last = np.where(failed, nonfin, nonfinite_last)
@@ -330,13 +341,13 @@ def integrate_adaptive_host(
                 n_rej += failed
 
             ok = active & conv & ~singular
-            Wg = W if np.isfinite(W).all() else np.nan_to_num(W)
+            Wg = W if np.isfinite(W.sum()) else np.nan_to_num(W)
             x_new = x + h_step[:, None] * (b @ Wg)  # eq. 7.18
             # filtered embedded error estimate (see integrators.radau), refined after rejections
             eK = gamma_e @ W
             err_x = (real_inv @ (xdot + eK)[:, :, None])[:, :, 0]
             retry = ok & (first | rejected_last)
-            if retry.any():
+            if _any(retry):
                 f_err = model.f(host[0], x + err_x, z)
                 err_retry = (real_inv @ (f_err + eK)[:, :, None])[:, :, 0]
                 err_x = _pick(retry, err_retry, err_x)
@@ -353,7 +364,7 @@ def integrate_adaptive_host(
                 hh, err, finite, err_old, h_old, first, iters, theta, max_iter, expo
             )
 
-            if accept.any():  # accepted samples advance
+            if _any(accept):  # accepted samples advance
                 t_start = np.where(accept, tcur, np.inf).astype(npdt)
                 accepted.append((t_start, h_step, accept, W, host, Wg, x))
                 xdot_new = model.f(host[1], x_new, z)
@@ -467,12 +478,12 @@ def _stage_guess(lagrange, powers, c, prev_W, have_prev, ratio, xdot):
     ``x'_k`` at every stage. ``lagrange`` (s, s) holds the coefficients of ``l_j``,
     ``powers`` is ``0..s-1``."""
     s = len(c)
-    if not have_prev.any():
+    if not _any(have_prev):
         return np.repeat(xdot[:, None, :], s, axis=1)
     tau = 1.0 + c * ratio[:, None].astype(np.float64, copy=False)  # (B, s)
     L = (tau[:, :, None] ** powers) @ lagrange  # L[b, i, j] = l_j(tau_bi)
     ext = (L @ prev_W).astype(prev_W.dtype, copy=False)
-    if have_prev.all():
+    if _all(have_prev):
         return ext
     return _pick(have_prev, ext, np.repeat(xdot[:, None, :], s, axis=1))
 
@@ -528,12 +539,12 @@ def _newton(model, A, t_stage, tk, h, xk, z, W, J_inv, sc_x, tol, max_iter, acti
             live &= (th < 1.0) & (th ** (max_iter - it) * rate <= tol)
             done = live & (th * rate <= tol)
         dW = both[:, :sn].reshape(B, s, n)
-        W = W + dW if live.all() else _pick(live, W + dW, W)
+        W = W + dW if _all(live) else _pick(live, W + dW, W)
         iters += live
         conv |= done
         live &= ~done
         norm_old = norm
-        if not live.any():
+        if not _any(live):
             break
     return W, conv, iters, theta, non_finite
 

@@ -296,10 +296,9 @@ def next_step_sizes(h, err, finite, err_old, h_old, first, iters, theta, max_ite
         safety = 0.9 * (2 * max_iter + 1) / (2 * max_iter + iters)
         err_c = np.maximum(err, 1e-10)
         pred = h / np.maximum(h_old, 1e-300) * (err_old / err_c) ** expo
-        pred[first | (h_old <= 0)] = 1.0
-        scaled = safety * np.minimum(pred, 1.0) * err_c**-expo
-        h_rej = h * np.minimum(np.maximum(scaled, _MIN_FACTOR), 1.0)
-        h_rej[~finite] = 0.25 * h[~finite]
+        pred = np.where(first | (h_old <= 0), 1.0, np.minimum(pred, 1.0))
+        scaled = safety * pred * err_c**-expo
+        h_rej = np.where(finite, h * np.minimum(np.maximum(scaled, _MIN_FACTOR), 1.0), 0.25 * h)
         grow = np.minimum(scaled, _MAX_FACTOR)
     slow = (theta > _REUSE_THETA) & (iters > 2)
     keep_lu = ~slow & (grow < 1.2) & (grow >= 1.0)
