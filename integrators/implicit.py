@@ -265,8 +265,8 @@ def solve_implicit_ode(
             fixed), ``newton_tol`` (override of the stopping tolerance), ``linear_solver``
             ("auto", "transformed", "full"), ``dt0`` (first step, adaptive), ``host_loop``
             (adaptive explicit ODEs on the CPU: "auto" (default) runs the step loop in numpy
-            when ``s n <= 24`` and ``x0.numel() <= 256``, where it takes the same steps
-            1.4-1.9x faster than the vectorised torch loop; True forces it (an error where
+            when ``s n <= 24`` and ``x0.numel() <= 1024``, where it takes the same steps
+            1.4-2x faster than the vectorised torch loop; True forces it (an error where
             impossible), False keeps the torch loop; the choice is in
             ``stats.extra["host_loop"]``); for DAEs
             ``index_tol`` and ``index_check_every`` (steps between forced Jacobian
