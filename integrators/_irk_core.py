@@ -165,7 +165,7 @@ class IRKCore:
         """Stage residuals (*batch, s, p) of the stage unknowns ``W`` (*batch, s, p).
 
         When the problem has no input and its functions accept a leading extra batch
-        dimension (tested once, see :meth:`_stacking_works`), all stages are evaluated in
+        dimension (tested once, see :meth:`stacking_works`), all stages are evaluated in
         one call with the stage index as leading batch dimension; otherwise stage by stage.
         """
         n = self.system.n
@@ -173,7 +173,7 @@ class IRKCore:
         self.n_f_evals += self.s
         if self.stack_stages is None:
             X = self.stage_states(xk, h, K)
-            self.stack_stages = self._stacking_works(times, inputs, K, X, W[..., n:])
+            self.stack_stages = self.stacking_works(times, inputs, K, X, W[..., n:])
         if self.stack_stages:
             Xs = torch.addcmul(xk, h[..., None], self._apply_A(K).movedim(-2, 0))
             if self.system.kind == "ode":  # K - f(t, X) (eq. 7.14), laid out like K
@@ -193,7 +193,7 @@ class IRKCore:
             dim=-2,
         )
 
-    def _stacking_works(self, times, inputs, K, X, Z) -> bool:
+    def stacking_works(self, times, inputs, K, X, Z) -> bool:
         """Whether one call with stacked stages (s, *batch, .) reproduces the stage-by-stage
         residuals, checked at a point near the first stage values perturbed differently in
         every entry (so a function that mixes up batch and stage dimensions is caught). A

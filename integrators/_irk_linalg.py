@@ -68,10 +68,11 @@ class StageLinearSolver:
 
     @property
     def real_eigenvalue(self) -> float | None:
-        """The first real eigenvalue of ``A^{-1}`` (used by the Radau IIA error filter)."""
-        if self.mode != "transformed" or self.lam_r.numel() == 0:
+        """The first real eigenvalue of ``A^{-1}`` in float64 (used by the Radau IIA error
+        filter), None without a real eigenvalue or outside the transformed mode."""
+        if self.mode != "transformed":
             return None
-        return float(self.lam_r[0])
+        return self._lam_r0
 
     def factorize(self, E: torch.Tensor, G: torch.Tensor, h: torch.Tensor, parts=None):
         """LU factors of the iteration matrix.
@@ -171,7 +172,7 @@ class StageLinearSolver:
             M = weights[:, None, :, None, None, None] * (
                 eye_p[None, :, None, None, :, None] * eye_p[None, None, None, :, None, :]
             )
-            self._eyes[key] = (M.reshape(sp * sp, p * p) / self._lam_r0).contiguous()
+            self._eyes[key] = (M.reshape(sp * sp, p * p) / self.real_eigenvalue).contiguous()
         block = inverse.reshape(*inverse.shape[:-2], sp * sp) @ self._eyes[key]
         return block.reshape(*inverse.shape[:-2], p, p) * h[..., None, None]
 

@@ -27,7 +27,7 @@ import torch
 from ._irk_core import IRKCore, host_shape, masked_update
 from ._irk_dense import StepRecords
 from .errors import InputValidationError
-from .radau import _initial_step, _stop, embedded_weights, next_step_sizes
+from .radau import embedded_weights, initial_step, next_step_sizes, stop_samples
 from .solution import Status
 
 # Largest ``x0.numel()`` that "auto" sends to the host loop. Measured with one thread
@@ -128,7 +128,7 @@ class _HostModel:
 
     def decide_stacking(self, tk, h, t_stage, K, X) -> None:
         """Set ``core.stack_stages`` once, by the torch driver's own test
-        (:meth:`IRKCore._stacking_works`) at the first stage values ``K, X`` (B, s, n);
+        (:meth:`IRKCore.stacking_works`) at the first stage values ``K, X`` (B, s, n);
         ``tk, h`` (B,), ``t_stage`` (s, *batch, 1) tensor."""
         core, batch = self.core, self.batch
         tk_t, h_t = self.times(tk), torch.from_numpy(h).reshape(batch)
@@ -136,7 +136,7 @@ class _HostModel:
         inputs = core.stage_inputs(times, tk_t, fixed=False)
         K_t, X_t = (torch.from_numpy(np.array(v)).reshape(*batch, *v.shape[-2:]) for v in (K, X))
         Z_t = K_t.new_zeros(*K_t.shape[:-1], 0)
-        core.stack_stages = core._stacking_works(times, inputs, K_t, X_t, Z_t)
+        core.stack_stages = core.stacking_works(times, inputs, K_t, X_t, Z_t)
 
 
 def _writable(a: np.ndarray) -> np.ndarray:
@@ -252,7 +252,7 @@ def integrate_adaptive_host(
     accepted: list[tuple] = []  # per advancing iteration: what the records / replay need
 
     def stop(mask, code, why):
-        _stop(
+        stop_samples(
             mask.reshape(hshape),
             np.broadcast_to(code, (B,)).reshape(hshape),
             status.reshape(hshape),
@@ -262,7 +262,7 @@ def integrate_adaptive_host(
             why,
         )
 
-    h = _initial_step(core, x0, z0, xdot0, t[0], span, rtol, atol, expo, dt0)
+    h = initial_step(core, x0, z0, xdot0, t[0], span, rtol, atol, expo, dt0)
     h = h.detach().numpy().reshape(B).astype(npdt)
 
     # the model runs in inference mode (no autograd bookkeeping: ~25 % less per call); only
@@ -424,7 +424,7 @@ def _filter_weights(core: IRKCore, npdt) -> np.ndarray:
     solver, n = core.solver, core.system.n
     P_r, V_r = (v.detach().cpu().numpy().astype(np.float64) for v in (solver.P_r, solver.V_r))
     v_inv_row = P_r[0] @ np.array(core.tab.A)  # row 0 of V^{-1} = P A
-    w = np.outer(v_inv_row, V_r[:, 0]) / solver._lam_r0
+    w = np.outer(v_inv_row, V_r[:, 0]) / solver.real_eigenvalue
     eye = np.eye(n)
     M = np.einsum("ij,ac,bd->iajbcd", w, eye, eye)  # M[(i, a, j, b), (c, d)] = w_ij d_ac d_bd
     return M.reshape(-1, n * n).astype(npdt)

@@ -114,14 +114,14 @@ def integrate_adaptive(
     dummy_W = torch.cat([torch.zeros_like(x0), z0], -1)[..., None, :].expand(*batch, s, n + m)
     records.append(tcur.reshape(batch), np.ones(batch, dtype=hdt), x0, dummy_W, z0)
 
-    h = _initial_step(core, x0, z0, xdot0, t[0], span, rtol, atol, expo, dt0)
+    h = initial_step(core, x0, z0, xdot0, t[0], span, rtol, atol, expo, dt0)
     h = to_host(h, hshape).astype(hdt)
 
     while active.any():
         h = np.where(active & (tcur + h >= t_end), t_end - tcur, h)
         tiny = active & (h <= min_step * np.maximum(np.abs(tcur), 1.0))
         if tiny.any():
-            _stop(
+            stop_samples(
                 tiny,
                 np.where(nonfinite_last, Status.NON_FINITE, Status.STEP_TOO_SMALL),
                 status,
@@ -132,7 +132,7 @@ def integrate_adaptive(
                 "of index > 1, or blow up there — loosen the tolerances or check the model",
             )
         over = active & (attempts >= max_steps)
-        _stop(
+        stop_samples(
             over,
             Status.MAX_STEPS,
             status,
@@ -360,7 +360,7 @@ def _error_norm(core, mat, x_new, xdot, W, h, gamma_e, gamma, tcol, x, sc_x, tol
         return q
 
 
-def _initial_step(core, x0, z0, xdot0, t0, span, rtol, atol, expo, dt0):
+def initial_step(core, x0, z0, xdot0, t0, span, rtol, atol, expo, dt0):
     """First step: ``dt0`` or Hairer's estimate from ``x0``, ``x'(t0)`` (and ``f``'s change)."""
     batch = x0.shape[:-1]
     if dt0 is not None:
@@ -389,7 +389,7 @@ def _initial_step(core, x0, z0, xdot0, t0, span, rtol, atol, expo, dt0):
         return torch.minimum(100 * h0, h1).clamp(max=span)
 
 
-def _stop(mask, code, status, active, messages, tcur, why):
+def stop_samples(mask, code, status, active, messages, tcur, why):
     """Stop ``mask`` samples with status ``code`` (int or per-sample array) and a message; the
     other arguments but the strings are host (numpy) arrays, updated in place."""
     if not mask.any():
