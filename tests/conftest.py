@@ -2,6 +2,7 @@
 
 import pytest
 import torch
+from scipy.integrate import solve_ivp
 
 
 @pytest.fixture
@@ -34,3 +35,23 @@ def _central_difference(loss, tensor: torch.Tensor, h: float = 1e-6) -> torch.Te
 def central_difference():
     """The function ``central_difference(loss, tensor, h=1e-6)`` (finite-difference truth)."""
     return _central_difference
+
+
+def _stiff_vdp_reference(eps: float, t_end: float, y0=(2.0, 0.0)):
+    """y(t_end) of y1' = y2, y2' = ((1 - y1^2) y2 - y1) / eps by scipy Radau at rtol = atol =
+    1e-12 (the independent reference of the stiff Van der Pol tests): numpy array (2,)."""
+    ref = solve_ivp(
+        lambda t, y: [y[1], ((1 - y[0] ** 2) * y[1] - y[0]) / eps],
+        (0.0, t_end),
+        list(y0),
+        method="Radau",
+        rtol=1e-12,
+        atol=1e-12,
+    )
+    return ref.y[:, -1]
+
+
+@pytest.fixture
+def stiff_vdp_reference():
+    """The function ``stiff_vdp_reference(eps, t_end, y0=(2, 0))`` (scipy Radau at 1e-12)."""
+    return _stiff_vdp_reference

@@ -225,19 +225,7 @@ def test_stiff_linear_system_adaptive_vs_matrix_exponential():
     assert float((radau.x.detach() - exact_fixed)[..., 10:, :].abs().max()) < 1e-6
 
 
-def _vdp_reference(eps, t_end, y0=(2.0, 0.0)):
-    ref = solve_ivp(
-        lambda t, y: [y[1], ((1 - y[0] ** 2) * y[1] - y[0]) / eps],
-        (0, t_end),
-        list(y0),
-        method="Radau",
-        rtol=1e-12,
-        atol=1e-12,
-    )
-    return ref.y[:, -1]
-
-
-def test_stiff_van_der_pol_eps_1e6_to_requested_tolerance():
+def test_stiff_van_der_pol_eps_1e6_to_requested_tolerance(stiff_vdp_reference):
     """y1' = y2, y2' = ((1 - y1^2) y2 - y1) / eps, eps = 1e-6, y0 = (2, 0), t in [0, 2]."""
     eps, rtol = 1e-6, 1e-4
     sol = solve_implicit_ode(
@@ -248,7 +236,7 @@ def test_stiff_van_der_pol_eps_1e6_to_requested_tolerance():
         rtol=rtol,
         atol=rtol,
     )
-    ref = _vdp_reference(eps, 2.0)
+    ref = stiff_vdp_reference(eps, 2.0)
     assert sol.success
     rel = np.abs(sol.x[0, -1].numpy() - ref) / np.abs(ref)
     assert rel.max() < 20 * rtol, rel

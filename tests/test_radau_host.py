@@ -45,19 +45,6 @@ def vdp(eps):
     return rhs
 
 
-def vdp_scipy(eps, t_end, y0=(2.0, 0.0)):
-    """Reference: scipy Radau at rtol = atol = 1e-12."""
-    ref = solve_ivp(
-        lambda t, y: [y[1], ((1 - y[0] ** 2) * y[1] - y[0]) / eps],
-        (0.0, t_end),
-        list(y0),
-        method="Radau",
-        rtol=1e-12,
-        atol=1e-12,
-    )
-    return ref.y[:, -1]
-
-
 def both_paths(f, x0, t, **opts):
     """The same integration by the host loop and by the torch driver."""
     host = solve_implicit_ode(f, x0, t, "radau_iia", host_loop=True, **opts)
@@ -98,14 +85,14 @@ def test_factorisation_and_error_filter_block_against_direct_inverses():
     assert not singular.any()
 
 
-def test_stiff_van_der_pol_same_steps_as_torch_driver_and_accurate():
+def test_stiff_van_der_pol_same_steps_as_torch_driver_and_accurate(stiff_vdp_reference):
     """eps = 1e-3, t in [0, 1], rtol = atol = 1e-6: identical step sequences and counters,
     results equal to 1e-10 relative and within the tolerance of scipy's rtol 1e-12 Radau."""
     eps, t = 1e-3, torch.tensor([0.0, 0.5, 1.0])
     host, dev = both_paths(vdp(eps), torch.tensor([[2.0, 0.0]]), t, rtol=1e-6, atol=1e-6)
     assert host.success and int(host.stats.n_steps[0]) > 50
     assert_same_run(host, dev)
-    ref = vdp_scipy(eps, 1.0)
+    ref = stiff_vdp_reference(eps, 1.0)
     assert np.abs(host.x[0, -1].numpy() - ref).max() / np.abs(ref).max() < 1e-4
 
 
@@ -185,7 +172,7 @@ def test_multi_dimensional_batch_and_unbatched_state():
     torch.testing.assert_close(alone.x, flat.x[2], rtol=1e-13, atol=1e-13)
 
 
-def test_float32_host_loop_matches_torch_driver_and_reference():
+def test_float32_host_loop_matches_torch_driver_and_reference(stiff_vdp_reference):
     """float32 end to end: dtype kept, same accuracy as the torch driver against scipy."""
     eps, t = 1e-2, torch.tensor([0.0, 1.0], dtype=torch.float32)
     x0 = torch.tensor([[2.0, 0.0]], dtype=torch.float32)
@@ -193,7 +180,7 @@ def test_float32_host_loop_matches_torch_driver_and_reference():
     assert host.x.dtype == torch.float32 and host.success
     # float32 rounding differs between numpy and torch kernels: a step or two may differ
     assert abs(int(host.stats.n_steps[0]) - int(dev.stats.n_steps[0])) <= 2
-    ref = vdp_scipy(eps, 1.0)
+    ref = stiff_vdp_reference(eps, 1.0)
     for sol in (host, dev):
         assert np.abs(sol.x[0, -1].double().numpy() - ref).max() < 2e-3
 
