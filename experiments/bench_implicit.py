@@ -169,19 +169,25 @@ class _VdP(torch.nn.Module):
         return torch.stack([self.mu * (1 - x[..., 1] ** 2) * x[..., 0] - x[..., 1], x[..., 0]], -1)
 
 
+def _vdp_reference(mu, x0, t_end):
+    """x(t_end) of the non-stiff Van der Pol model of sections 2-3 (``_VdP``) by DOP853 at
+    rtol = atol = 1e-13: numpy (2,)."""
+    return solve_ivp(
+        lambda t, x: [mu * (1 - x[1] ** 2) * x[0] - x[1], x[0]],
+        (0, t_end),
+        x0,
+        method="DOP853",
+        rtol=1e-13,
+        atol=1e-13,
+    ).y[:, -1]
+
+
 def fixed_rows(t_end, dt, repeats):
     """Section 2: fixed-step Gauss / Radau vs torchdiffeq implicit_adams at equal step."""
     import torchdiffeq
 
     x0_np = np.array([0.5, 1.0])
-    ref = solve_ivp(
-        lambda t, x: [(1 - x[1] ** 2) * x[0] - x[1], x[0]],
-        (0, t_end),
-        x0_np,
-        method="DOP853",
-        rtol=1e-13,
-        atol=1e-13,
-    ).y[:, -1]
+    ref = _vdp_reference(1.0, x0_np, t_end)
     t = torch.linspace(0.0, t_end, int(round(t_end / dt)) + 1)
     rows = []
 
@@ -463,19 +469,7 @@ def ift_irk_rows(t_end, dt, batch, repeats, device, fd_step=1e-5):
     """
     mus = np.linspace(0.5, 1.5, batch)
     x0_np = np.array([0.5, 1.0])
-    ref = np.stack(
-        [
-            solve_ivp(
-                lambda t, x, mu=mu: [mu * (1 - x[1] ** 2) * x[0] - x[1], x[0]],
-                (0, t_end),
-                x0_np,
-                method="DOP853",
-                rtol=1e-13,
-                atol=1e-13,
-            ).y[:, -1]
-            for mu in mus
-        ]
-    )
+    ref = np.stack([_vdp_reference(mu, x0_np, t_end) for mu in mus])
     t = torch.linspace(0.0, t_end, int(round(t_end / dt)) + 1, device=device)
     model = _VdP(mus).to(device)
     x0 = torch.tensor(x0_np, device=device).expand(batch, 2).clone().requires_grad_(True)
