@@ -351,39 +351,50 @@ def test_gradient_graph_does_not_grow_with_newton_iterations():
 # ------------------------------------------------------------------------------ batching
 
 
-def _stiff_vdp_run(eps, x0, t):
-    """Adaptive Radau IIA on StiffVanDerPol(eps) at rtol = atol = 1e-5 (batch-vs-alone tests)."""
-    return solve_implicit_ode(
-        StiffVanDerPol(eps).requires_grad_(False), x0, t, "radau_iia", rtol=1e-5, atol=1e-5
+def _stiff_vdp_run(eps, x0, t, host_loop):
+    """Adaptive Radau IIA on StiffVanDerPol(eps) at rtol = atol = 1e-5 (batch-vs-alone tests),
+    on the host or the torch step loop."""
+    sol = solve_implicit_ode(
+        StiffVanDerPol(eps).requires_grad_(False),
+        x0,
+        t,
+        "radau_iia",
+        rtol=1e-5,
+        atol=1e-5,
+        host_loop=host_loop,
     )
+    assert sol.stats.extra["host_loop"] is host_loop
+    return sol
 
 
-def test_batch_invariance_of_adaptive_radau():
+@pytest.mark.parametrize("host_loop", [False, True])
+def test_batch_invariance_of_adaptive_radau(host_loop):
     """Each member keeps its own steps: same answer and step counts alone and in a batch."""
     eps = torch.tensor([[1e-6], [1e-2], [1.0]])
     x0 = torch.tensor([[2.0, 0.0], [2.0, 0.0], [1.0, 0.5]])
     t = torch.tensor([0.0, 0.2, 0.4])
-    batch = _stiff_vdp_run(eps, x0, t)
+    batch = _stiff_vdp_run(eps, x0, t, host_loop)
     for i in range(3):
-        alone = _stiff_vdp_run(eps[i : i + 1], x0[i : i + 1], t)
+        alone = _stiff_vdp_run(eps[i : i + 1], x0[i : i + 1], t, host_loop)
         torch.testing.assert_close(alone.x[0], batch.x[i], rtol=1e-11, atol=1e-11)
         assert int(alone.stats.n_steps[0]) == int(batch.stats.n_steps[i])
         assert int(alone.stats.n_rejected[0]) == int(batch.stats.n_rejected[i])
     assert int(batch.stats.n_steps[0]) > 3 * int(batch.stats.n_steps[2])
 
 
-def test_dense_output_of_a_batch_equals_each_member_alone():
+@pytest.mark.parametrize("host_loop", [False, True])
+def test_dense_output_of_a_batch_equals_each_member_alone(host_loop):
     """Members of a batch reject and accept different steps (a rejected or idle member's step
     record is skipped by the dense output): sol.at of the batch equals each member's own."""
     eps = torch.tensor([[1e-5], [3e-3], [0.3]])
     x0 = torch.tensor([[2.0, 0.0], [2.0, 0.0], [1.0, 0.5]])
     t = torch.tensor([0.0, 0.5])
     tq = torch.linspace(0.0, 0.5, 23)
-    batch = _stiff_vdp_run(eps, x0, t)
+    batch = _stiff_vdp_run(eps, x0, t, host_loop)
     assert int(batch.stats.n_rejected.sum()) > 0
     assert len(set(batch.stats.n_steps.tolist())) == 3
     for i in range(3):
-        alone = _stiff_vdp_run(eps[i : i + 1], x0[i : i + 1], t)
+        alone = _stiff_vdp_run(eps[i : i + 1], x0[i : i + 1], t, host_loop)
         torch.testing.assert_close(alone.at(tq)[0], batch.at(tq)[i], rtol=1e-11, atol=1e-11)
 
 
