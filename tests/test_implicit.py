@@ -409,17 +409,17 @@ def _rotation_scalar_time(t, x):
     return rotation_rhs(t, x) * (1.0 + 0.0 * float(t))
 
 
-@pytest.mark.parametrize("adaptive", [False, True])
-def test_stage_stacking_probe_falls_back_for_functions_that_need_it(adaptive):
+@pytest.mark.parametrize("adaptive, host_loop", [(False, False), (True, False), (True, True)])
+def test_stage_stacking_probe_falls_back_for_functions_that_need_it(adaptive, host_loop):
     """All stages are evaluated in one call (stage index as leading batch dimension) only when
     a probe reproduces the stage-by-stage residuals; a function indexing x[:, 0] (wrong
     values when stacked, for a batch of 2 even with the right shape) or calling float(t)
     (raises when stacked) is evaluated stage by stage, with the same results."""
     x0 = torch.tensor([[1.0, 0.0], [0.3, -0.4]])
     t = torch.linspace(0.0, 1.0, 6)
-    opts = dict(adaptive=adaptive, substeps=4, rtol=1e-8, atol=1e-10)
+    opts = dict(adaptive=adaptive, substeps=4, rtol=1e-8, atol=1e-10, host_loop=host_loop)
     ref = solve_implicit_ode(rotation_rhs, x0, t, "radau_iia", **opts)
-    assert ref.stats.extra["stacked_stages"]
+    assert ref.stats.extra["stacked_stages"] and ref.stats.extra["host_loop"] is host_loop
     for fn in (_rotation_first_axis_only, _rotation_scalar_time):
         if fn is _rotation_scalar_time and adaptive:
             continue  # adaptive times are per sample, (*batch, 1): float(t) is not defined
