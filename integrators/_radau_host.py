@@ -21,8 +21,11 @@ Only explicit ODEs whose Newton matrix is inverted explicitly (``s n <= 24``) ta
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
+from scipy.linalg import get_lapack_funcs
 
 from ._irk_core import IRKCore, host_shape, masked_update
 from ._irk_dense import StepRecords
@@ -96,7 +99,7 @@ class _HostModel:
     def back(self, y: torch.Tensor, like: np.ndarray) -> np.ndarray:
         """A model output (*lead, *batch, k) as a host array shaped like ``like``
         (*lead, B, k)."""
-        out = y.detach().numpy()
+        out = (y.detach() if y.requires_grad else y).numpy()
         if out.dtype != self.npdt:
             out = out.astype(self.npdt)
         if out.size != like.size:  # an output that broadcasts against the batch
@@ -147,12 +150,25 @@ def _writable(a: np.ndarray) -> np.ndarray:
 
 def _inverse(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Batched inverse of (B, q, q) matrices and a (B,) mask of the singular ones (their
-    entries are garbage and never used)."""
+    entries are garbage and never used). One matrix goes to LAPACK's ``gesv`` directly (the
+    routine ``np.linalg.inv`` runs, without its wrapper's cost of a few microseconds)."""
+    if M.shape[0] == 1:
+        (gesv,) = get_lapack_funcs(("gesv",), (M,))
+        _, _, inv, info = gesv(M[0], _identity(M.shape[-1], M.dtype.str))
+        return inv[None], np.array([info != 0])
     try:
         return np.linalg.inv(M), np.zeros(M.shape[0], dtype=bool)
     except np.linalg.LinAlgError:  # some member singular: per-member info from LAPACK
         inv, info = torch.linalg.inv_ex(torch.from_numpy(M))
         return inv.numpy(), info.numpy() != 0
+
+
+@functools.lru_cache(maxsize=32)
+def _identity(q: int, dtype: str) -> np.ndarray:
+    """A read-only (q, q) identity (a right-hand side that ``gesv`` copies, never writes)."""
+    eye = np.eye(q, dtype=dtype)
+    eye.flags.writeable = False
+    return eye
 
 
 def _any(mask: np.ndarray) -> bool:
@@ -462,7 +478,7 @@ def _factorize(A, filt, G, h):
     hb = h[:, None, None]
     J = (G.reshape(B, n * n) @ _kron_map(A, n)).reshape(B, sn, sn)
     J *= hb
-    J += np.eye(sn, dtype=J.dtype)
+    J.reshape(B, sn * sn)[:, :: sn + 1] += 1.0  # + I
     inv, sing = _inverse(J)
     inv_r = (inv.reshape(B, -1) @ filt).reshape(B, n, n) * hb
     out = np.empty((B, 2 * s * n, s * n), dtype=inv.dtype)

@@ -152,10 +152,12 @@ def _run(
     index_tol = float(options.get("index_tol", 1e-10))
     every = int(options.get("index_check_every", 10))
     from ._radau_host import integrate_adaptive_host, use_host_loop
+    from ._radau_single import integrate_single_host, single_loop_supported
 
     host_loop = use_host_loop(core, x0, options.get("host_loop", "auto"), adaptive)
+    single = host_loop and single_loop_supported(x0)
     if host_loop:
-        out = integrate_adaptive_host(
+        out = (integrate_single_host if single else integrate_adaptive_host)(
             core,
             x0,
             z0,
@@ -217,6 +219,7 @@ def _run(
             tableau=core.tab.name,
             stacked_stages=bool(core.stack_stages),
             host_loop=host_loop,
+            driver="host, one trajectory" if single else "host" if host_loop else "torch",
         ),
     )
     return Solution(

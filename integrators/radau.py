@@ -305,6 +305,23 @@ def next_step_sizes(h, err, finite, err_old, h_old, first, iters, theta, max_ite
     return err_c, np.where(keep_lu, h, h * grow), h_rej, slow
 
 
+def next_step_size(h, err, finite, err_old, h_old, first, iters, theta, max_iter, expo):
+    """:func:`next_step_sizes` for one sample, in Python floats and bools (same arguments,
+    same results to the last bit: the one-trajectory host loop's step control)."""
+    safety = 0.9 * (2 * max_iter + 1) / (2 * max_iter + iters)
+    err_c = max(err, 1e-10)
+    if first or h_old <= 0:
+        pred = 1.0
+    else:
+        pred = min(h / max(h_old, 1e-300) * (err_old / err_c) ** expo, 1.0)
+    scaled = safety * pred * err_c**-expo
+    h_rej = h * min(max(scaled, _MIN_FACTOR), 1.0) if finite else 0.25 * h
+    grow = min(scaled, _MAX_FACTOR)
+    slow = theta > _REUSE_THETA and iters > 2
+    keep_lu = not slow and 1.0 <= grow < 1.2
+    return err_c, h if keep_lu else h * grow, h_rej, slow
+
+
 def _stage_guess(c, prev_W, have_prev, ratio, xdot, z, s):
     """Newton start: the previous step's extrapolated stage polynomial, else ``(x', z)``."""
     if have_prev.any():

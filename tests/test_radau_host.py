@@ -353,3 +353,87 @@ def test_wrong_model_output_shape_is_named_on_both_drivers(host_loop):
     rate = torch.tensor([1.0, -2.0])
     with pytest.raises(InputValidationError, match=r"returned shape \(2,\) for x0 of shape"):
         solve_implicit_ode(lambda t, x: rate, x0, t, host_loop=host_loop)
+
+
+# --------------------------------------------------------------- one-trajectory loop
+
+
+def _single_and_batched(f, x0, t, **opts):
+    """One float64 trajectory (the one-trajectory loop) and the same state twice (the batched
+    host loop)."""
+    one = solve_implicit_ode(f, x0, t, "radau_iia", host_loop=True, **opts)
+    two = solve_implicit_ode(f, x0.expand(2, -1), t, "radau_iia", host_loop=True, **opts)
+    assert one.stats.extra["driver"] == "host, one trajectory"
+    assert two.stats.extra["driver"] == "host"
+    return one, two
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["stiff_vdp", "robertson", "stiff_linear", "blow_up"],
+)
+def test_one_trajectory_loop_takes_the_batched_host_loops_steps(case):
+    """The one-trajectory loop (Python-float step control) is the batched host loop's
+    algorithm: the same steps, rejections, Newton iterations, Jacobians, factorisations,
+    statuses and results (to rounding of the Newton norm's summation order)."""
+    M = torch.tensor([[-1.0, 1.0], [0.0, -1e4]])
+    f, x0, t, opts = {
+        "stiff_vdp": (vdp(1e-4), [2.0, 0.0], [0.0, 0.3, 1.0], dict(rtol=1e-7, atol=1e-7)),
+        "robertson": (robertson, [1.0, 0.0, 0.0], [0.0, 4.0, 40.0], dict(rtol=1e-6, atol=1e-10)),
+        "stiff_linear": (lambda t, x: x @ M.T, [1.0, 2.0], [0.0, 2.0], dict(rtol=1e-8, atol=1e-10)),
+        "blow_up": (lambda t, x: x**2, [1.0], [0.0, 2.0], dict(rtol=1e-6, atol=1e-9)),
+    }[case]
+    one, two = _single_and_batched(f, torch.tensor([x0]), torch.tensor(t), **opts)
+    for name in COUNTERS:
+        assert getattr(two.stats, name).tolist() == 2 * getattr(one.stats, name).tolist(), name
+    assert one.stats.n_jac_evals == two.stats.n_jac_evals
+    assert one.stats.n_factorizations == two.stats.n_factorizations
+    assert two.status.tolist() == 2 * one.status.tolist()
+    finite = torch.isfinite(one.x)
+    # (near the blow-up the values reach 1e13, where the rounding of the norms shows at 1e-12)
+    torch.testing.assert_close(one.x[finite], two.x[0][finite[0]], rtol=1e-11, atol=1e-14)
+    if case == "blow_up":  # x = 1 / (1 - t) escapes at t = 1: stopped there with a message
+        assert one.status[0] in (Status.NON_FINITE, Status.STEP_TOO_SMALL)
+        dev = solve_implicit_ode(f, torch.tensor([x0]), torch.tensor(t), host_loop=False, **opts)
+        assert one.messages == dev.messages and "t = 1" in one.messages[0]
+
+
+def test_one_trajectory_loop_unbatched_state_and_dispatch():
+    """An unbatched float64 state (n,) takes the one-trajectory loop with the batched loop's
+    numbers; float32 and batches keep the batched host loop; host_loop=False the torch one."""
+    t = torch.tensor([0.0, 0.2, 0.4])
+    opts = dict(rtol=1e-6, atol=1e-8)
+    alone = solve_implicit_ode(vdp(1e-3), torch.tensor([2.0, 0.0]), t, **opts)
+    assert alone.stats.extra["driver"] == "host, one trajectory" and alone.x.shape == (3, 2)
+    assert alone.status.shape == () and alone.stats.n_steps.shape == ()
+    pair = solve_implicit_ode(vdp(1e-3), torch.tensor([[2.0, 0.0], [2.0, 0.0]]), t, **opts)
+    torch.testing.assert_close(alone.x, pair.x[1], rtol=1e-12, atol=1e-14)
+    assert int(alone.stats.n_steps) == int(pair.stats.n_steps[1])
+    single32 = torch.tensor([[2.0, 0.0]], dtype=torch.float32)
+    assert solve_implicit_ode(vdp(1e-3), single32, t.float()).stats.extra["driver"] == "host"
+    torch_run = solve_implicit_ode(vdp(1e-3), torch.tensor([2.0, 0.0]), t, host_loop=False)
+    assert torch_run.stats.extra["driver"] == "torch"
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    h=st.floats(1e-12, 10.0),
+    err=st.one_of(st.floats(0.0, 1e6), st.just(float("inf"))),
+    err_old=st.floats(1e-2, 1e3),
+    h_old=st.one_of(st.just(0.0), st.floats(1e-12, 10.0)),
+    first=st.booleans(),
+    iters=st.integers(1, 7),
+    theta=st.floats(0.0, 0.99),
+)
+def test_scalar_step_size_rule_equals_the_array_rule(h, err, err_old, h_old, first, iters, theta):
+    """``next_step_size`` (Python floats, one-trajectory loop) returns bit for bit what
+    ``next_step_sizes`` (host arrays, batched loops) returns."""
+    from integrators.radau import next_step_size, next_step_sizes
+
+    finite = np.isfinite(err)
+    scalar = next_step_size(h, err, finite, err_old, h_old, first, iters, theta, 7, 0.25)
+    arrays = next_step_sizes(
+        *(np.array([v]) for v in (h, err, finite, err_old, h_old, first, iters, theta)), 7, 0.25
+    )
+    for got, want in zip(scalar, arrays, strict=True):
+        assert got == want[0] or (np.isnan(got) and np.isnan(want[0]))
