@@ -66,7 +66,7 @@ def test_unknown_name_lists_the_available_sets():
     ("name", "plant"),
     [
         ("vdp_reference", VanDerPol(mu=1.0)),
-        ("lorenz_reference", Lorenz(sigma=10.0, rho=28.0, beta=8.0 / 3.0)),
+        ("lorenz_reference", Lorenz(sigma=10.0, rho=28.0, beta=3.0)),
     ],
 )
 def test_nonstiff_references_satisfy_their_odes(name, plant):
