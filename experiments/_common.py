@@ -50,26 +50,31 @@ __all__ = [
 DEFAULT_OUT_ROOT = pathlib.Path(__file__).resolve().parent / "out"
 
 
-def experiment_parser(name: str, description: str) -> argparse.ArgumentParser:
+def experiment_parser(
+    name: str, description: str, default_out: pathlib.Path | None = None
+) -> argparse.ArgumentParser:
     """An argument parser with the options every experiment shares.
 
     Args:
         name: the experiment's name (used as program name and default output folder).
         description: one paragraph shown by ``--help``.
+        default_out: output folder when ``--out`` is not given, for a script whose results
+            belong somewhere else than ``experiments/out/<name>`` (e.g. ``datasets/``).
 
     Returns:
-        A parser with ``--quick`` (flag) and ``--out DIR`` (default
+        A parser with ``--quick`` (flag) and ``--out DIR`` (default ``default_out`` or
         ``experiments/out/<name>``); add experiment-specific options to it.
     """
     parser = argparse.ArgumentParser(prog=name, description=description)
     parser.add_argument(
         "--quick", action="store_true", help="small, fast run (seconds); used by the tests"
     )
+    shown = default_out if default_out is not None else f"experiments/out/{name}"
     parser.add_argument(
         "--out",
         type=pathlib.Path,
-        default=None,
-        help=f"output folder (default: experiments/out/{name})",
+        default=default_out,
+        help=f"output folder (default: {shown})",
     )
     return parser
 
