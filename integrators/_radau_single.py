@@ -12,7 +12,8 @@ shaped (1, ...) and go through the batched loop's helpers (factorisation, error 
 wrapper, dense-output records and the gradient replay).
 
 Only float64 states take this path (:func:`single_loop_supported`): Python floats are float64,
-so its step control rounds exactly as the batched loop does.
+so its step control rounds as the batched loop's does (up to a bit of ``**``, and the summation
+order of the Newton and error norms; the tests check that the steps are the same).
 """
 
 from __future__ import annotations

@@ -307,7 +307,8 @@ def next_step_sizes(h, err, finite, err_old, h_old, first, iters, theta, max_ite
 
 def next_step_size(h, err, finite, err_old, h_old, first, iters, theta, max_iter, expo):
     """:func:`next_step_sizes` for one sample, in Python floats and bools (same arguments,
-    same results to the last bit: the one-trajectory host loop's step control)."""
+    same results up to the rounding of ``**``, which numpy and the C library may round one
+    bit apart): the one-trajectory host loop's step control."""
     safety = 0.9 * (2 * max_iter + 1) / (2 * max_iter + iters)
     err_c = max(err, 1e-10)
     if first or h_old <= 0:

@@ -426,8 +426,10 @@ def test_one_trajectory_loop_unbatched_state_and_dispatch():
     theta=st.floats(0.0, 0.99),
 )
 def test_scalar_step_size_rule_equals_the_array_rule(h, err, err_old, h_old, first, iters, theta):
-    """``next_step_size`` (Python floats, one-trajectory loop) returns bit for bit what
-    ``next_step_sizes`` (host arrays, batched loops) returns."""
+    """``next_step_size`` (Python floats, one-trajectory loop) returns what
+    ``next_step_sizes`` (host arrays, batched loops) returns, to the last bit or two (numpy's
+    vectorised ``power`` and the C library's ``pow`` may round differently), and the same
+    decisions."""
     from integrators.radau import next_step_size, next_step_sizes
 
     finite = np.isfinite(err)
@@ -435,5 +437,6 @@ def test_scalar_step_size_rule_equals_the_array_rule(h, err, err_old, h_old, fir
     arrays = next_step_sizes(
         *(np.array([v]) for v in (h, err, finite, err_old, h_old, first, iters, theta)), 7, 0.25
     )
-    for got, want in zip(scalar, arrays, strict=True):
-        assert got == want[0] or (np.isnan(got) and np.isnan(want[0]))
+    for got, want in zip(scalar[:3], arrays[:3], strict=True):
+        assert got == pytest.approx(want[0], rel=1e-15, abs=0.0, nan_ok=True)
+    assert scalar[3] == bool(arrays[3][0])
