@@ -11,7 +11,12 @@ import math
 import pytest
 import torch
 
-from integrators import TableauError, gauss_legendre, odeint
+from integrators import (
+    SingularMatrixError,
+    TableauError,
+    gauss_legendre,
+    odeint,
+)
 from integrators.sensitivities import sensitivities, variational_sensitivities
 
 F64 = torch.float64
@@ -126,8 +131,9 @@ def test_float32_and_shared_parameters():
 
 @pytest.mark.parametrize(("method", "stages"), [("gauss_legendre", 2), ("radau_iia", 3)])
 def test_implicit_step_sensitivities_by_the_ift_match_autograd_of_odeint(method, stages):
-    """Eq. 8.24-8.28 vs reverse-mode autograd through the implicit solver of odeint (which
-    stops its Newton iteration at ~1e-9, hence the tolerance)."""
+    """Eq. 8.24-8.28 vs reverse-mode autograd through the implicit solver of odeint (its own
+    IFT gradients, with its Newton iteration converged to rtol 1e-10), one factorisation of the
+    Newton matrix per step (plus one to start the first step's iteration)."""
     res = sensitivities(pendulum, X0, T_GRID, P, u=U, method=method, stages=stages)
 
     def sim(x0, p, u):
@@ -139,26 +145,34 @@ def test_implicit_step_sensitivities_by_the_ift_match_autograd_of_odeint(method,
             stages=stages,
             u=u,
             adaptive=False,
+            rtol=1e-10,
+            atol=1e-12,
         ).x
 
-    torch.testing.assert_close(res.x, sim(X0, P, U), rtol=0, atol=1e-7)
+    torch.testing.assert_close(res.x, sim(X0, P, U), rtol=0, atol=1e-10)
     jac = torch.autograd.functional.jacobian
     Jx0 = jac(lambda z: sim(z, P, U), X0)
     torch.testing.assert_close(
-        res.A, torch.stack([Jx0[b, :, :, b, :] for b in range(2)]), rtol=0, atol=1e-7
+        res.A, torch.stack([Jx0[b, :, :, b, :] for b in range(2)]), rtol=0, atol=1e-10
     )
-    torch.testing.assert_close(res.B, jac(lambda q: sim(X0, q, U), P), rtol=0, atol=1e-7)
-    torch.testing.assert_close(res.C, jac(lambda v: sim(X0, P, v), U), rtol=0, atol=1e-7)
+    torch.testing.assert_close(res.B, jac(lambda q: sim(X0, q, U), P), rtol=0, atol=1e-10)
+    torch.testing.assert_close(res.C, jac(lambda v: sim(X0, P, v), U), rtol=0, atol=1e-10)
+    assert res.stats.n_steps == len(T_GRID) - 1
+    assert res.stats.n_factorizations == res.stats.n_steps + 1
 
 
 def test_implicit_sensitivities_match_finite_differences_and_the_linear_closed_form():
-    res = sensitivities(pendulum_free, X0, T_GRID, P, method="radau_iia", newton_tol=1e-14)
+    res = sensitivities(
+        pendulum_free, X0, T_GRID, P, method="radau_iia", substeps=2, newton_tol=1e-14
+    )
     h = 1e-6
     for j in range(2):
         e = torch.zeros(2, dtype=F64)
         e[j] = h
         plus, minus = (
-            sensitivities(pendulum_free, X0, T_GRID, q, method="radau_iia", newton_tol=1e-14).x
+            sensitivities(
+                pendulum_free, X0, T_GRID, q, method="radau_iia", substeps=2, newton_tol=1e-14
+            ).x
             for q in (P + e, P - e)
         )
         torch.testing.assert_close(res.B[..., j], (plus - minus) / (2 * h), rtol=1e-6, atol=1e-8)
@@ -174,7 +188,33 @@ def test_implicit_sensitivities_match_finite_differences_and_the_linear_closed_f
     R = eye + dt * torch.kron(b[None], eye) @ stage
     lin = sensitivities(lambda t, x: x @ M.T, X0, T_GRID, method=tab)
     for k in range(len(T_GRID)):
-        torch.testing.assert_close(lin.A[:, k], torch.linalg.matrix_power(R, k).expand(2, 2, 2))
+        torch.testing.assert_close(
+            lin.A[:, k], torch.linalg.matrix_power(R, k).expand(2, 2, 2), rtol=1e-13, atol=1e-13
+        )
+    torch.testing.assert_close(
+        lin.x, (lin.A @ X0[:, None, :, None])[..., 0], rtol=1e-13, atol=1e-13
+    )
+    assert lin.stats.n_factorizations == len(T_GRID)  # one per step, one to start
+
+
+def test_stale_newton_matrix_is_refreshed_and_counted():
+    """x' = -u x with u switching 1 <-> 200 (ZOH): the previous step's Newton matrix contracts
+    too slowly after a switch and is refreshed (counted); implicit Euler's closed form
+    x_{k+1} = x_k / (1 + h u_k) gives x and the input sensitivities dx_n/du_j =
+    -h x_n / (1 + h u_j) (j < n) exactly."""
+    t = torch.linspace(0.0, 1.0, 6, dtype=F64)
+    u = torch.tensor([1.0, 200.0, 1.0, 200.0, 1.0, 1.0], dtype=F64)[:, None]
+    x0 = torch.tensor([1.0, -2.0], dtype=F64)[:, None]
+    res = sensitivities(lambda tt, x, uu: -uu * x, x0, t, u=u, method="implicit_euler")
+    h = 0.2
+    factor = 1.0 / (1.0 + h * u[:-1, 0])
+    x_ref = x0 * torch.cat([torch.ones(1, dtype=F64), torch.cumprod(factor, 0)])
+    torch.testing.assert_close(res.x[..., 0], x_ref, rtol=1e-14, atol=0)
+    C_ref = torch.zeros(2, 6, 6, dtype=F64)
+    for n in range(6):
+        C_ref[:, n, :n] = -h * x_ref[:, n, None] * factor[:n]
+    torch.testing.assert_close(res.C[:, :, 0, :, 0], C_ref, rtol=1e-13, atol=1e-15)
+    assert res.stats.n_factorizations > res.stats.n_steps + 1
 
 
 def test_errors():
@@ -184,3 +224,6 @@ def test_errors():
         sensitivities(pendulum_free, X0, T_GRID.flip(0), P)
     with pytest.raises(ValueError, match="sampled u"):
         sensitivities(pendulum, X0, T_GRID, P, u=U[:3])
+    with pytest.raises(SingularMatrixError, match=r"singular in step 0 of interval 0"):
+        # implicit Euler on x' = x / h: the Newton matrix 1 - h / h vanishes
+        sensitivities(lambda t, x: x / 0.25, X0, T_GRID, method="implicit_euler")
