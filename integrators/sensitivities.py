@@ -35,9 +35,17 @@ Only the first step, which has no previous factorisation, factorises once more (
 guess): ``N`` steps cost ``N + 1`` factorisations when no refresh is needed, reported in
 ``SensitivityResult.stats``. ``Phi_k, Psi_k`` then propagate ``A, B`` as above (eq. 8.28).
 
-Inputs sampled on the output grid are held piecewise constant (eq. 8.34, ``u(t) = u_k`` on
-``[t_k, t_{k+1}]`` for every stage, as ``odeint`` does) and their samples are parameters:
-``w_k = u_k`` and ``C[..., k, :, j, :] = dx_k / du_j`` (zero for ``j >= k``).
+Inputs are parameterised on the output grid (notes §8.5) and the parameters become columns
+of ``q``:
+
+* samples ``u`` (T, nu) held piecewise constant (eq. 8.34, ``u(t) = u_k`` on the closed
+  ``[t_k, t_{k+1}]`` for every stage, as ``odeint`` does): ``w_k = u_k`` and
+  ``C[..., k, :, j, :] = dx_k / du_j``;
+* a :class:`~integrators.inputs.CollocationInput` (eq. 8.32-8.33): on interval ``k`` the input
+  is ``sum_i P_{k,i} l_i(tau)``, evaluated at every stage time ``t_k + (m + c_i) h`` (substep
+  ``m``, ``tau = (m + c_i) / substeps``), ``w_k = vec P_k`` and
+  ``C[..., k, :, j, i, :] = dx_k / dP_{j,i}``.
+In both cases ``x_k`` depends only on the parameters of intervals ``j < k`` (causality).
 
 :func:`variational_sensitivities` integrates the variational equations (eq. 8.8) alongside the
 state with :func:`~integrators.odeint.odeint`. With the *same* fixed-step explicit method and
@@ -45,6 +53,16 @@ grid the two coincide to rounding (explicit RK discretisation commutes with line
 notes remark this for Euler in §8.2); with another grid or method (e.g. ``"dopri5"``) the
 variational result approximates the exact sensitivities of the ODE, and the difference to the
 discrete sensitivities vanishes as the step shrinks.
+
+Typos in the notes' §8.5 (eq. 8.29-8.34): the dynamics are written ``x' = f(p, u)`` (``x`` is
+missing); ``p`` and ``s`` are reused for the input parameters and the number of interpolation
+nodes, which need not be the model parameters or the stage count (here ``P`` and ``q``); the
+nodes ``tau_i`` of ``l_i`` are not named (they are the interpolation nodes, eq. 7.27: the
+polynomial takes the value ``p_{k,i}`` at ``t_k + tau_i dt``); "``k = 0, N - 1``" means
+``k = 0, ..., N - 1``; eq. 8.31 ``df/dp = df/du du/dp`` holds only when ``p`` enters through
+``u`` alone (with model parameters too, the columns are ``[df/dp, df/du du/dP]``). In the IRK
+algorithm the guess "``K_i = x_k``" mixes units (``K`` are derivatives; ``K_i = f(x_k)`` is meant)
+and "``Delta w``" is ``Delta K``.
 """
 
 from __future__ import annotations
@@ -58,6 +76,7 @@ import torch
 from ._irk_dense import extrapolation_matrix
 from .collocation import gauss_legendre, radau_iia
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
+from .inputs import CollocationInput
 from .newton import batch_jacobian
 from .solution import SolverStats
 from .tableau import ButcherTableau, tableau
@@ -79,7 +98,10 @@ class SensitivityResult:
         x: (*batch, T, nx) simulated states.
         A: (*batch, T, nx, nx) ``dx_k / dx_0`` (eq. 8.11).
         B: (*batch, T, nx, np) ``dx_k / dp``, or None without parameters.
-        C: (*batch, T, nx, T, nu) ``dx_k / du_j`` for sampled inputs (eq. 8.34), else None.
+        C: ``dx_k`` w.r.t. the input parameters, the input's shape appended to (*batch, T, nx):
+            (*batch, T, nx, T, nu) ``dx_k / du_j`` for sampled inputs (eq. 8.34),
+            (*batch, T, nx, T-1, q, nu) ``dx_k / dP_{j,i}`` for a
+            :class:`~integrators.inputs.CollocationInput` (eq. 8.32); None otherwise.
         stats: :class:`~integrators.solution.SolverStats`: ``n_steps``, ``n_f_evals`` and
             ``n_jac_evals`` (batched calls of ``f`` and of its stage Jacobian),
             ``n_newton_iters`` and ``n_factorizations`` (LU factorisations of the Newton matrix,
@@ -129,7 +151,15 @@ def _prepare(x0, t, p, u):
         p = _as_tensor(p, x0, "p")
         if p.dim() == 0:
             p = p.reshape(1)
-    if u is not None and not callable(u):
+    if isinstance(u, CollocationInput):
+        grid = u.t.to(dtype=t.dtype, device=t.device)
+        if grid.shape != t.shape or not torch.equal(grid, t):
+            raise InputValidationError(
+                "sensitivities: the CollocationInput was built on another grid than t; build "
+                "it with the same t (its intervals are the output intervals, eq. 8.32)."
+            )
+        u = CollocationInput(u.coefficients.detach().to(x0), t, u.nodes.to(x0))
+    elif u is not None and not callable(u):
         u = _as_tensor(u, x0, "u")
         if u.dim() < 2 or u.shape[-2] != t.shape[0]:
             raise InputValidationError(
@@ -151,30 +181,46 @@ def _resolve_tableau(method, stages) -> ButcherTableau:
 class _InputParameters:
     """The input parameters of each output interval and the stage inputs they give.
 
-    ``kind`` is "none", "callable" (no sensitivities) or "zoh" (samples, eq. 8.34). For the
-    last, interval ``k`` contributes ``size`` = nu parameters ``w_k = u_k``, which are the
-    columns ``k * size`` to ``(k + 1) * size`` of the flattened samples of shape ``shape``.
+    ``kind`` is "none", "callable" (no sensitivities), "zoh" (samples, eq. 8.34) or
+    "collocation" (eq. 8.32). For the last two, interval ``k`` contributes ``size`` parameters
+    ``w_k`` (``u_k``: nu; ``vec P_k``: q nu), which are the columns ``k * size`` to
+    ``(k + 1) * size`` of the flattened input parameters of shape ``shape``.
 
     Args:
-        u: None, a callable or samples (*batch, T, nu) (already prepared).
+        u: None, a callable, samples (*batch, T, nu) or a CollocationInput (already prepared).
+        tab: the tableau (its nodes ``c``); substeps: steps per output interval.
     """
 
-    def __init__(self, u):
+    def __init__(self, u, tab: ButcherTableau, substeps: int):
         self.kind, self.size, self.shape, self.batch = "callable", 0, (), ()
-        self.values = None
+        self.values = self.weights = None
         if u is None:
             self.kind = "none"
+        elif isinstance(u, CollocationInput):
+            P = u.coefficients  # (*batch, T-1, q, nu)
+            self.kind, self.q, self.nu = "collocation", P.shape[-2], P.shape[-1]
+            self.size, self.shape, self.batch = self.q * self.nu, P.shape[-3:], P.shape[:-3]
+            self.values = P.flatten(-2)
+            # stage i of substep m sits at tau = (m + c_i) / substeps of the interval
+            tau = (np.arange(substeps)[:, None] + np.array(tab.c)[None, :]) / substeps
+            self.weights = u.weights(torch.as_tensor(tau, dtype=P.dtype, device=P.device))
         elif isinstance(u, torch.Tensor):
             self.kind, self.size, self.values = "zoh", u.shape[-1], u
             self.shape, self.batch = u.shape[-2:], u.shape[:-2]
 
     @property
     def parameterised(self) -> bool:
-        return self.kind == "zoh"
+        return self.kind in ("zoh", "collocation")
 
     def interval(self, k: int, batch) -> torch.Tensor:
         """``w_k``: (*batch, size)."""
         return self.values[..., k, :].expand(*batch, self.size)
+
+    def stage_input(self, w: torch.Tensor, m: int, i: int) -> torch.Tensor:
+        """The input of stage ``i`` of substep ``m`` from ``w`` (*batch, size): (*batch, nu)."""
+        if self.kind == "zoh":
+            return w
+        return self.weights[m, i] @ w.unflatten(-1, (self.q, self.nu))
 
 
 def _explicit_stages(stage_at, tab, h, x, q, seed):
@@ -331,7 +377,7 @@ def sensitivities(
     stages: int | None = None,
     newton_tol: float | None = None,
 ) -> SensitivityResult:
-    """Exact sensitivities of a fixed-step Runge-Kutta simulation (notes eq. 8.13-8.28).
+    """Exact sensitivities of a fixed-step Runge-Kutta simulation (notes eq. 8.13-8.34).
 
     Explicit tableaus propagate the stage derivatives (eq. 8.17-8.18); implicit ones
     ("gauss_legendre", "radau_iia", "implicit_euler", "implicit_midpoint" or an implicit
@@ -348,9 +394,16 @@ def sensitivities(
         t: (T,) strictly increasing output grid.
         p: None, (np,) parameters shared by the batch, or (*batch, np).
         method: a tableau or its name (default "rk4"); ``b_err`` is ignored.
-        u: None, input samples (T, nu) or (*batch, T, nu) held piecewise constant on the
-            output grid (eq. 8.34; the last sample is not used), or a callable ``u(t)``
-            (no input sensitivities then).
+        u: the input, one of
+
+            * None;
+            * samples (T, nu) or (*batch, T, nu) held piecewise constant on the output grid
+              (eq. 8.34; the last sample is not used): ``C = dx_k/du_j``;
+            * a :class:`~integrators.inputs.CollocationInput` built on the same ``t``:
+              polynomials on each output interval given by their values ``P`` (T-1, q, nu) or
+              (*batch, T-1, q, nu) at ``q`` nodes (eq. 8.32-8.33), evaluated at every stage
+              time: ``C = dx_k/dP``;
+            * a callable ``u(t)`` (no input sensitivities).
         substeps: equal RK steps per output interval.
         stages: number of stages for "gauss_legendre" (default 2) / "radau_iia" (default 3).
         newton_tol: implicit methods: the stage equations are solved to
@@ -358,11 +411,12 @@ def sensitivities(
             default ``max(1e-10, 100 eps)`` of the dtype.
 
     Returns:
-        :class:`SensitivityResult` with ``x``, ``A = dx_k/dx_0``, ``B = dx_k/dp``, for
-        sampled inputs ``C = dx_k/du_j``, and ``stats``.
+        :class:`SensitivityResult` with ``x``, ``A = dx_k/dx_0``, ``B = dx_k/dp``, ``C`` (the
+        input sensitivities, shapes above) and ``stats``.
 
     Raises:
-        InputValidationError: bad shapes or grid, non-finite data, substeps < 1.
+        InputValidationError: bad shapes or grid, non-finite data, substeps < 1, a
+            CollocationInput on another grid.
         TableauError: an unknown method.
         ConvergenceError: the stage equations of an implicit method did not converge.
         SingularMatrixError: the Newton matrix of an implicit step is singular.
@@ -374,7 +428,7 @@ def sensitivities(
             f"sensitivities: substeps must be an integer >= 1, got {substeps!r}."
         )
     substeps = int(substeps)
-    inputs = _InputParameters(u)
+    inputs = _InputParameters(u, tab, substeps)
     g = _model(f, u is not None, p is not None)
     nx, n_p = x0.shape[-1], (0 if p is None else p.shape[-1])
     batch = torch.broadcast_shapes(x0.shape[:-1], () if p is None else p.shape[:-1], inputs.batch)
@@ -405,13 +459,15 @@ def sensitivities(
         for m in range(substeps):
             tk = t[k] + m * h
 
-            def stage_at(i, tk=tk, h=h):
+            def stage_at(i, tk=tk, h=h, m=m):
                 ti = tk + float(tab.c[i]) * h
                 u_call = u(ti) if inputs.kind == "callable" else None
 
                 def stage(z):
                     zp = z[..., nx : nx + n_p] if p is not None else None
-                    zu = z[..., nx + n_p :] if inputs.parameterised else u_call
+                    zu = u_call
+                    if inputs.parameterised:
+                        zu = inputs.stage_input(z[..., nx + n_p :], m, i)
                     return g(ti, z[..., :nx], zu, zp)
 
                 return stage
@@ -471,8 +527,9 @@ def variational_sensitivities(
     ``B' = F_x B + F_p`` (B(0) = 0), with batched autograd Jacobians ``F_x, F_p``.
 
     Args:
-        f, x0, t, p, u: as in :func:`sensitivities` (``u``: samples or a callable; no input
-            sensitivities are formed).
+        f, x0, t, p, u: as in :func:`sensitivities` (``u``: samples, a callable or a
+            :class:`~integrators.inputs.CollocationInput`, which ``odeint`` calls as ``u(t)``;
+            no input sensitivities are formed).
         method: any ``odeint`` method, e.g. "rk4" (same discretisation as the simulation:
             identical to :func:`sensitivities`) or "dopri5" (near-exact ODE sensitivities).
         **odeint_options: passed to :func:`~integrators.odeint.odeint` (``substeps``,
