@@ -46,6 +46,9 @@ of ``q``:
   ``m``, ``tau = (m + c_i) / substeps``), ``w_k = vec P_k`` and
   ``C[..., k, :, j, i, :] = dx_k / dP_{j,i}``.
 In both cases ``x_k`` depends only on the parameters of intervals ``j < k`` (causality).
+``odeint`` given the same ``CollocationInput`` (a callable ``u(t)``) runs the same simulation
+except at a stage exactly on a grid point where the pieces jump (``c_i = 1``, e.g. RK4 or
+Radau IIA): a call ``u(t)`` looks ``t_{k+1}`` up in the next interval.
 
 :func:`variational_sensitivities` integrates the variational equations (eq. 8.8) alongside the
 state with :func:`~integrators.odeint.odeint`. With the *same* fixed-step explicit method and
