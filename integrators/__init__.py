@@ -17,7 +17,7 @@ from .errors import (
     TableauError,
 )
 from .implicit import daeint, solve_implicit_ode
-from .inputs import bind_rhs
+from .inputs import CollocationInput, bind_rhs
 from .layers import ODELayer
 from .newton import (
     MinimizeResult,
@@ -72,6 +72,7 @@ __all__ = [
     "sensitivities",
     "variational_sensitivities",
     "ODELayer",
+    "CollocationInput",
     "bind_rhs",
     "odeint",
 ]

@@ -13,6 +13,10 @@ binding an input signal, which is either
 ``(*batch, 1)`` tensor (one time per sample, used by adaptive solvers); the user's ``f`` and a
 callable ``u`` receive that same ``t``.
 
+:class:`CollocationInput` is an input given by a polynomial on every output interval (notes
+eq. 8.32-8.33): a callable ``u(t)`` for any solver, and the input parameterisation whose
+coefficients :func:`integrators.sensitivities` differentiates.
+
 Fixed-step solvers do not look the input up by time: they read :attr:`BoundRHS.samples` and
 hold ``u_k`` over the *closed* step interval ``[t_k, t_k + dt]``, so a stage with ``c_i = 1``
 (the last stage of RK4) still uses ``u_k`` as eq. 8.34 prescribes. A pure time lookup at
@@ -24,11 +28,15 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import numpy as np
 import torch
 
+from ._irk_dense import lagrange_basis
+from .collocation import gauss_legendre, radau_iia
 from .errors import InputValidationError
 
 INTERPOLATIONS = ("zoh", "linear")
+COLLOCATION_NODES = ("radau", "legendre")
 
 
 class BoundRHS:
@@ -165,3 +173,126 @@ def check_finite(value: torch.Tensor, label: str, time_dim: int | None = None) -
         f"{label} contains a non-finite value ({bad_value}) {where}; clean or interpolate "
         "the data before simulating."
     )
+
+
+class CollocationInput:
+    """An input given by polynomials on the output intervals (notes eq. 8.32-8.33).
+
+    On each interval ``[t_k, t_{k+1}]`` (``k = 0, ..., T-2``) of the output grid, with
+    ``tau = (t - t_k) / (t_{k+1} - t_k)`` in [0, 1],
+
+        u(t_k + tau (t_{k+1} - t_k)) = sum_i P[..., k, i, :] l_i(tau)              (eq. 8.32)
+
+    where ``l_i`` are the Lagrange polynomials (eq. 7.27) of ``q`` distinct nodes
+    ``tau_1 < ... < tau_q`` in [0, 1]: the coefficient ``P[..., k, i, :]`` is the input value at
+    ``t_k + tau_i (t_{k+1} - t_k)``, so ``u`` is a polynomial of degree ``q - 1`` on each
+    interval and may jump at the grid points. The flattened ``P`` is the parameter vector of
+    eq. 8.33. With ``q = 1`` it is the piecewise-constant input of eq. 8.34.
+
+    Use it as ``u=`` of :func:`integrators.sensitivities` (which then returns
+    ``C = dx_k / dP``, shape (*batch, T, nx, T-1, q, nu)) and, being a callable ``u(t)``, of
+    :func:`integrators.odeint`. A simulation uses interval ``k``'s polynomial on the *closed*
+    interval (a stage at ``t_{k+1}`` of a step in interval ``k`` sees ``tau = 1``), as
+    ``sensitivities`` does; a call ``u(t)`` cannot know the step and looks up the interval
+    right-continuously (``t_{k+1}`` belongs to interval ``k + 1``, ``tau = 0``). The two agree
+    except at a stage exactly on a grid point where the pieces jump (stages with ``c_i = 1``,
+    e.g. the last stage of RK4 or Radau IIA, when ``P[..., k, :, :]`` does not continue
+    into ``P[..., k+1, :, :]``). Outside ``[t_0, t_{T-1}]`` the end values are held.
+
+    Args:
+        coefficients: (T-1, q, nu) shared by the batch, or (*batch, T-1, q, nu): the input
+            values at the nodes of every interval, in the units of ``u``.
+        t: (T,) strictly increasing output grid (the ``t`` of the simulation).
+        nodes: ``"radau"`` (default: the Radau IIA nodes, ``tau_q = 1``), ``"legendre"``
+            (the Gauss-Legendre nodes, all inside (0, 1)) - the two schemes of CasADi's
+            ``collocation_points(q, scheme)`` - or a (q,) sequence of distinct values in
+            [0, 1] (fractions of the interval, dimensionless), e.g. ``(0, 1)`` for a
+            piecewise-linear input.
+
+    Attributes:
+        coefficients: (*batch, T-1, q, nu) tensor; t: (T,); nodes: (q,) tensor (same dtype).
+
+    Raises:
+        InputValidationError: a bad shape, grid or node set, or non-finite coefficients.
+    """
+
+    def __init__(self, coefficients, t, nodes="radau"):
+        t = torch.as_tensor(t)
+        dtype = t.dtype if t.is_floating_point() else torch.get_default_dtype()
+        if isinstance(coefficients, torch.Tensor) and coefficients.is_floating_point():
+            dtype = coefficients.dtype
+        t = t.to(dtype)
+        if t.dim() != 1 or t.shape[0] < 2 or not bool(torch.all(t[1:] > t[:-1])):
+            raise InputValidationError(
+                "CollocationInput: t must be a strictly increasing (T,) grid with T >= 2, got "
+                f"shape {tuple(t.shape)}."
+            )
+        P = torch.as_tensor(coefficients, dtype=dtype, device=t.device)
+        T = t.shape[0]
+        if P.dim() < 3 or P.shape[-3] != T - 1:
+            raise InputValidationError(
+                f"CollocationInput: coefficients must have shape (T-1, q, nu) or "
+                f"(*batch, T-1, q, nu) with T-1 = {T - 1} intervals, got {tuple(P.shape)}. "
+                "For one input channel use P[..., None]."
+            )
+        check_finite(P, "CollocationInput coefficients", time_dim=-3)
+        self.coefficients, self.t = P, t
+        self.nodes = _collocation_nodes(nodes, P.shape[-2], dtype, t.device)
+
+    @property
+    def n_nodes(self) -> int:
+        """``q``, the number of nodes per interval."""
+        return self.nodes.shape[0]
+
+    def weights(self, tau: torch.Tensor) -> torch.Tensor:
+        """``l_i(tau)`` of the nodes (eq. 7.27) at fractions ``tau`` of any shape: (*tau, q)."""
+        return lagrange_basis(self.nodes, tau.to(self.nodes.dtype))
+
+    def __call__(self, t: torch.Tensor) -> torch.Tensor:
+        """The input at time(s) ``t``: a 0-dim tensor (one time for the batch) gives
+        (nu,) or (*batch, nu) (like the coefficients); per-sample times (*batch, 1) give
+        (*batch, nu)."""
+        grid, P = self.t, self.coefficients
+        t = torch.as_tensor(t, dtype=grid.dtype, device=grid.device)
+        tq = t.reshape(1) if t.dim() == 0 else t
+        k = (torch.searchsorted(grid, tq.contiguous(), right=True) - 1).clamp(0, grid.shape[0] - 2)
+        tau = ((tq - grid[k]) / (grid[k + 1] - grid[k])).clamp(0.0, 1.0)
+        w = self.weights(tau)  # (1, q) or (*batch, 1, q)
+        if t.dim() == 0:
+            return (w @ P.index_select(-3, k).squeeze(-3)).squeeze(-2)
+        batch = torch.broadcast_shapes(P.shape[:-3], k.shape[:-1])
+        Pk = P.expand(*batch, *P.shape[-3:])
+        idx = k.expand(*batch, 1)[..., None, None].expand(*batch, 1, *P.shape[-2:])
+        return (w.expand(*batch, 1, w.shape[-1]) @ torch.gather(Pk, -3, idx).squeeze(-3)).squeeze(
+            -2
+        )
+
+
+def _collocation_nodes(nodes, q: int, dtype, device) -> torch.Tensor:
+    """The (q,) node tensor of :class:`CollocationInput` from a scheme name or values."""
+    if isinstance(nodes, str):
+        if nodes not in COLLOCATION_NODES:
+            raise InputValidationError(
+                f"CollocationInput: unknown nodes {nodes!r}; use one of {COLLOCATION_NODES} "
+                "or a (q,) sequence of distinct values in [0, 1]."
+            )
+        values = (radau_iia if nodes == "radau" else gauss_legendre)(q).c
+        return torch.as_tensor(np.array(values), dtype=dtype, device=device)
+    out = torch.as_tensor(nodes, dtype=dtype, device=device).detach()
+    if out.dim() != 1 or out.shape[0] != q:
+        raise InputValidationError(
+            f"CollocationInput: nodes must be a (q,) sequence with q = {q} (the coefficients' "
+            f"dim -2), got shape {tuple(out.shape)}."
+        )
+    ordered = torch.sort(out).values
+    if not bool(torch.isfinite(out).all()) or bool((ordered[0] < 0) | (ordered[-1] > 1)):
+        raise InputValidationError(
+            f"CollocationInput: nodes must lie in [0, 1] (fractions of the interval), got "
+            f"{out.tolist()}."
+        )
+    if bool(torch.any(ordered[1:] == ordered[:-1])):
+        raise InputValidationError(
+            "CollocationInput: nodes must be distinct (Lagrange interpolation), got "
+            f"{out.tolist()}."
+        )
+    return out

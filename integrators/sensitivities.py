@@ -2,29 +2,53 @@
 
 :func:`sensitivities` differentiates the *discrete* simulation exactly (algorithmic
 differentiation, notes §8.2-8.3): for one step of size ``h`` from ``x_k`` with parameters
-``q = (p, u_k)``,
+``q = (p, w_k)`` (``w_k`` the input parameters of the current output interval, see below),
 
-    K_i         = f(t_k + c_i h, x_k + h sum_{j<i} a_ij K_j, u_k, p)
+    K_i         = f(t_k + c_i h, x_k + h sum_{j<i} a_ij K_j, u_i(w_k), p)
     dK_i/dx_k   = F_x^(i) (I + h sum_{j<i} a_ij dK_j/dx_k)                      (eq. 8.17b)
     dK_i/dq     = F_x^(i) (h sum_{j<i} a_ij dK_j/dq) + F_q^(i)                   (eq. 8.17c)
     Phi_k       = I + h sum_i b_i dK_i/dx_k,   Psi_k = h sum_i b_i dK_i/dq
     A_{k+1}     = Phi_k A_k,                    A_0 = I                          (eq. 8.18b)
     B_{k+1}     = Phi_k B_k + Psi_k^p,          B_0 = 0                          (eq. 8.18c)
 
-where ``F_x^(i), F_q^(i)`` are the Jacobians of ``f`` at stage ``i``. The notes' eq. 8.16-8.17
-write ``a_sj`` and ``b_j`` inside the stage sums and an identity inside ``dK_i/dp``: typos;
-the stage sums use row ``i`` of ``A`` and the parameter derivative has no identity term
-(checked against autograd in tests/test_sensitivities.py). Eq. 8.28c likewise has ``dK/dp``
-where ``dK/dx_k`` belongs in the propagation factor.
+where ``F_x^(i), F_q^(i)`` are the Jacobians of ``f`` at stage ``i`` (``F_q`` includes the chain
+rule through the input, eq. 8.30-8.31). The notes' eq. 8.16-8.17 write ``a_sj`` and ``b_j``
+inside the stage sums and an identity inside ``dK_i/dp``: typos; the stage sums use row ``i`` of
+``A`` and the parameter derivative has no identity term (checked against autograd in
+tests/test_sensitivities.py). Eq. 8.28c likewise has ``dK/dp`` where ``dK/dx_k`` belongs in the
+propagation factor.
 
-For an implicit tableau the stages solve ``r(K, x_k, q) = 0`` (eq. 8.20) by Newton, and the
-implicit function theorem gives all stage derivatives at once (eq. 8.24):
-``(I - h [a_ij F_x^(i)]_ij) dK/d(x_k, q) = [F_x^(i) [I 0] + [0 F_q^(i)]]_i``; the same
-``Phi_k, Psi_k`` then propagate ``A, B`` (eq. 8.28).
+Implicit tableaus. The stages solve ``r(K) = F(K) - K = 0`` (eq. 8.20, ``F_i = f(X_i)`` at the
+stage states ``X_i = x_k + h sum_j a_ij K_j``); ``M = -dr/dK = I - h [a_ij F_x^(i)]_ij`` is the
+Newton matrix (eq. 8.25), and the implicit function theorem (eq. 8.24, 8.27) gives all stage
+derivatives at once: ``M dK/d(x_k, q) = [F_x^(i) [I 0] + [0 F_q^(i)]]_i``. Eq. 8.24 needs ``M``
+at the *converged* stages, so each step factorises the exact ``M`` once, there (LU), and that
+one factorisation serves
 
-Inputs sampled on the output grid are held piecewise constant (eq. 8.34, ``u(t) = u_k`` on
-``[t_k, t_{k+1}]`` for every stage, as ``odeint`` does) and their samples are parameters:
-``C[..., k, :, j, :] = dx_k / du_j`` (zero for ``j >= k``).
+* the last Newton correction of the step, ``K <- K + M^{-1} r(K)`` (eq. 8.25-8.26, full step),
+* every sensitivity column (``x_k``, ``p`` and input columns), solved together with the
+  correction as one multi-column triangular solve (eq. 8.27), and
+* the simplified-Newton iterations of the next step (eq. 8.22 with the previous step's ``M``;
+  a contraction slower than ``1/2`` refreshes it at the current iterate).
+
+Only the first step, which has no previous factorisation, factorises once more (at its starting
+guess): ``N`` steps cost ``N + 1`` factorisations when no refresh is needed, reported in
+``SensitivityResult.stats``. ``Phi_k, Psi_k`` then propagate ``A, B`` as above (eq. 8.28).
+
+Inputs are parameterised on the output grid (notes §8.5) and the parameters become columns
+of ``q``:
+
+* samples ``u`` (T, nu) held piecewise constant (eq. 8.34, ``u(t) = u_k`` on the closed
+  ``[t_k, t_{k+1}]`` for every stage, as ``odeint`` does): ``w_k = u_k`` and
+  ``C[..., k, :, j, :] = dx_k / du_j``;
+* a :class:`~integrators.inputs.CollocationInput` (eq. 8.32-8.33): on interval ``k`` the input
+  is ``sum_i P_{k,i} l_i(tau)``, evaluated at every stage time ``t_k + (m + c_i) h`` (substep
+  ``m``, ``tau = (m + c_i) / substeps``), ``w_k = vec P_k`` and
+  ``C[..., k, :, j, i, :] = dx_k / dP_{j,i}``.
+In both cases ``x_k`` depends only on the parameters of intervals ``j < k`` (causality).
+``odeint`` given the same ``CollocationInput`` (a callable ``u(t)``) runs the same simulation
+except at a stage exactly on a grid point where the pieces jump (``c_i = 1``, e.g. RK4 or
+Radau IIA): a call ``u(t)`` looks ``t_{k+1}`` up in the next interval.
 
 :func:`variational_sensitivities` integrates the variational equations (eq. 8.8) alongside the
 state with :func:`~integrators.odeint.odeint`. With the *same* fixed-step explicit method and
@@ -32,21 +56,40 @@ grid the two coincide to rounding (explicit RK discretisation commutes with line
 notes remark this for Euler in §8.2); with another grid or method (e.g. ``"dopri5"``) the
 variational result approximates the exact sensitivities of the ODE, and the difference to the
 discrete sensitivities vanishes as the step shrinks.
+
+Typos in the notes' §8.5 (eq. 8.29-8.34): the dynamics are written ``x' = f(p, u)`` (``x`` is
+missing); ``p`` and ``s`` are reused for the input parameters and the number of interpolation
+nodes, which need not be the model parameters or the stage count (here ``P`` and ``q``); the
+nodes ``tau_i`` of ``l_i`` are not named (they are the interpolation nodes, eq. 7.27: the
+polynomial takes the value ``p_{k,i}`` at ``t_k + tau_i dt``); "``k = 0, N - 1``" means
+``k = 0, ..., N - 1``; eq. 8.31 ``df/dp = df/du du/dp`` holds only when ``p`` enters through
+``u`` alone (with model parameters too, the columns are ``[df/dp, df/du du/dP]``). In the IRK
+algorithm the guess "``K_i = x_k``" mixes units (``K`` are derivatives; ``K_i = f(x_k)`` is meant)
+and "``Delta w``" is ``Delta K``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
+from ._irk_dense import extrapolation_matrix
 from .collocation import gauss_legendre, radau_iia
-from .errors import ConvergenceError, InputValidationError
-from .newton import batch_jacobian, newton
+from .errors import ConvergenceError, InputValidationError, SingularMatrixError
+from .inputs import CollocationInput
+from .newton import batch_jacobian
+from .solution import SolverStats
 from .tableau import ButcherTableau, tableau
 
 __all__ = ["SensitivityResult", "sensitivities", "variational_sensitivities"]
+
+#: a simplified-Newton iteration whose residual shrinks by less than this factor refreshes
+#: the Newton matrix at the current iterate
+_SLOW_CONTRACTION = 0.5
+_MAX_NEWTON_ITER = 50
 
 
 @dataclass
@@ -58,7 +101,14 @@ class SensitivityResult:
         x: (*batch, T, nx) simulated states.
         A: (*batch, T, nx, nx) ``dx_k / dx_0`` (eq. 8.11).
         B: (*batch, T, nx, np) ``dx_k / dp``, or None without parameters.
-        C: (*batch, T, nx, T, nu) ``dx_k / du_j`` for sampled inputs (eq. 8.34), else None.
+        C: ``dx_k`` w.r.t. the input parameters, the input's shape appended to (*batch, T, nx):
+            (*batch, T, nx, T, nu) ``dx_k / du_j`` for sampled inputs (eq. 8.34),
+            (*batch, T, nx, T-1, q, nu) ``dx_k / dP_{j,i}`` for a
+            :class:`~integrators.inputs.CollocationInput` (eq. 8.32); None otherwise.
+        stats: :class:`~integrators.solution.SolverStats`: ``n_steps``, ``n_f_evals`` and
+            ``n_jac_evals`` (batched calls of ``f`` and of its stage Jacobian),
+            ``n_newton_iters`` and ``n_factorizations`` (LU factorisations of the Newton matrix,
+            one per step plus one to start, see the module docstring; 0 for explicit tableaus).
     """
 
     t: torch.Tensor
@@ -66,6 +116,7 @@ class SensitivityResult:
     A: torch.Tensor
     B: torch.Tensor | None = None
     C: torch.Tensor | None = None
+    stats: SolverStats = field(default_factory=SolverStats)
 
 
 def _model(f: Callable, has_u: bool, has_p: bool) -> Callable:
@@ -103,7 +154,15 @@ def _prepare(x0, t, p, u):
         p = _as_tensor(p, x0, "p")
         if p.dim() == 0:
             p = p.reshape(1)
-    if u is not None and not callable(u):
+    if isinstance(u, CollocationInput):
+        grid = u.t.to(dtype=t.dtype, device=t.device)
+        if grid.shape != t.shape or not torch.equal(grid, t):
+            raise InputValidationError(
+                "sensitivities: the CollocationInput was built on another grid than t; build "
+                "it with the same t (its intervals are the output intervals, eq. 8.32)."
+            )
+        u = CollocationInput(u.coefficients.detach().to(x0), t, u.nodes.to(x0))
+    elif u is not None and not callable(u):
         u = _as_tensor(u, x0, "u")
         if u.dim() < 2 or u.shape[-2] != t.shape[0]:
             raise InputValidationError(
@@ -120,6 +179,51 @@ def _resolve_tableau(method, stages) -> ButcherTableau:
         s = stages if stages is not None else (2 if method == "gauss_legendre" else 3)
         return gauss_legendre(s) if method == "gauss_legendre" else radau_iia(s)
     return tableau(method)
+
+
+class _InputParameters:
+    """The input parameters of each output interval and the stage inputs they give.
+
+    ``kind`` is "none", "callable" (no sensitivities), "zoh" (samples, eq. 8.34) or
+    "collocation" (eq. 8.32). For the last two, interval ``k`` contributes ``size`` parameters
+    ``w_k`` (``u_k``: nu; ``vec P_k``: q nu), which are the columns ``k * size`` to
+    ``(k + 1) * size`` of the flattened input parameters of shape ``shape``.
+
+    Args:
+        u: None, a callable, samples (*batch, T, nu) or a CollocationInput (already prepared).
+        tab: the tableau (its nodes ``c``); substeps: steps per output interval.
+    """
+
+    def __init__(self, u, tab: ButcherTableau, substeps: int):
+        self.kind, self.size, self.shape, self.batch = "callable", 0, (), ()
+        self.values = self.weights = None
+        if u is None:
+            self.kind = "none"
+        elif isinstance(u, CollocationInput):
+            P = u.coefficients  # (*batch, T-1, q, nu)
+            self.kind, self.q, self.nu = "collocation", P.shape[-2], P.shape[-1]
+            self.size, self.shape, self.batch = self.q * self.nu, P.shape[-3:], P.shape[:-3]
+            self.values = P.flatten(-2)
+            # stage i of substep m sits at tau = (m + c_i) / substeps of the interval
+            tau = (np.arange(substeps)[:, None] + np.array(tab.c)[None, :]) / substeps
+            self.weights = u.weights(torch.as_tensor(tau, dtype=P.dtype, device=P.device))
+        elif isinstance(u, torch.Tensor):
+            self.kind, self.size, self.values = "zoh", u.shape[-1], u
+            self.shape, self.batch = u.shape[-2:], u.shape[:-2]
+
+    @property
+    def parameterised(self) -> bool:
+        return self.kind in ("zoh", "collocation")
+
+    def interval(self, k: int, batch) -> torch.Tensor:
+        """``w_k``: (*batch, size)."""
+        return self.values[..., k, :].expand(*batch, self.size)
+
+    def stage_input(self, w: torch.Tensor, m: int, i: int) -> torch.Tensor:
+        """The input of stage ``i`` of substep ``m`` from ``w`` (*batch, size): (*batch, nu)."""
+        if self.kind == "zoh":
+            return w
+        return self.weights[m, i] @ w.unflatten(-1, (self.q, self.nu))
 
 
 def _explicit_stages(stage_at, tab, h, x, q, seed):
@@ -140,39 +244,128 @@ def _explicit_stages(stage_at, tab, h, x, q, seed):
     return Ks, dKs
 
 
-def _implicit_stages(stage_at, tab, h, x, q, seed, newton_tol, where):
-    """Stages of an implicit step by Newton, derivatives by the IFT (eq. 8.20-8.27)."""
-    s, nx = tab.stages, x.shape[-1]
-    a = torch.as_tensor(tab.A.copy(), dtype=x.dtype, device=x.device)
+def _samples(mask: torch.Tensor) -> str:
+    """The batch indices where ``mask`` holds (at most five), for messages."""
+    idx = [tuple(i) for i in torch.nonzero(mask.reshape(mask.shape or (1,))).tolist()]
+    return f"{idx[:5]}" + (f" and {len(idx) - 5} more" if len(idx) > 5 else "")
 
-    def stage_states(K, x):
-        return x[..., None, :] + h * torch.einsum("ij,...jn->...in", a, K)
 
-    def residual(k_flat, x):  # r(K, x_k, q) of eq. 8.20
-        K = k_flat.unflatten(-1, (s, nx))
-        X = stage_states(K, x)
-        F = torch.stack([stage_at(i)(torch.cat([X[..., i, :], q], -1)) for i in range(s)], -2)
-        return (F - K).flatten(-2)
+class _ImplicitStages:
+    """Stages of implicit RK steps and their derivatives, one factorisation per step
+    (eq. 8.20-8.28; see the module docstring).
 
-    f0 = stage_at(0)(torch.cat([x, q], -1))
-    K0 = f0.repeat(*([1] * (f0.dim() - 1)), s)  # every stage starts at f(t_k, x_k)
-    res = newton(residual, K0, x, method="full", tol=newton_tol, max_iter=50)
-    if not bool(res.converged.all()):
-        raise ConvergenceError(
-            f"sensitivities: the stage equations (eq. 8.20) of {tab.name!r} did not converge "
-            f"{where}: {'; '.join(res.messages)}. Try more substeps."
-        )
-    K = res.x.unflatten(-1, (s, nx))
-    X = stage_states(K, x)
-    jac = [batch_jacobian(stage_at(i), torch.cat([X[..., i, :], q], -1))[1] for i in range(s)]
-    Fx = torch.stack([J[..., :nx] for J in jac], -3)  # (*batch, s, nx, nx)
-    rhs = Fx @ seed[..., None, :, :]  # (*batch, s, nx, nx + nq)
-    rhs[..., nx:] += torch.stack([J[..., nx:] for J in jac], -3)
-    # (I - h [a_ij F_x^(i)]_ij) dK = rhs: eq. 8.24 with dr/dK = h [a_ij F_x^(i)] - I
-    blocks = torch.einsum("ij,...irc->...irjc", a, Fx).flatten(-4, -3).flatten(-2, -1)
-    system = torch.eye(s * nx, dtype=x.dtype, device=x.device) - h * blocks
-    dK = torch.linalg.solve(system, rhs.flatten(-3, -2)).unflatten(-2, (s, nx))
-    return list(K.unbind(-2)), list(dK.unbind(-3))
+    Keeps the LU factors of the exact Newton matrix ``M = I - h [a_ij F_x^(i)]`` at the last
+    converged stages (the next step's simplified-Newton matrix), the last stages (for the next
+    starting guess) and the work counters.
+
+    Args:
+        tab: implicit tableau; like: a tensor of the state dtype and device.
+        tol: residual tolerance ``||r(K)||_inf`` (units of ``dx/dt``), per sample.
+    """
+
+    def __init__(self, tab: ButcherTableau, like: torch.Tensor, tol: float):
+        self.tab, self.s, self.tol = tab, tab.stages, tol
+        self.a = torch.as_tensor(np.array(tab.A), dtype=like.dtype, device=like.device)
+        self.c = np.array(tab.c, dtype=np.float64)
+        # the previous stage polynomial extrapolates into the step when the nodes are distinct
+        self.extrapolate = np.unique(self.c).size == self.s
+        self.lu = None
+        self.K_prev = self.h_prev = None
+        self.n_lu = self.n_iter = self.n_f = self.n_jac = 0
+
+    def _stage_states(self, x, h, K):
+        """``X_i = x_k + h sum_j a_ij K_j``: (*batch, s, nx)."""
+        return x[..., None, :] + h * (self.a @ K)
+
+    def _residual(self, stage_at, x, h, K, q):
+        """``r(K) = F(K) - K`` of eq. 8.20: (*batch, s, nx)."""
+        X = self._stage_states(x, h, K)
+        self.n_f += self.s
+        F = torch.stack([stage_at(i)(torch.cat([X[..., i, :], q], -1)) for i in range(self.s)], -2)
+        return F - K
+
+    def _factorize(self, stage_at, x, h, K, q, where):
+        """Linearise at ``K``: keeps the LU of ``M`` and returns ``r(K)`` (*batch, s, nx) and the
+        stage Jacobians ``F_x`` (*batch, s, nx, nx), ``F_q`` (*batch, s, nx, nq)."""
+        nx = x.shape[-1]
+        X = self._stage_states(x, h, K)
+        pairs = [
+            batch_jacobian(stage_at(i), torch.cat([X[..., i, :], q], -1)) for i in range(self.s)
+        ]
+        self.n_f += self.s
+        self.n_jac += self.s
+        F = torch.stack([v for v, _ in pairs], -2)
+        J = torch.stack([d for _, d in pairs], -3)
+        Fx, Fq = J[..., :nx], J[..., nx:]
+        # M[(i, r), (j, c)] = delta_ij delta_rc - h a_ij F_x^(i)[r, c]
+        blocks = torch.einsum("ij,...irc->...irjc", self.a, Fx).flatten(-4, -3).flatten(-2, -1)
+        M = torch.eye(self.s * nx, dtype=x.dtype, device=x.device) - h * blocks
+        lu, piv, info = torch.linalg.lu_factor_ex(M)
+        self.n_lu += 1
+        if bool((info != 0).any()):
+            raise SingularMatrixError(
+                f"sensitivities: the Newton matrix I - h A (x) F_x of {self.tab.name!r} is "
+                f"singular {where} for samples {_samples(info != 0)}. Try more substeps."
+            )
+        self.lu = (lu, piv)
+        return F - K, Fx, Fq
+
+    def _solve(self, rhs):
+        """``M^{-1} rhs`` for rhs (*batch, s nx, ncols) with the kept factorisation."""
+        return torch.linalg.lu_solve(*self.lu, rhs)
+
+    def _guess(self, stage_at, x, h, q):
+        """Starting stages: the previous stage polynomial extrapolated, else ``f(x_k)``."""
+        if self.K_prev is None:
+            self.n_f += 1
+            f0 = stage_at(0)(torch.cat([x, q], -1))
+            return f0[..., None, :].expand(*f0.shape[:-1], self.s, f0.shape[-1])
+        if not self.extrapolate:
+            return self.K_prev
+        L = extrapolation_matrix(self.c, float(h / self.h_prev))
+        return torch.as_tensor(L, dtype=x.dtype, device=x.device) @ self.K_prev
+
+    def step(self, stage_at, h, x, q, seed, where):
+        """One step: stages ``K_i`` (*batch, nx) and ``dK_i/d(x_k, q)`` (*batch, nx, nx + nq)."""
+        s, nx = self.s, x.shape[-1]
+        K = self._guess(stage_at, x, h, q)
+        if self.lu is None:  # first step: a starting Newton matrix at the guess
+            self._factorize(stage_at, x, h, K, q, where)
+        norm_prev, refreshed = None, False
+        for _ in range(_MAX_NEWTON_ITER):
+            r = self._residual(stage_at, x, h, K, q)
+            norm = r.abs().flatten(-2).amax(-1)  # (*batch,)
+            if not bool(torch.isfinite(norm).all()):
+                raise ConvergenceError(
+                    f"sensitivities: the stage equations (eq. 8.20) of {self.tab.name!r} "
+                    f"became non-finite {where} for samples {_samples(~torch.isfinite(norm))}. "
+                    "Try more substeps."
+                )
+            if bool((norm <= self.tol).all()):
+                break
+            slow = norm_prev is not None and bool((norm > _SLOW_CONTRACTION * norm_prev).any())
+            refreshed = slow and not refreshed
+            if refreshed:  # the frozen matrix contracts too slowly: refresh it here
+                self._factorize(stage_at, x, h, K, q, where)
+            K = K + self._solve(r.flatten(-2)[..., None])[..., 0].unflatten(-1, (s, nx))
+            self.n_iter += 1
+            norm_prev = norm
+        else:
+            raise ConvergenceError(
+                f"sensitivities: the stage equations (eq. 8.20) of {self.tab.name!r} did not "
+                f"reach ||r||_inf <= {self.tol:.3g} in {_MAX_NEWTON_ITER} Newton iterations "
+                f"{where} for samples {_samples(norm > self.tol)}. Try more substeps."
+            )
+        # the one factorisation of this step, at the converged stages: the last correction and
+        # every sensitivity column in one solve (eq. 8.24-8.27)
+        r, Fx, Fq = self._factorize(stage_at, x, h, K, q, where)
+        rhs = Fx @ seed[..., None, :, :]  # (*batch, s, nx, nx + nq)
+        rhs[..., nx:] += Fq
+        sol = self._solve(torch.cat([r[..., None], rhs], -1).flatten(-3, -2)).unflatten(-2, (s, nx))
+        K = K + sol[..., 0]
+        self.n_iter += 1
+        self.K_prev, self.h_prev = K, h
+        return list(K.unbind(-2)), list(sol[..., 1:].unbind(-3))
 
 
 def sensitivities(
@@ -187,66 +380,81 @@ def sensitivities(
     stages: int | None = None,
     newton_tol: float | None = None,
 ) -> SensitivityResult:
-    """Exact sensitivities of a fixed-step Runge-Kutta simulation (notes eq. 8.13-8.28).
+    """Exact sensitivities of a fixed-step Runge-Kutta simulation (notes eq. 8.13-8.34).
 
     Explicit tableaus propagate the stage derivatives (eq. 8.17-8.18); implicit ones
     ("gauss_legendre", "radau_iia", "implicit_euler", "implicit_midpoint" or an implicit
     tableau) solve the stage equations by Newton and get the stage derivatives from the
-    implicit function theorem (eq. 8.24-8.28).
+    implicit function theorem with the step's one factorisation of the Newton matrix
+    (eq. 8.24-8.28, see the module docstring).
 
     Args:
         f: the model ``f(t, x)``, ``f(t, x, u)``, ``f(t, x, p)`` or ``f(t, x, u, p)``
             (``u`` is passed when given, ``p`` when given) returning (*batch, nx); ``t`` is a
-            0-dim tensor. ``p`` arrives with shape (*batch, np), so index it as ``p[..., i]``.
+            0-dim tensor. ``p`` arrives with shape (*batch, np), so index it as ``p[..., i]``;
+            ``u`` as (*batch, nu) (or what a callable ``u`` returns).
         x0: (*batch, nx) initial states.
         t: (T,) strictly increasing output grid.
         p: None, (np,) parameters shared by the batch, or (*batch, np).
         method: a tableau or its name (default "rk4"); ``b_err`` is ignored.
-        u: None, input samples (T, nu) or (*batch, T, nu) held piecewise constant on the
-            output grid (eq. 8.34; the last sample is not used), or a callable ``u(t)``
-            (no input sensitivities then).
+        u: the input, one of
+
+            * None;
+            * samples (T, nu) or (*batch, T, nu) held piecewise constant on the output grid
+              (eq. 8.34; the last sample is not used): ``C = dx_k/du_j``;
+            * a :class:`~integrators.inputs.CollocationInput` built on the same ``t``:
+              polynomials on each output interval given by their values ``P`` (T-1, q, nu) or
+              (*batch, T-1, q, nu) at ``q`` nodes (eq. 8.32-8.33), evaluated at every stage
+              time: ``C = dx_k/dP``;
+            * a callable ``u(t)`` (no input sensitivities).
         substeps: equal RK steps per output interval.
         stages: number of stages for "gauss_legendre" (default 2) / "radau_iia" (default 3).
-        newton_tol: stage-equation tolerance of implicit methods (default of :func:`newton`).
+        newton_tol: implicit methods: the stage equations are solved to
+            ``||r(K)||_inf <= newton_tol`` (units of ``dx/dt``) before the last correction;
+            default ``max(1e-10, 100 eps)`` of the dtype.
 
     Returns:
-        :class:`SensitivityResult` with ``x``, ``A = dx_k/dx_0``, ``B = dx_k/dp`` and, for
-        sampled inputs, ``C = dx_k/du_j``.
+        :class:`SensitivityResult` with ``x``, ``A = dx_k/dx_0``, ``B = dx_k/dp``, ``C`` (the
+        input sensitivities, shapes above) and ``stats``.
 
     Raises:
-        InputValidationError: bad shapes or grid, non-finite data, substeps < 1.
+        InputValidationError: bad shapes or grid, non-finite data, substeps < 1, a
+            CollocationInput on another grid.
         TableauError: an unknown method.
         ConvergenceError: the stage equations of an implicit method did not converge.
+        SingularMatrixError: the Newton matrix of an implicit step is singular.
     """
     x0, t, p, u = _prepare(x0, t, p, u)
     tab = _resolve_tableau(method, stages)
-    if int(substeps) != substeps or substeps < 1:
+    if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
         raise InputValidationError(
             f"sensitivities: substeps must be an integer >= 1, got {substeps!r}."
         )
-    sampled = isinstance(u, torch.Tensor)
+    substeps = int(substeps)
+    inputs = _InputParameters(u, tab, substeps)
     g = _model(f, u is not None, p is not None)
     nx, n_p = x0.shape[-1], (0 if p is None else p.shape[-1])
-    nu = u.shape[-1] if sampled else 0
-    batch = torch.broadcast_shapes(
-        x0.shape[:-1],
-        () if p is None else p.shape[:-1],
-        u.shape[:-2] if sampled else (),
-    )
+    batch = torch.broadcast_shapes(x0.shape[:-1], () if p is None else p.shape[:-1], inputs.batch)
     x = x0.expand(*batch, nx).clone()
     eye = torch.eye(nx, dtype=x.dtype, device=x.device)
-    T = t.shape[0]
-    nq = n_p + nu
+    T, nw = t.shape[0], inputs.size
+    nq = n_p + nw
     A = eye.expand(*batch, nx, nx).clone()
     B = x.new_zeros(*batch, nx, n_p)
-    C = x.new_zeros(*batch, nx, T, nu) if sampled else None
+    # input sensitivities, flattened: columns k * nw .. (k + 1) * nw belong to interval k
+    C = x.new_zeros(*batch, nx, inputs.shape.numel()) if inputs.parameterised else None
     xs_out, As_out, Bs_out, Cs_out = [x], [A], [B], [C]
     seed = torch.cat([eye, eye.new_zeros(nx, nq)], -1).expand(*batch, nx, nx + nq)
+    solver = None
+    if not tab.is_explicit:
+        tol = max(1e-10, 100 * torch.finfo(x.dtype).eps) if newton_tol is None else newton_tol
+        solver = _ImplicitStages(tab, x, float(tol))
+    n_steps = n_f = n_jac = 0
     for k in range(T - 1):
-        # q = (p, u_k): the quantities differentiated on this interval, (*batch, nq)
+        # q = (p, w_k): the quantities differentiated on this interval, (*batch, nq)
         q = torch.cat(
             ([p.expand(*batch, n_p)] if p is not None else [])
-            + ([u[..., k, :].expand(*batch, nu)] if sampled else [])
+            + ([inputs.interval(k, batch)] if inputs.parameterised else [])
             + [x.new_zeros(*batch, 0)],
             -1,
         )
@@ -254,22 +462,27 @@ def sensitivities(
         for m in range(substeps):
             tk = t[k] + m * h
 
-            def stage_at(i, tk=tk, h=h):
+            def stage_at(i, tk=tk, h=h, m=m):
                 ti = tk + float(tab.c[i]) * h
-                u_call = u(ti) if (u is not None and not sampled) else None
+                u_call = u(ti) if inputs.kind == "callable" else None
 
                 def stage(z):
                     zp = z[..., nx : nx + n_p] if p is not None else None
-                    zu = z[..., nx + n_p :] if sampled else u_call
+                    zu = u_call
+                    if inputs.parameterised:
+                        zu = inputs.stage_input(z[..., nx + n_p :], m, i)
                     return g(ti, z[..., :nx], zu, zp)
 
                 return stage
 
-            if tab.is_explicit:
+            if solver is None:
                 Ks, dKs = _explicit_stages(stage_at, tab, h, x, q, seed)
+                n_f += tab.stages
+                n_jac += tab.stages
             else:
                 where = f"in step {m} of interval {k} (t = {float(tk):.6g})"
-                Ks, dKs = _implicit_stages(stage_at, tab, h, x, q, seed, newton_tol, where)
+                Ks, dKs = solver.step(stage_at, h, x, q, seed, where)
+            n_steps += 1
             step = seed.clone()
             for i in range(tab.stages):
                 if tab.b[i] != 0.0:
@@ -278,19 +491,26 @@ def sensitivities(
             Phi, Psi = step[..., :nx], step[..., nx:]  # eq. 8.18b-c / 8.28b-c
             A = Phi @ A
             B = Phi @ B + Psi[..., :n_p]
-            if sampled:
-                C = (Phi @ C.flatten(-2)).unflatten(-1, (T, nu))
-                C[..., k, :] += Psi[..., n_p:]
+            if C is not None:  # columns of later intervals are still zero (causality)
+                lo, hi = k * nw, (k + 1) * nw
+                head = Phi @ C[..., :hi]
+                head[..., lo:hi] += Psi[..., n_p:]
+                C = torch.cat([head, C[..., hi:]], -1)
         xs_out.append(x)
         As_out.append(A)
         Bs_out.append(B)
         Cs_out.append(C)
+    stats = SolverStats(n_f_evals=n_f, n_steps=n_steps, n_jac_evals=n_jac)
+    if solver is not None:
+        stats.n_f_evals, stats.n_jac_evals = solver.n_f, solver.n_jac
+        stats.n_newton_iters, stats.n_factorizations = solver.n_iter, solver.n_lu
     return SensitivityResult(
         t=t,
         x=torch.stack(xs_out, -2),
         A=torch.stack(As_out, -3),
         B=None if p is None else torch.stack(Bs_out, -3),
-        C=torch.stack(Cs_out, -4) if sampled else None,
+        C=None if C is None else torch.stack(Cs_out, -3).unflatten(-1, inputs.shape),
+        stats=stats,
     )
 
 
@@ -310,8 +530,9 @@ def variational_sensitivities(
     ``B' = F_x B + F_p`` (B(0) = 0), with batched autograd Jacobians ``F_x, F_p``.
 
     Args:
-        f, x0, t, p, u: as in :func:`sensitivities` (``u``: samples or a callable; no input
-            sensitivities are formed).
+        f, x0, t, p, u: as in :func:`sensitivities` (``u``: samples, a callable or a
+            :class:`~integrators.inputs.CollocationInput`, which ``odeint`` calls as ``u(t)``;
+            no input sensitivities are formed).
         method: any ``odeint`` method, e.g. "rk4" (same discretisation as the simulation:
             identical to :func:`sensitivities`) or "dopri5" (near-exact ODE sensitivities).
         **odeint_options: passed to :func:`~integrators.odeint.odeint` (``substeps``,

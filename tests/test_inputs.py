@@ -7,7 +7,14 @@ import scipy.linalg
 import scipy.signal
 import torch
 
-from integrators import InputValidationError, bind_rhs, odeint
+from integrators import (
+    CollocationInput,
+    InputValidationError,
+    bind_rhs,
+    gauss_legendre,
+    odeint,
+    radau_iia,
+)
 
 A = np.array([[0.0, 1.0], [-4.0, -0.4]])
 B = np.array([[0.0, 0.5], [1.0, 0.0]])
@@ -152,3 +159,59 @@ def test_input_validation_errors():
         odeint(f, torch.zeros(1), t, u=torch.tensor([[0.0], [1.0], [float("inf")], [0.0], [0.0]]))
     with pytest.raises(InputValidationError, match="broadcast"):
         odeint(f, torch.zeros(3, 1), t, u=torch.zeros(2, 5, 1))
+
+
+# ------------------------------------------- inputs by collocation polynomials (eq. 8.32)
+@pytest.mark.parametrize("nodes", ["radau", "legendre", (0.0, 0.3, 0.6, 1.0)])
+def test_collocation_input_interpolates_a_piecewise_cubic(nodes):
+    """With q = 4 nodes the polynomial of eq. 8.32 through the values of a cubic at the node
+    times is that cubic (a different one per interval, numpy.polyval as truth); the values at
+    the node times are the coefficients; lookups are right-continuous at grid points (the
+    next interval at tau = 0) and hold the end values outside the grid; per-sample times and
+    batched coefficients agree with the shared-time lookup."""
+    t = torch.tensor([0.0, 0.5, 1.5, 2.0], dtype=torch.float64)
+    rng = np.random.default_rng(2)
+    cubics = rng.standard_normal((3, 4))  # numpy.polyval coefficients per interval
+    u_nodes = np.array(nodes) if not isinstance(nodes, str) else None
+    if isinstance(nodes, str):  # the schemes of CasADi's collocation_points(4, scheme)
+        u_nodes = (radau_iia(4) if nodes == "radau" else gauss_legendre(4)).c
+    grid = t.numpy()
+    node_times = grid[:-1, None] + np.diff(grid)[:, None] * u_nodes  # (3, 4)
+    coef = np.stack([np.polyval(cubics[k], node_times[k]) for k in range(3)])[..., None]
+    u = CollocationInput(torch.tensor(coef), t, nodes)
+    for k in range(3):
+        for time in np.linspace(grid[k], grid[k + 1], 7)[:-1]:
+            got = u(torch.tensor(time, dtype=torch.float64))
+            np.testing.assert_allclose(got.numpy(), [np.polyval(cubics[k], time)], atol=1e-13)
+        inner = u_nodes < 1.0  # a node at tau = 1 is looked up in the next interval
+        got = u(torch.tensor(node_times[k, inner])[:, None])
+        np.testing.assert_allclose(got[:, 0].numpy(), coef[k, inner, 0], rtol=0, atol=1e-13)
+    at_grid = u(torch.tensor(0.5, dtype=torch.float64)).numpy()
+    np.testing.assert_allclose(at_grid, [np.polyval(cubics[1], 0.5)], rtol=0, atol=1e-13)
+    ends = u(torch.tensor([[-1.0], [2.0], [3.0]], dtype=torch.float64))[:, 0].numpy()
+    np.testing.assert_allclose(
+        ends, [np.polyval(cubics[0], 0.0)] + 2 * [np.polyval(cubics[2], 2.0)]
+    )
+    batched = CollocationInput(torch.tensor(np.stack([coef, -coef])), t, nodes)
+    got = batched(torch.tensor([[0.7], [1.7]], dtype=torch.float64))[:, 0].numpy()
+    np.testing.assert_allclose(got, [np.polyval(cubics[1], 0.7), -np.polyval(cubics[2], 1.7)])
+
+
+def test_collocation_input_validation_errors():
+    t = torch.linspace(0, 1, 5, dtype=torch.float64)
+    with pytest.raises(InputValidationError, match="T-1 = 4 intervals"):
+        CollocationInput(torch.zeros(5, 2, 1), t)
+    with pytest.raises(InputValidationError, match="unknown nodes"):
+        CollocationInput(torch.zeros(4, 2, 1), t, "chebyshev")
+    with pytest.raises(InputValidationError, match="q = 2"):
+        CollocationInput(torch.zeros(4, 2, 1), t, (0.0, 0.5, 1.0))
+    with pytest.raises(InputValidationError, match=r"in \[0, 1\]"):
+        CollocationInput(torch.zeros(4, 2, 1), t, (0.0, 1.5))
+    with pytest.raises(InputValidationError, match="distinct"):
+        CollocationInput(torch.zeros(4, 2, 1), t, (0.5, 0.5))
+    with pytest.raises(InputValidationError, match="strictly increasing"):
+        CollocationInput(torch.zeros(4, 2, 1), t.flip(0))
+    bad = torch.zeros(4, 2, 1)
+    bad[2, 1, 0] = float("nan")
+    with pytest.raises(InputValidationError, match="time index 2"):
+        CollocationInput(bad, t)

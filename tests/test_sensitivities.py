@@ -11,7 +11,16 @@ import math
 import pytest
 import torch
 
-from integrators import TableauError, gauss_legendre, odeint
+from integrators import (
+    InputValidationError,
+    SingularMatrixError,
+    TableauError,
+    gauss_legendre,
+    odeint,
+    radau_iia,
+    tableau,
+)
+from integrators.inputs import CollocationInput
 from integrators.sensitivities import sensitivities, variational_sensitivities
 
 F64 = torch.float64
@@ -126,8 +135,9 @@ def test_float32_and_shared_parameters():
 
 @pytest.mark.parametrize(("method", "stages"), [("gauss_legendre", 2), ("radau_iia", 3)])
 def test_implicit_step_sensitivities_by_the_ift_match_autograd_of_odeint(method, stages):
-    """Eq. 8.24-8.28 vs reverse-mode autograd through the implicit solver of odeint (which
-    stops its Newton iteration at ~1e-9, hence the tolerance)."""
+    """Eq. 8.24-8.28 vs reverse-mode autograd through the implicit solver of odeint (its own
+    IFT gradients, with its Newton iteration converged to rtol 1e-10), one factorisation of the
+    Newton matrix per step (plus one to start the first step's iteration)."""
     res = sensitivities(pendulum, X0, T_GRID, P, u=U, method=method, stages=stages)
 
     def sim(x0, p, u):
@@ -139,26 +149,34 @@ def test_implicit_step_sensitivities_by_the_ift_match_autograd_of_odeint(method,
             stages=stages,
             u=u,
             adaptive=False,
+            rtol=1e-10,
+            atol=1e-12,
         ).x
 
-    torch.testing.assert_close(res.x, sim(X0, P, U), rtol=0, atol=1e-7)
+    torch.testing.assert_close(res.x, sim(X0, P, U), rtol=0, atol=1e-10)
     jac = torch.autograd.functional.jacobian
     Jx0 = jac(lambda z: sim(z, P, U), X0)
     torch.testing.assert_close(
-        res.A, torch.stack([Jx0[b, :, :, b, :] for b in range(2)]), rtol=0, atol=1e-7
+        res.A, torch.stack([Jx0[b, :, :, b, :] for b in range(2)]), rtol=0, atol=1e-10
     )
-    torch.testing.assert_close(res.B, jac(lambda q: sim(X0, q, U), P), rtol=0, atol=1e-7)
-    torch.testing.assert_close(res.C, jac(lambda v: sim(X0, P, v), U), rtol=0, atol=1e-7)
+    torch.testing.assert_close(res.B, jac(lambda q: sim(X0, q, U), P), rtol=0, atol=1e-10)
+    torch.testing.assert_close(res.C, jac(lambda v: sim(X0, P, v), U), rtol=0, atol=1e-10)
+    assert res.stats.n_steps == len(T_GRID) - 1
+    assert res.stats.n_factorizations == res.stats.n_steps + 1
 
 
 def test_implicit_sensitivities_match_finite_differences_and_the_linear_closed_form():
-    res = sensitivities(pendulum_free, X0, T_GRID, P, method="radau_iia", newton_tol=1e-14)
+    res = sensitivities(
+        pendulum_free, X0, T_GRID, P, method="radau_iia", substeps=2, newton_tol=1e-14
+    )
     h = 1e-6
     for j in range(2):
         e = torch.zeros(2, dtype=F64)
         e[j] = h
         plus, minus = (
-            sensitivities(pendulum_free, X0, T_GRID, q, method="radau_iia", newton_tol=1e-14).x
+            sensitivities(
+                pendulum_free, X0, T_GRID, q, method="radau_iia", substeps=2, newton_tol=1e-14
+            ).x
             for q in (P + e, P - e)
         )
         torch.testing.assert_close(res.B[..., j], (plus - minus) / (2 * h), rtol=1e-6, atol=1e-8)
@@ -174,7 +192,33 @@ def test_implicit_sensitivities_match_finite_differences_and_the_linear_closed_f
     R = eye + dt * torch.kron(b[None], eye) @ stage
     lin = sensitivities(lambda t, x: x @ M.T, X0, T_GRID, method=tab)
     for k in range(len(T_GRID)):
-        torch.testing.assert_close(lin.A[:, k], torch.linalg.matrix_power(R, k).expand(2, 2, 2))
+        torch.testing.assert_close(
+            lin.A[:, k], torch.linalg.matrix_power(R, k).expand(2, 2, 2), rtol=1e-13, atol=1e-13
+        )
+    torch.testing.assert_close(
+        lin.x, (lin.A @ X0[:, None, :, None])[..., 0], rtol=1e-13, atol=1e-13
+    )
+    assert lin.stats.n_factorizations == len(T_GRID)  # one per step, one to start
+
+
+def test_stale_newton_matrix_is_refreshed_and_counted():
+    """x' = -u x with u switching 1 <-> 200 (ZOH): the previous step's Newton matrix contracts
+    too slowly after a switch and is refreshed (counted); implicit Euler's closed form
+    x_{k+1} = x_k / (1 + h u_k) gives x and the input sensitivities dx_n/du_j =
+    -h x_n / (1 + h u_j) (j < n) exactly."""
+    t = torch.linspace(0.0, 1.0, 6, dtype=F64)
+    u = torch.tensor([1.0, 200.0, 1.0, 200.0, 1.0, 1.0], dtype=F64)[:, None]
+    x0 = torch.tensor([1.0, -2.0], dtype=F64)[:, None]
+    res = sensitivities(lambda tt, x, uu: -uu * x, x0, t, u=u, method="implicit_euler")
+    h = 0.2
+    factor = 1.0 / (1.0 + h * u[:-1, 0])
+    x_ref = x0 * torch.cat([torch.ones(1, dtype=F64), torch.cumprod(factor, 0)])
+    torch.testing.assert_close(res.x[..., 0], x_ref, rtol=1e-14, atol=0)
+    C_ref = torch.zeros(2, 6, 6, dtype=F64)
+    for n in range(6):
+        C_ref[:, n, :n] = -h * x_ref[:, n, None] * factor[:n]
+    torch.testing.assert_close(res.C[:, :, 0, :, 0], C_ref, rtol=1e-13, atol=1e-15)
+    assert res.stats.n_factorizations > res.stats.n_steps + 1
 
 
 def test_errors():
@@ -184,3 +228,250 @@ def test_errors():
         sensitivities(pendulum_free, X0, T_GRID.flip(0), P)
     with pytest.raises(ValueError, match="sampled u"):
         sensitivities(pendulum, X0, T_GRID, P, u=U[:3])
+    with pytest.raises(InputValidationError, match="another grid"):
+        sensitivities(pendulum, X0, T_GRID, P, u=CollocationInput(P_IN[2], 2 * T_GRID))
+    with pytest.raises(SingularMatrixError, match=r"singular in step 0 of interval 0"):
+        # implicit Euler on x' = x / h: the Newton matrix 1 - h / h vanishes
+        sensitivities(lambda t, x: x / 0.25, X0, T_GRID, method="implicit_euler")
+
+
+# ------------------------------------------------- inputs by collocation (eq. 8.32-8.33)
+GEN = torch.Generator().manual_seed(8)
+P_IN = {q: torch.randn(len(T_GRID) - 1, q, 1, generator=GEN, dtype=F64) for q in (1, 2, 3)}
+
+
+def lagrange_weights(nodes, tau: float) -> torch.Tensor:
+    """l_i(tau) of the nodes by the product formula (the test's own), (q,)."""
+    w = [
+        math.prod((tau - nodes[m]) / (nodes[i] - nodes[m]) for m in range(len(nodes)) if m != i)
+        for i in range(len(nodes))
+    ]
+    return torch.tensor(w, dtype=F64)
+
+
+def reference_simulation(x0, p, P, nodes, tab, substeps):
+    """A plain RK loop with autograd (the truth for C): on interval k the input is
+    sum_i P[k, i] l_i(tau) at tau = (m + c_i) / substeps (eq. 8.32). Implicit stages: Newton
+    without graph, then one Newton step with a detached exact Jacobian, whose derivative is the
+    implicit-function-theorem one (eq. 3.40)."""
+    a = torch.as_tensor(tab.A.copy())
+    s, x, xs = tab.stages, x0, [x0]
+    for k in range(len(T_GRID) - 1):
+        h = (T_GRID[k + 1] - T_GRID[k]) / substeps
+        for m in range(substeps):
+            times = [T_GRID[k] + (m + float(c)) * h for c in tab.c]
+            us = [lagrange_weights(nodes, (m + float(c)) / substeps) @ P[k] for c in tab.c]
+
+            def residual(K, x=x, times=times, us=us, h=h):
+                X = x[..., None, :] + h * (a @ K)
+                F = [pendulum(times[i], X[..., i, :], us[i], p) for i in range(s)]
+                return torch.stack(F, -2) - K
+
+            if tab.is_explicit:
+                K = []
+                for i in range(s):
+                    xi = x + h * sum(float(a[i, j]) * K[j] for j in range(i))
+                    K.append(pendulum(times[i], xi, us[i], p))
+                K = torch.stack(K, -2)
+            else:
+                Kd = x.new_zeros(*x.shape[:-1], s, x.shape[-1])
+                shape = Kd.shape
+                for _ in range(8):  # quadratic convergence to rounding
+                    J = torch.autograd.functional.jacobian(
+                        lambda v, shape=shape: residual(v.view(shape)).flatten(), Kd.flatten()
+                    )
+                    step = torch.linalg.solve(J, residual(Kd).detach().flatten())
+                    Kd = Kd - step.view(Kd.shape)
+                K = Kd - torch.linalg.solve(J, residual(Kd).flatten()).view(Kd.shape)
+            x = x + h * (torch.as_tensor(tab.b.copy()) @ K)
+        xs.append(x)
+    return torch.stack(xs, -2)
+
+
+@pytest.mark.parametrize(
+    ("tab", "q", "substeps", "nodes"),
+    [
+        (tableau("rk4"), 3, 1, "radau"),
+        (tableau("rk4"), 3, 2, (0.0, 0.5, 1.0)),
+        (gauss_legendre(1), 1, 1, "legendre"),
+        (radau_iia(2), 2, 2, "radau"),
+    ],
+    ids=["rk4-radau", "rk4-substeps-equidistant", "gauss1-legendre", "radau2-radau"],
+)
+def test_collocation_input_sensitivities_equal_autograd(tab, q, substeps, nodes):
+    """C = dx_k/dP against autograd through an independent RK loop that evaluates the input
+    polynomial of eq. 8.32 at every stage time; the random coefficients jump between intervals,
+    and the stage with c_i = 1 (RK4, Radau IIA) uses the closed interval's value."""
+    P_in = P_IN[q]
+    u = CollocationInput(P_in, T_GRID, nodes)
+    res = sensitivities(
+        pendulum, X0, T_GRID, P, method=tab, u=u, substeps=substeps, newton_tol=1e-13
+    )
+    ref_nodes = u.nodes.tolist()
+
+    def sim(x0, p, coef):
+        return reference_simulation(x0, p, coef, ref_nodes, tab, substeps)
+
+    torch.testing.assert_close(res.x, sim(X0, P, P_in), rtol=0, atol=1e-13)
+    jac = torch.autograd.functional.jacobian
+    C_ad = jac(lambda coef: sim(X0, P, coef), P_in)  # (2, T, 2, T-1, q, 1)
+    torch.testing.assert_close(res.C, C_ad, rtol=0, atol=1e-12)
+    torch.testing.assert_close(res.B, jac(lambda pp: sim(X0, pp, P_in), P), rtol=0, atol=1e-12)
+    assert bool(torch.all(res.C[:, 3, :, 3:] == 0))  # x_3 ignores the intervals j >= 3
+
+
+@pytest.mark.parametrize(("method", "stages"), [("gauss_legendre", 2), ("gauss_legendre", 3)])
+def test_collocation_input_agrees_with_odeint_given_the_same_callable(method, stages):
+    """The stages of Gauss-Legendre lie inside the steps, so odeint calling the input as
+    u(t) at its stage times runs the same simulation: x and autograd through odeint's implicit
+    solver (its own IFT gradients) w.r.t. the coefficients match."""
+    u = CollocationInput(P_IN[2], T_GRID, "legendre")
+    res = sensitivities(pendulum, X0, T_GRID, P, method=method, stages=stages, u=u, substeps=2)
+
+    def sim(coef):
+        return odeint(
+            lambda t, x, uu: pendulum(t, x, uu, P),
+            X0,
+            T_GRID,
+            method=method,
+            stages=stages,
+            u=CollocationInput(coef, T_GRID, "legendre"),
+            substeps=2,
+            adaptive=False,
+            rtol=1e-10,
+            atol=1e-12,
+        ).x
+
+    torch.testing.assert_close(res.x, sim(P_IN[2]), rtol=0, atol=1e-12)
+    C_ad = torch.autograd.functional.jacobian(sim, P_IN[2])
+    torch.testing.assert_close(res.C, C_ad, rtol=0, atol=1e-12)
+    assert res.stats.n_factorizations == res.stats.n_steps + 1
+
+
+def test_continuous_collocation_input_is_odeint_linear_interpolation_and_q1_is_zoh():
+    """Nodes (0, 1) with P[k] = (u_k, u_{k+1}) is odeint's interpolation="linear" (also via
+    the callable, the pieces being continuous); q = 1 is the piecewise-constant input of
+    eq. 8.34 with the same sensitivities."""
+    P_lin = torch.stack([U[:-1], U[1:]], -2)  # (T-1, 2, 1)
+    res = sensitivities(pendulum, X0, T_GRID, P, u=CollocationInput(P_lin, T_GRID, (0.0, 1.0)))
+    for u in (U, CollocationInput(P_lin, T_GRID, (0.0, 1.0))):
+        sol = odeint(
+            lambda t, x, uu: pendulum(t, x, uu, P),
+            X0,
+            T_GRID,
+            method="rk4",
+            u=u,
+            interpolation="linear",
+            compile=False,
+        )
+        torch.testing.assert_close(res.x, sol.x, rtol=0, atol=1e-13)
+    # the sensitivity to the sample u_j is the sum over the coefficients equal to it
+    C_samples = res.C.new_zeros(2, len(T_GRID), 2, len(T_GRID), 1)
+    C_samples[..., :-1, :] += res.C[..., :, 0, :]
+    C_samples[..., 1:, :] += res.C[..., :, 1, :]
+    lin = torch.autograd.functional.jacobian(
+        lambda v: (
+            odeint(
+                lambda t, x, uu: pendulum(t, x, uu, P),
+                X0,
+                T_GRID,
+                method="rk4",
+                u=v,
+                interpolation="linear",
+                compile=False,
+            ).x
+        ),
+        U,
+    )
+    torch.testing.assert_close(C_samples, lin, rtol=0, atol=1e-12)
+    zoh = sensitivities(pendulum, X0, T_GRID, P, u=U)
+    one = sensitivities(pendulum, X0, T_GRID, P, u=CollocationInput(U[:-1, None], T_GRID))
+    torch.testing.assert_close(one.x, zoh.x, rtol=0, atol=0)
+    torch.testing.assert_close(one.C[..., 0, :], zoh.C[..., :-1, :], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("method", ["rk4", "radau_iia"])
+def test_collocation_input_sensitivities_match_central_finite_differences(method):
+    """All 2 (T-1) q perturbed simulations in one batched call, relative 1e-6 (float64)."""
+    P_in = P_IN[3]
+    x0 = X0[1]
+    u = CollocationInput(P_in, T_GRID, "legendre")
+    res = sensitivities(pendulum, x0, T_GRID, P, method=method, u=u, newton_tol=1e-14)
+    n, step = P_in.numel(), 1e-6
+    eye = step * torch.eye(n, dtype=F64).reshape(n, *P_in.shape)
+    batch = torch.cat([P_in + eye, P_in - eye])  # (2n, T-1, q, 1)
+    xs = sensitivities(
+        pendulum,
+        x0,
+        T_GRID,
+        P,
+        method=method,
+        u=CollocationInput(batch, T_GRID, "legendre"),
+        newton_tol=1e-14,
+    ).x
+    fd = ((xs[:n] - xs[n:]) / (2 * step)).movedim(0, -1).reshape(res.C.shape)
+    assert float((res.C - fd).abs().max()) <= 1e-6 * float(res.C.abs().max())
+
+
+@pytest.mark.parametrize(("method", "order"), [("rk4", 4), ("gauss_legendre", 4), ("radau_iia", 5)])
+def test_piecewise_linear_input_closed_forms(method, order):
+    """x' = -a x + u, u = P_k0 (1 - tau) + P_k1 tau on [t_k, t_{k+1}] (nodes (0, 1)).
+
+    Discrete closed form of one RK step (stage vector solved as one linear system):
+    x_{k+1} = R x_k + h b^T (I + h a A)^{-1} U, with the stage inputs U_i = l(tau_i) . P_k;
+    it must be reproduced to rounding. Exact ODE solution: with g0 = (1 - e^{-a D}) / a and
+    g1 = g0 - (1 - e^{-a D} (1 + a D)) / (a^2 D), x(t_{k+1}) = e^{-a D} x(t_k) + P_k0 (g0 - g1)
+    + P_k1 g1, so dx_n/dP_j = e^{-a (t_n - t_{j+1})} (g0 - g1, g1); C converges to it at the
+    method's order.
+    """
+    a_rate, nodes = 3.0, (0.0, 1.0)
+    t = torch.linspace(0.0, 2.0, 5, dtype=F64)
+    P_in = torch.randn(4, 2, 1, generator=torch.Generator().manual_seed(3), dtype=F64)
+    u = CollocationInput(P_in, t, nodes)
+    tab = {"rk4": tableau("rk4"), "gauss_legendre": gauss_legendre(2), "radau_iia": radau_iia(3)}
+    tab = tab[method]
+
+    def model(tt, x, uu):
+        return -a_rate * x + uu
+
+    x0 = torch.tensor([0.7], dtype=F64)
+    D = 0.5
+    # discrete closed form with substeps = 2
+    res = sensitivities(model, x0, t, method=tab, u=u, substeps=2)
+    h = D / 2
+    A_rk, b_rk = torch.as_tensor(tab.A.copy()), torch.as_tensor(tab.b.copy())
+    S = torch.linalg.inv(torch.eye(tab.stages, dtype=F64) + h * a_rate * A_rk)  # stage solve
+    R = 1.0 - h * a_rate * (b_rk @ S @ torch.ones(tab.stages, dtype=F64))
+    x = x0.clone()
+    C_step = torch.zeros(2, dtype=F64)  # dx_{k+1}/dP_k
+    for k in range(4):
+        for m in range(2):
+            L = torch.stack([lagrange_weights(nodes, (m + float(c)) / 2) for c in tab.c])
+            x = R * x + h * (b_rk @ S @ (L @ P_in[k, :, 0]))
+            if k == 0:
+                C_step = R * C_step + h * (b_rk @ S @ L)
+        torch.testing.assert_close(res.x[k + 1], x, rtol=0, atol=1e-14)
+    for n in range(1, 5):
+        expected = R ** (2 * (n - 1)) * C_step
+        torch.testing.assert_close(res.C[n, 0, 0, :, 0], expected, rtol=1e-13, atol=1e-15)
+
+    # exact ODE sensitivities and the convergence order
+    e = math.exp(-a_rate * D)
+    g0 = (1 - e) / a_rate
+    g1 = g0 - (1 - e * (1 + a_rate * D)) / (a_rate**2 * D)
+    exact = torch.zeros(5, 4, 2, dtype=F64)
+    for n in range(1, 5):
+        for j in range(n):
+            exact[n, j] = math.exp(-a_rate * D * (n - 1 - j)) * torch.tensor(
+                [g0 - g1, g1], dtype=F64
+            )
+    errors = [
+        float(
+            (sensitivities(model, x0, t, method=tab, u=u, substeps=m).C[:, 0, :, :, 0] - exact)
+            .abs()
+            .max()
+        )
+        for m in (4, 8)
+    ]
+    assert errors[1] < 1e-5
+    assert order - 0.3 < math.log2(errors[0] / errors[1]) < order + 0.6, errors
