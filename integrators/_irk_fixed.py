@@ -216,19 +216,27 @@ def _flag_high_index(high, status, active, messages, t):
     """Warn and stop samples whose algebraic Jacobian became rank deficient (Theorem 9).
 
     ``high``, ``status``, ``active`` are host (numpy) arrays (the last two updated in place);
-    ``t`` the time(s) of the check (tensor or host array).
+    ``t`` the time of the check: shared (0-dim tensor, fixed steps) or per sample (host array
+    of ``high``'s shape, adaptive steps). One message per distinct time, naming the samples
+    flagged at it.
     """
     if not high.any():
         return
-    idx = [tuple(i) for i in np.argwhere(high).tolist()]
-    t_first = float(np.asarray(t.detach().cpu() if isinstance(t, torch.Tensor) else t).flat[0])
-    msg = (
-        f"the DAE's algebraic Jacobian (dg/dz, or [dF/dx' dF/dz]) became rank deficient at "
-        f"t = {t_first:.6g} for samples {idx[:10]}: the DAE is of index > 1 "
-        "there (Theorem 9, Corollary 1) and implicit RK results would be meaningless; "
-        "index-reduce the model (notes §5.4, §7.6.1)."
-    )
-    warnings.warn(msg, HighIndexWarning, stacklevel=4)
-    messages.append(msg)
+    t_host = np.asarray(t.detach().cpu() if isinstance(t, torch.Tensor) else t, dtype=np.float64)
+    if t_host.size == high.size:  # per-sample times: each sample's own
+        t_host = t_host.reshape(high.shape)
+    times = np.broadcast_to(t_host if t_host.shape == high.shape else t_host.flat[0], high.shape)
+    by_time: dict[float, list] = {}
+    for i in np.argwhere(high).tolist():
+        by_time.setdefault(float(times[tuple(i)]), []).append(tuple(i))
+    for when, idx in by_time.items():
+        msg = (
+            f"the DAE's algebraic Jacobian (dg/dz, or [dF/dx' dF/dz]) became rank deficient at "
+            f"t = {when:.6g} for samples {idx[:10]}: the DAE is of index > 1 "
+            "there (Theorem 9, Corollary 1) and implicit RK results would be meaningless; "
+            "index-reduce the model (notes §5.4, §7.6.1)."
+        )
+        warnings.warn(msg, HighIndexWarning, stacklevel=4)
+        messages.append(msg)
     status[high] = int(Status.NEWTON_FAILED)
     active[high] = False
