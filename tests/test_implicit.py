@@ -433,6 +433,65 @@ def test_newton_failures_are_rejected_and_retried(host_loop, stiff_vdp_reference
 
 
 # ------------------------------------------------------------- Jacobian / LU reuse
+def _stability_matrix(tab, hM: np.ndarray) -> np.ndarray:
+    """One step of the tableau on x' = M x: x_{k+1} = R(hM) x_k with the matrix stability
+    function R(hM) = I + (b^T (x) hM) (I - A (x) hM)^{-1} (1 (x) I) (eq. 7.11 for implicit
+    Euler), by numpy."""
+    A, b, n = np.array(tab.A), np.array(tab.b), hM.shape[0]
+    big = np.eye(tab.stages * n) - np.kron(A, hM)
+    ones = np.kron(np.ones((tab.stages, 1)), np.eye(n))
+    return np.eye(n) + np.kron(b[None, :], hM) @ np.linalg.solve(big, ones)
+
+
+@pytest.mark.parametrize(
+    "method, stages",
+    [
+        ("implicit_euler", None),
+        ("implicit_midpoint", None),
+        ("gauss_legendre", 2),
+        ("gauss_legendre", 3),
+        ("radau_iia", 3),
+        ("radau_iia", 5),
+    ],
+)
+def test_fixed_step_linear_system_factorises_once(method, stages):
+    """x' = M x (constant Jacobian; eigenvalues -1, -1e2, -1e4, non-normal), fixed steps. The
+    promise of integrators/_irk_fixed.py: the Newton matrix is reused while the stage solve
+    converges in two iterations or contracts fast and the step size is unchanged. On 200
+    uniform steps: 1 Jacobian and 1 factorisation (before the fix of the reuse rule: up to 75
+    of each for Radau IIA s = 5, where a rate of round-off over round-off counted as slow);
+    on a grid of two step sizes (100 + 100 steps): 1 Jacobian, 2 factorisations. The states
+    equal the exact discrete map x_{k+1} = R(h M) x_k to 1e-12 relative."""
+    from integrators.implicit import resolve_tableau
+
+    V = np.eye(3) + 0.3 * np.random.default_rng(0).standard_normal((3, 3))
+    M = V @ np.diag([-1.0, -1e2, -1e4]) @ np.linalg.inv(V)
+    Mt = torch.as_tensor(M)
+    x0 = np.array([[1.0, -0.5, 2.0], [0.0, 1.0, 0.3]])
+    tab = resolve_tableau(method, stages)
+    uniform = np.linspace(0.0, 1.0, 201)
+    two_sizes = np.concatenate([np.linspace(0.0, 0.5, 101), np.linspace(0.5, 1.5, 101)[1:]])
+    for grid, n_lu in ((uniform, 1), (two_sizes, 2)):
+        sol = solve_implicit_ode(
+            lambda t, x: x @ Mt.T,
+            torch.as_tensor(x0),
+            torch.as_tensor(grid),
+            method,
+            stages=stages,
+            adaptive=False,
+            rtol=1e-10,
+            atol=1e-12,
+        )
+        assert sol.success and sol.stats.n_steps.tolist() == [200, 200]
+        assert (sol.stats.n_jac_evals, sol.stats.n_factorizations) == (1, n_lu)
+        x, xs = x0, [x0]
+        for k in range(len(grid) - 1):
+            x = x @ _stability_matrix(tab, M * (grid[k + 1] - grid[k])).T
+            xs.append(x)
+        exact = np.stack(xs, 1)
+        assert np.abs(sol.x.numpy() - exact).max() <= 1e-12 * np.abs(exact).max()
+
+
 @pytest.mark.parametrize("host_loop", DRIVERS)
 @pytest.mark.parametrize("rtol", [1e-6, 1e-8])
 def test_adaptive_radau_reuses_jacobians_and_factorisations(rtol, host_loop):
