@@ -228,7 +228,9 @@ def test_stiff_linear_system_adaptive_vs_matrix_exponential():
 
 
 def test_stiff_van_der_pol_eps_1e6_to_requested_tolerance(stiff_vdp_reference):
-    """y1' = y2, y2' = ((1 - y1^2) y2 - y1) / eps, eps = 1e-6, y0 = (2, 0), t in [0, 2]."""
+    """y1' = y2, y2' = ((1 - y1^2) y2 - y1) / eps, eps = 1e-6, y0 = (2, 0), t in [0, 2], at
+    rtol = atol = 1e-4: relative error of y(2) against scipy's Radau at 1e-12 within 0.1 rtol
+    (measured 9.9e-3 rtol; the tighter tolerances are tested below)."""
     eps, rtol = 1e-6, 1e-4
     sol = solve_implicit_ode(
         StiffVanDerPol(eps).requires_grad_(False),
@@ -241,7 +243,7 @@ def test_stiff_van_der_pol_eps_1e6_to_requested_tolerance(stiff_vdp_reference):
     ref = stiff_vdp_reference(eps, 2.0)
     assert sol.success
     rel = np.abs(sol.x[0, -1].numpy() - ref) / np.abs(ref)
-    assert rel.max() < 20 * rtol, rel
+    assert rel.max() < 0.1 * rtol, rel / rtol
     # the factorisation and the Jacobian are reused across steps
     assert sol.stats.n_jac_evals < int(sol.stats.n_steps[0])
     assert int(sol.stats.n_newton_iters[0]) >= int(sol.stats.n_steps[0])
@@ -255,6 +257,8 @@ def robertson(t, y):
 
 
 def test_robertson_kinetics_against_scipy_bdf():
+    """Robertson at rtol = 1e-6, atol = 1e-10 against scipy's BDF at 1e-12: every component
+    at t = 0.4, 4, 40 within rtol relative (measured 1.0e-7 = 0.10 rtol, y3 at t = 4)."""
     t = torch.tensor([0.0, 0.4, 4.0, 40.0])
     sol = solve_implicit_ode(
         robertson, torch.tensor([[1.0, 0.0, 0.0]]), t, "radau_iia", rtol=1e-6, atol=1e-10
@@ -270,7 +274,7 @@ def test_robertson_kinetics_against_scipy_bdf():
     ).y.T
     assert sol.success
     rel = np.abs(sol.x[0].numpy() - ref) / (np.abs(ref) + 1e-12)
-    assert rel[1:].max() < 1e-4, rel
+    assert rel[1:].max() < 1e-6, rel
     # the linear invariant y1 + y2 + y3 = 1 is kept by every RK method
     assert float((sol.x.sum(-1) - 1).abs().max()) < 1e-12
 
