@@ -2,11 +2,13 @@
 and its implicit-ODE / DAE variants eq. 7.51-7.60).
 
 Every output interval ``[t_k, t_{k+1}]`` is split into ``substeps`` equal steps. The Newton
-matrix is reused from step to step while the previous stage solve contracted fast
-(``theta <= 1e-3``) and the step size is unchanged (steps equal to rounding, as on a uniform
-grid, count as equal); a slow or failed solve re-evaluates the Jacobian at the current state
-and a failed solve with a fresh Jacobian marks the sample NEWTON_FAILED (its state is then
-held). Per-sample flags and counters are host (numpy) arrays, so the only device-to-host
+matrix is reused from step to step while the previous stage solve converged in two iterations
+or contracted fast (``theta <= 1e-3``; scipy's rule, as in the adaptive driver: a rate measured
+in a two-iteration solve is round-off over round-off when the stage guess was already exact,
+e.g. on a linear problem) and the step size is unchanged (steps equal to rounding, as on a
+uniform grid, count as equal); a slow or failed solve re-evaluates the Jacobian at the current
+state and a failed solve with a fresh Jacobian marks the sample NEWTON_FAILED (its state is
+then held). Per-sample flags and counters are host (numpy) arrays, so the only device-to-host
 transfers are one per Newton iteration (the increment norms).
 """
 
@@ -93,6 +95,7 @@ def integrate_fixed(
             W_ok = W0
             conv_all = np.zeros_like(active)
             theta_all = np.zeros(hshape)
+            iters_all = np.zeros(hshape, dtype=np.int64)
             todo = active.copy()
             for attempt in range(2):
                 if attempt == 1:  # a stale Jacobian failed: refresh it and retry those samples
@@ -128,6 +131,8 @@ def integrate_fixed(
                 W_ok = masked_update(todo, W, W_ok)
                 conv_all |= converged
                 theta_all = np.where(todo, theta, theta_all)
+                iters_all = np.where(todo, iters, iters_all)
+            simplified_ok = conv_all.copy()
             failed = active & ~conv_all
             if failed.any():  # last resort: damped Newton with exact Jacobians
                 residual_tol = newton_tol * float(sc_x.min()) / h_val
@@ -159,7 +164,8 @@ def integrate_fixed(
             xdot = masked_update(active, W[..., -1, : core.system.n].detach(), xdot)
             n_steps += active
             fresh = np.zeros_like(fresh)
-            need_jac = active & (theta_all > _REUSE_THETA)
+            slow = (theta_all > _REUSE_THETA) & ((iters_all > 2) | ~simplified_ok)
+            need_jac = active & slow
             if core.system.kind != "ode":  # periodic index check (Theorem 9)
                 need_jac |= active & (n_steps % index_check_every == 0)
             prev_W = W.detach()
@@ -216,19 +222,27 @@ def _flag_high_index(high, status, active, messages, t):
     """Warn and stop samples whose algebraic Jacobian became rank deficient (Theorem 9).
 
     ``high``, ``status``, ``active`` are host (numpy) arrays (the last two updated in place);
-    ``t`` the time(s) of the check (tensor or host array).
+    ``t`` the time of the check: shared (0-dim tensor, fixed steps) or per sample (host array
+    of ``high``'s shape, adaptive steps). One message per distinct time, naming the samples
+    flagged at it.
     """
     if not high.any():
         return
-    idx = [tuple(i) for i in np.argwhere(high).tolist()]
-    t_first = float(np.asarray(t.detach().cpu() if isinstance(t, torch.Tensor) else t).flat[0])
-    msg = (
-        f"the DAE's algebraic Jacobian (dg/dz, or [dF/dx' dF/dz]) became rank deficient at "
-        f"t = {t_first:.6g} for samples {idx[:10]}: the DAE is of index > 1 "
-        "there (Theorem 9, Corollary 1) and implicit RK results would be meaningless; "
-        "index-reduce the model (notes §5.4, §7.6.1)."
-    )
-    warnings.warn(msg, HighIndexWarning, stacklevel=4)
-    messages.append(msg)
+    t_host = np.asarray(t.detach().cpu() if isinstance(t, torch.Tensor) else t, dtype=np.float64)
+    if t_host.size == high.size:  # per-sample times: each sample's own
+        t_host = t_host.reshape(high.shape)
+    times = np.broadcast_to(t_host if t_host.shape == high.shape else t_host.flat[0], high.shape)
+    by_time: dict[float, list] = {}
+    for i in np.argwhere(high).tolist():
+        by_time.setdefault(float(times[tuple(i)]), []).append(tuple(i))
+    for when, idx in by_time.items():
+        msg = (
+            f"the DAE's algebraic Jacobian (dg/dz, or [dF/dx' dF/dz]) became rank deficient at "
+            f"t = {when:.6g} for samples {idx[:10]}: the DAE is of index > 1 "
+            "there (Theorem 9, Corollary 1) and implicit RK results would be meaningless; "
+            "index-reduce the model (notes §5.4, §7.6.1)."
+        )
+        warnings.warn(msg, HighIndexWarning, stacklevel=4)
+        messages.append(msg)
     status[high] = int(Status.NEWTON_FAILED)
     active[high] = False

@@ -1,5 +1,7 @@
 """Shared fixtures. Global torch state (default dtype) is restored after every test."""
 
+import functools
+
 import pytest
 import torch
 from scipy.integrate import solve_ivp
@@ -39,7 +41,13 @@ def central_difference():
 
 def _stiff_vdp_reference(eps: float, t_end: float, y0=(2.0, 0.0)):
     """y(t_end) of y1' = y2, y2' = ((1 - y1^2) y2 - y1) / eps by scipy Radau at rtol = atol =
-    1e-12 (the independent reference of the stiff Van der Pol tests): numpy array (2,)."""
+    1e-12 (the independent reference of the stiff Van der Pol tests): numpy array (2,).
+    Computed once per session and argument set (eps = 1e-6 takes seconds)."""
+    return _stiff_vdp_reference_cached(float(eps), float(t_end), tuple(map(float, y0))).copy()
+
+
+@functools.cache
+def _stiff_vdp_reference_cached(eps: float, t_end: float, y0: tuple):
     ref = solve_ivp(
         lambda t, y: [y[1], ((1 - y[0] ** 2) * y[1] - y[0]) / eps],
         (0.0, t_end),

@@ -265,3 +265,106 @@ def test_sampled_input_and_batch_of_parameters():
     exact = x_inf + (1 - x_inf) * torch.exp(lam * t)
     assert float((sol.x[..., 0] - exact).abs().max()) < 1e-7
     assert math.isclose(float(sol.z[1, 0, 0]), 0.5, abs_tol=1e-12)
+
+
+# ------------------------------------------- fully implicit DAE losing index 1 on the way
+def _crossing_dae(a, rhs_x):
+    """Fully implicit DAE F(t, x', x, z) = 0 (eq. 7.53) with one state x and one algebraic z:
+
+        F1 = x' - rhs_x(x) - (z - sin t),   F2 = phi(x) (z - sin t),   phi(x) = max(1 - x, 0).
+
+    Index check matrix [dF/dx', dF/dz] = [[1, -1], [0, phi(x)]] (Theorem 9, eq. 5.53): index
+    1 while x < 1, rank deficient once x reaches 1. On the index-1 part z = sin t and
+    x' = rhs_x(x) (the reduced ODE)."""
+
+    def F(t, xd, x, z):
+        w = torch.sin(t)
+        return torch.cat([xd - rhs_x(x) - (z - w), torch.clamp(1 - x, min=0.0) * (z - w)], -1)
+
+    return ImplicitDAE(F)
+
+
+def _index_messages(sol):
+    """(sample, time) of every index > 1 message, parsed from ``sol.messages``."""
+    import re
+
+    found = []
+    for m in sol.messages:
+        if "index > 1" in m:
+            when = float(re.search(r"at t = ([0-9.e+-]+)", m).group(1))
+            found.append((re.search(r"samples \[(.*?)\]", m).group(1), when))
+    return found
+
+
+def test_implicit_dae_losing_index_one_during_adaptive_run_names_sample_and_time():
+    """x' = a - x, x(0) = 0 (x = a (1 - e^{-t})), per sample a = 0.5 and 2 (batch of 2):
+    sample 1 reaches x = 1 at t* = ln 2, where [dF/dx', dF/dz] loses rank; sample 0 never
+    does. Adaptive Radau IIA with the index re-checked at every step start
+    (index_check_every=1): HighIndexWarning, sample 1 stopped (NEWTON_FAILED) with a message
+    naming sample (1,) and its own time, the start of its first step past t* (within 5e-2 of
+    t*; where its held state is a (1 - e^{-t}) >= 1), not sample 0's time; sample 0 finishes
+    on its closed form (x and z = sin t to 1e-7; measured 5e-10, 4e-9), sample 1 matches its
+    closed form up to t* (the solution is index 1 there)."""
+    a = torch.tensor([[0.5], [2.0]])
+    t = torch.linspace(0, 2, 41)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        sol = daeint(
+            _crossing_dae(a, lambda x: a - x),
+            torch.zeros(2, 1),
+            torch.zeros(2, 1),
+            t,
+            adaptive=True,
+            index_check_every=1,
+            rtol=1e-8,
+            atol=1e-10,
+        )
+    assert any(issubclass(w.category, HighIndexWarning) for w in caught)
+    assert sol.status.tolist() == [Status.SUCCESS, Status.NEWTON_FAILED]
+    t_star = math.log(2.0)
+    found = _index_messages(sol)
+    assert [s for s, _ in found] == ["(1,)"], sol.messages
+    t_msg = found[0][1]  # measured 0.70372 (t* = 0.69315)
+    assert t_star < t_msg < t_star + 5e-2, (found, t_star)
+    # the message's time is where sample 1 stopped: its held state is x(t_msg) >= 1
+    x_stop = 2 * (1 - math.exp(-t_msg))
+    assert x_stop >= 1 and abs(float(sol.x[1, -1, 0]) - x_stop) < 2e-6  # t_msg has 6 digits
+    exact = a * (1 - torch.exp(-t))
+    assert float((sol.x[0, :, 0] - exact[0]).abs().max()) < 1e-7
+    assert float((sol.z[0, :, 0] - torch.sin(t)).abs().max()) < 1e-7
+    before = t < t_star
+    assert float((sol.x[1, before, 0] - exact[1, before]).abs().max()) < 1e-7
+
+
+def test_implicit_dae_losing_index_one_on_a_fixed_grid_names_sample_and_time():
+    """x' = a (x = a t from x(0) = 0) with a = 0.25 and 2: sample 1 reaches x = 1 at t = 0.5,
+    a point of the fixed grid, as the held input of the semi-explicit test above. Gauss-
+    Legendre (interior nodes: no stage of the step ending at 0.5 sits at x = 1, where z's
+    stage would be undetermined and Newton, not the rank test, would stop the sample). The
+    rank test at the step start t = 0.5 stops sample 1 with a HighIndexWarning and a message
+    naming sample (1,) and t = 0.5; sample 0 (x <= 0.5) finishes with x = a t, z = sin t
+    (to the stage-order accuracy of Gauss's z, cf. the eq. 5.46 test)."""
+    a = torch.tensor([[0.25], [2.0]])
+    t = torch.linspace(0, 2, 21)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        sol = daeint(
+            _crossing_dae(a, lambda x: a + 0 * x),
+            torch.zeros(2, 1),
+            torch.zeros(2, 1),
+            t,
+            method="gauss_legendre",
+            stages=2,
+            adaptive=False,
+            index_check_every=1,
+            rtol=1e-10,
+            atol=1e-12,
+        )
+    assert any(issubclass(w.category, HighIndexWarning) for w in caught)
+    assert sol.status.tolist() == [Status.SUCCESS, Status.NEWTON_FAILED]
+    assert _index_messages(sol) == [("(1,)", 0.5)], sol.messages
+    torch.testing.assert_close(sol.x[0, :, 0], 0.25 * t, rtol=0, atol=1e-12)
+    # Gauss's z_{k+1} is the stage polynomial at tau = 1 (order 2 at dt = 0.1; 8e-4 measured)
+    torch.testing.assert_close(sol.z[0, :, 0], torch.sin(t), rtol=0, atol=2e-3)
+    before = t <= 0.5
+    torch.testing.assert_close(sol.x[1, before, 0], 2 * t[before], rtol=0, atol=1e-12)

@@ -87,13 +87,14 @@ def test_factorisation_and_error_filter_block_against_direct_inverses():
 
 def test_stiff_van_der_pol_same_steps_as_torch_driver_and_accurate(stiff_vdp_reference):
     """eps = 1e-3, t in [0, 1], rtol = atol = 1e-6: identical step sequences and counters,
-    results equal to 1e-10 relative and within the tolerance of scipy's rtol 1e-12 Radau."""
+    results equal to 1e-10 relative and, against scipy's Radau at 1e-12, each component of
+    y(1) within rtol relative (measured 9.4e-8 = 0.094 rtol)."""
     eps, t = 1e-3, torch.tensor([0.0, 0.5, 1.0])
     host, dev = both_paths(vdp(eps), torch.tensor([[2.0, 0.0]]), t, rtol=1e-6, atol=1e-6)
     assert host.success and int(host.stats.n_steps[0]) > 50
     assert_same_run(host, dev)
     ref = stiff_vdp_reference(eps, 1.0)
-    assert np.abs(host.x[0, -1].numpy() - ref).max() / np.abs(ref).max() < 1e-4
+    assert (np.abs(host.x[0, -1].numpy() - ref) / np.abs(ref)).max() < 1e-6
 
 
 def test_stiff_linear_system_against_matrix_exponential():
@@ -119,7 +120,9 @@ def robertson(t, y):
 
 
 def test_robertson_kinetics_same_as_torch_driver_and_scipy():
-    """Robertson's stiff kinetics (n = 3, s n = 9) to t = 40 against scipy's BDF at 1e-12."""
+    """Robertson's stiff kinetics (n = 3, s n = 9) to t = 40 at rtol = 1e-6, atol = 1e-10
+    against scipy's BDF at 1e-12: each component of y(40) within 0.05 rtol relative (measured
+    4.4e-9 = 0.0044 rtol; the tolerance 1e-9 is tested in test_implicit.py)."""
     t = torch.tensor([0.0, 0.4, 40.0])
     y0 = torch.tensor([[1.0, 0.0, 0.0]])
     host, dev = both_paths(robertson, y0, t, rtol=1e-6, atol=1e-10)
@@ -132,7 +135,7 @@ def test_robertson_kinetics_same_as_torch_driver_and_scipy():
         rtol=1e-12,
         atol=1e-16,
     ).y[:, -1]
-    assert np.abs(host.x[0, -1].numpy() - ref).max() < 1e-5 * np.abs(ref).max()
+    assert (np.abs(host.x[0, -1].numpy() - ref) / np.abs(ref)).max() < 0.05 * 1e-6
     # mass conservation y1 + y2 + y3 = 1 (a linear invariant every RK method keeps)
     assert float((host.x.sum(-1) - 1).abs().max()) < 1e-12
 
