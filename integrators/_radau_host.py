@@ -319,11 +319,13 @@ def integrate_adaptive_host(
             lu_mask = active & (need_lu | (h != h_fact))
             singular = flags()
             if _any(lu_mask):
-                h_lu = np.where(lu_mask, h, np.where(h_fact > 0, h_fact, h))
-                inv, inv_r, sing = _factorize(A, filt, G, h_lu)
-                J_inv = inv if J_inv is None else _pick(lu_mask, inv, J_inv)
-                real_inv = inv_r if real_inv is None else _pick(lu_mask, inv_r, real_inv)
-                singular = lu_mask & sing
+                if J_inv is None or _all(lu_mask):
+                    h_lu = np.where(lu_mask, h, np.where(h_fact > 0, h_fact, h))
+                    J_inv, real_inv, sing = _factorize(A, filt, G, h_lu)
+                    singular = lu_mask & sing
+                else:  # only the members that need it (finished members never do)
+                    idx = np.flatnonzero(lu_mask)
+                    J_inv[idx], real_inv[idx], singular[idx] = _factorize(A, filt, G[idx], h[idx])
                 n_lu += 1
                 h_fact = np.where(lu_mask, h, h_fact)
                 need_lu &= ~lu_mask
@@ -540,7 +542,7 @@ def _newton(model, A, t_stage, tk, h, xk, z, W, J_inv, sc_x, tol, max_iter, acti
         R = W - model.stages(t_stage, X.transpose(1, 0, 2), z).transpose(1, 0, 2)
         both = J_inv @ R.reshape(B, sn, 1)  # (dW, A dK) in one product
         v = both[:, sn:, 0] * w
-        norm = np.sqrt(np.square(v).sum(1)).astype(np.float64, copy=False)
+        norm = np.sqrt(np.einsum("ij,ij->i", v, v)).astype(np.float64, copy=False)
         if not np.isfinite(norm.sum()):  # (a finite sum means every member is finite)
             bad = live & ~np.isfinite(norm)
             non_finite |= bad
@@ -555,7 +557,7 @@ def _newton(model, A, t_stage, tk, h, xk, z, W, J_inv, sc_x, tol, max_iter, acti
             live &= (th < 1.0) & (th ** (max_iter - it) * rate <= tol)
             done = live & (th * rate <= tol)
         dW = both[:, :sn].reshape(B, s, n)
-        W = W + dW if _all(live) else _pick(live, W + dW, W)
+        np.add(W, dW, out=W, where=live[:, None, None])  # (W is this step's own array)
         iters += live
         conv |= done
         live &= ~done
