@@ -151,16 +151,24 @@ def _writable(a: np.ndarray) -> np.ndarray:
 def _inverse(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Batched inverse of (B, q, q) matrices and a (B,) mask of the singular ones (their
     entries are garbage and never used). One matrix goes to LAPACK's ``gesv`` directly (the
-    routine ``np.linalg.inv`` runs, without its wrapper's cost of a few microseconds)."""
+    routine ``np.linalg.inv`` runs, without its wrapper's cost of a few microseconds), a few
+    to ``np.linalg.inv``, many to ``torch.linalg.inv_ex`` (:data:`_TORCH_INVERSE_MIN`)."""
     if M.shape[0] == 1:
         (gesv,) = get_lapack_funcs(("gesv",), (M,))
         _, _, inv, info = gesv(M[0], _identity(M.shape[-1], M.dtype.str))
         return inv[None], np.array([info != 0])
-    try:
-        return np.linalg.inv(M), np.zeros(M.shape[0], dtype=bool)
-    except np.linalg.LinAlgError:  # some member singular: per-member info from LAPACK
-        inv, info = torch.linalg.inv_ex(torch.from_numpy(M))
-        return inv.numpy(), info.numpy() != 0
+    if M.shape[0] < _TORCH_INVERSE_MIN:
+        try:
+            return np.linalg.inv(M), np.zeros(M.shape[0], dtype=bool)
+        except np.linalg.LinAlgError:  # some member singular: per-member info below
+            pass
+    inv, info = torch.linalg.inv_ex(torch.from_numpy(M))
+    return inv.numpy(), info.numpy() != 0
+
+
+# From this many matrices on, torch's batched inverse beats numpy's loop over LAPACK calls
+# (6 x 6, one thread: equal at 16 matrices, 2.3x faster at 128, 2.7x at 256).
+_TORCH_INVERSE_MIN = 32
 
 
 @functools.lru_cache(maxsize=32)
