@@ -2,6 +2,7 @@
 
 import functools
 
+import numpy as np
 import pytest
 import torch
 from scipy.integrate import solve_ivp
@@ -63,3 +64,39 @@ def _stiff_vdp_reference_cached(eps: float, t_end: float, y0: tuple):
 def stiff_vdp_reference():
     """The function ``stiff_vdp_reference(eps, t_end, y0=(2, 0))`` (scipy Radau at 1e-12)."""
     return _stiff_vdp_reference
+
+
+def _accepted_grid(start, h, n_steps: int, t_end: float) -> torch.Tensor:
+    """The (n_steps + 1,) time grid of an adaptive run's accepted steps (step starts ``start``,
+    sizes ``h``, numpy), checked to be contiguous from 0 and to end at ``t_end``."""
+    assert len(start) == n_steps and start[0] == 0.0
+    np.testing.assert_array_equal(start[1:], start[:-1] + h[:-1])
+    assert start[-1] + h[-1] == pytest.approx(t_end, abs=1e-14)
+    return torch.tensor(np.append(start, t_end))
+
+
+def _same_values_and_gradients(x_a, x_b, loss, params, x_rtol=1e-12, g_rtol=1e-10):
+    """Assert that two end states (e.g. an adaptive run and the same method at fixed steps on
+    its accepted step grid) agree to ``x_rtol`` and that ``loss(x)``'s gradients w.r.t.
+    ``params`` agree to ``g_rtol`` (relative to the largest entry). Returns the gradients of
+    ``loss(x_b)``."""
+    g_a = torch.autograd.grad(loss(x_a), params)
+    g_b = torch.autograd.grad(loss(x_b), params)
+    x_a, x_b = x_a.detach(), x_b.detach()
+    assert float((x_a - x_b).abs().max() / x_b.abs().max()) < x_rtol
+    for a, b in zip(g_a, g_b, strict=True):
+        assert float((a - b).abs().max() / b.abs().max()) < g_rtol
+    return g_b
+
+
+@pytest.fixture
+def accepted_grid():
+    """``accepted_grid(start, h, n_steps, t_end)``: the checked time grid of accepted steps."""
+    return _accepted_grid
+
+
+@pytest.fixture
+def same_values_and_gradients():
+    """``same_values_and_gradients(x_a, x_b, loss, params)``: values and gradients agree;
+    returns the gradients of ``loss(x_b)``."""
+    return _same_values_and_gradients
