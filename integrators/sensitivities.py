@@ -80,7 +80,7 @@ from ._irk_dense import extrapolation_matrix
 from .collocation import gauss_legendre, radau_iia
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
 from .inputs import CollocationInput
-from .newton import batch_jacobian
+from .newton import _default_tol, batch_jacobian
 from .solution import SolverStats
 from .tableau import ButcherTableau, tableau
 
@@ -447,7 +447,7 @@ def sensitivities(
     seed = torch.cat([eye, eye.new_zeros(nx, nq)], -1).expand(*batch, nx, nx + nq)
     solver = None
     if not tab.is_explicit:
-        tol = max(1e-10, 100 * torch.finfo(x.dtype).eps) if newton_tol is None else newton_tol
+        tol = _default_tol(x.dtype) if newton_tol is None else newton_tol
         solver = _ImplicitStages(tab, x, float(tol))
     n_steps = n_f = n_jac = 0
     for k in range(T - 1):
