@@ -198,6 +198,50 @@ def _pick(mask: np.ndarray, new: np.ndarray, old: np.ndarray) -> np.ndarray:
     return np.where(mask.reshape(-1, *([1] * (np.ndim(new) - 1))), new, old)
 
 
+def _method_constants(core: IRKCore, npdt):
+    """The tableau's constants of both host loops: ``gamma e`` of the embedded estimate (see
+    :mod:`integrators.radau`) (s,), the error-filter weights (:func:`_filter_weights`), ``A``
+    (s, s), ``b`` (s,), the nodes ``c`` (s,) float64, the Lagrange coefficients of the stage
+    guess (s, s) and the powers ``0..s-1``, the RMS factors ``1/sqrt(n)`` (error) and
+    ``1/sqrt(s n)`` (Newton), and the step-size exponent ``1/(s+1)``."""
+    n, s = core.system.n, core.s
+    gamma, e_np = embedded_weights(core.tab)
+    c = np.array(core.c, dtype=np.float64)
+    return (
+        (gamma * e_np).astype(npdt),
+        _filter_weights(core, npdt),
+        np.array(core.tab.A, dtype=npdt),
+        np.array(core.tab.b, dtype=npdt),
+        c,
+        np.linalg.inv(np.vander(c, s, increasing=True)),
+        np.arange(s),
+        1.0 / n**0.5,
+        1.0 / (s * n) ** 0.5,
+        1.0 / (s + 1),
+    )
+
+
+def _run_constants(core: IRKCore, t, atol, rtol, npdt):
+    """The run's constants of both host loops: output times (T,) in ``npdt``, the end time,
+    the time from which a step lands on the end, the span, the smallest step relative to
+    ``max(|t|, 1)``, the dtype's smallest normal number and the tolerances as host arrays
+    (floats, or arrays broadcasting against the state (n,), as in the torch driver)."""
+    t_host = t.detach().numpy().astype(npdt)
+    t_end = t_host[-1]
+    return (
+        t_host,
+        t_end,
+        t_end - 1e-14 * abs(float(t_end)),  # a step ending this close lands on t_end
+        float(t_host[-1] - t_host[0]),
+        16 * core.eps,
+        float(np.finfo(npdt).tiny),
+        *(
+            np.asarray(v.detach().cpu().numpy() if isinstance(v, torch.Tensor) else v, npdt)
+            for v in (atol, rtol)
+        ),
+    )
+
+
 def integrate_adaptive_host(
     core: IRKCore,
     x0,
@@ -228,28 +272,12 @@ def integrate_adaptive_host(
     n, s = core.system.n, core.s
     model = _HostModel(core, batch, npdt)
     B = model.B
-    gamma, e_np = embedded_weights(core.tab)
-    gamma_e = (gamma * e_np).astype(npdt)
-    filt = _filter_weights(core, npdt)
-    A = np.array(core.tab.A, dtype=npdt)
-    b = np.array(core.tab.b, dtype=npdt)
-    c_np = np.array(core.c)
+    (gamma_e, filt, A, b, c_np, lagrange, powers, rms, rms_newton, expo) = _method_constants(
+        core, npdt
+    )
     c_col = c_np[:, None]
-    lagrange = np.linalg.inv(np.vander(c_np, s, increasing=True))
-    powers = np.arange(s)
-    rms = 1.0 / n**0.5
-    rms_newton = 1.0 / (s * n) ** 0.5
-    expo = 1.0 / (s + 1)
-    t_host = t.detach().numpy().astype(npdt)
-    t_end = t_host[-1]
-    t_snap = t_end - 1e-14 * abs(float(t_end))  # a step ending this close lands on t_end
-    span = float(t_host[-1] - t_host[0])
-    min_step = 16 * core.eps
-    tiny = float(np.finfo(npdt).tiny)
-    # tolerances: floats, or tensors broadcasting against the state (n,) as in the torch driver
-    atol_, rtol_ = (
-        np.asarray(v.detach().cpu().numpy() if isinstance(v, torch.Tensor) else v, dtype=npdt)
-        for v in (atol, rtol)
+    t_host, t_end, t_snap, span, min_step, tiny, atol_, rtol_ = _run_constants(
+        core, t, atol, rtol, npdt
     )
 
     def flags(value=False):

@@ -24,13 +24,8 @@ import numpy as np
 import torch
 
 from ._irk_core import IRKCore, host_shape
-from ._radau_host import (
-    _factorize,
-    _filter_weights,
-    _HostModel,
-    _records,
-)
-from .radau import embedded_weights, initial_step, next_step_size, stop_samples
+from ._radau_host import _factorize, _HostModel, _method_constants, _records, _run_constants
+from .radau import initial_step, next_step_size, stop_samples
 from .solution import Status
 
 
@@ -67,30 +62,15 @@ def integrate_single_host(
     batch = x0.shape[:-1]
     hshape = host_shape(batch)
     n, s = core.system.n, core.s
-    sn = s * n
     model = _HostModel(core, batch, np.float64)
-    gamma, e_np = embedded_weights(core.tab)
-    gamma_e = gamma * e_np
-    filt = _filter_weights(core, np.float64)
-    A = np.array(core.tab.A, dtype=np.float64)
-    A_kron = np.kron(A, np.eye(n))
-    b = np.array(core.tab.b, dtype=np.float64)
-    c = np.array(core.c, dtype=np.float64)
-    lagrange = np.linalg.inv(np.vander(c, s, increasing=True))
-    powers = np.arange(s)
-    rms = 1.0 / n**0.5
-    rms_newton = 1.0 / sn**0.5
-    expo = 1.0 / (s + 1)
-    t_host = t.detach().numpy().astype(np.float64)
-    t_end = float(t_host[-1])
-    t_snap = t_end - 1e-14 * abs(t_end)  # a step ending this close lands on t_end
-    span = float(t_host[-1] - t_host[0])
-    min_step = 16 * core.eps
-    tiny = float(np.finfo(np.float64).tiny)
-    atol_, rtol_ = (
-        np.asarray(v.detach().cpu().numpy() if isinstance(v, torch.Tensor) else v, np.float64)
-        for v in (atol, rtol)
+    (gamma_e, filt, A, b, c, lagrange, powers, rms, rms_newton, expo) = _method_constants(
+        core, np.float64
     )
+    A_kron = np.kron(A, np.eye(n))
+    t_host, t_end, t_snap, span, min_step, tiny, atol_, rtol_ = _run_constants(
+        core, t, atol, rtol, np.float64
+    )
+    t_end, t_snap = float(t_end), float(t_snap)
 
     tcur = float(t_host[0])
     x = x0.detach().numpy().astype(np.float64).reshape(1, n)
