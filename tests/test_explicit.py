@@ -275,7 +275,8 @@ def test_big_states_take_fewer_steps_per_compiled_chunk(monkeypatch):
         short_chunks = odeint(f, x0, t, method="rk4", compile=True)
     if short_chunks.stats.extra["compiled"]:  # (compilation may be unavailable)
         (entry,) = explicit._CACHE[f].values()
-        assert sorted(entry.compiled) == [1, 8]
+        # keys: (outputs per chunk, component-major layout); this model is component-wise
+        assert sorted(entry.compiled) == [(1, True), (8, True)]
     torch.testing.assert_close(long_chunks.x, eager.x[:2], rtol=1e-13, atol=1e-13)
     torch.testing.assert_close(short_chunks.x, eager.x, rtol=1e-13, atol=1e-13)
 
@@ -371,3 +372,140 @@ def test_compile_failure_falls_back_to_eager(monkeypatch):
     assert sol.stats.extra["compiled"] is False
     exact = (x0 + 0.25) * torch.exp(-2 * t) + 0.5 * t - 0.25  # x' = -2x + t
     torch.testing.assert_close(sol.x[..., 0], exact, rtol=0, atol=1e-7)
+
+
+def _oscillator_with_input(t, x, u):
+    """x1' = x2, x2' = -x1 - 0.2 x2 + u (component-wise: unbind ... stack)."""
+    x1, x2 = x.unbind(-1)
+    return torch.stack([x2, -x1 - 0.2 * x2 + u[..., 0]], dim=-1)
+
+
+def _van_der_pol_sliced(t, x):
+    x1, x2 = x[..., 0:1], x[..., 1:]
+    return torch.cat([(1 - x2**2) * x1 - x2, x1], dim=-1)
+
+
+def _lorenz(t, x):  # notes eq. 6.9 with beta = 3
+    a, b, c = x.unbind(-1)
+    return torch.stack([10 * (b - a), a * (28 - c) - b, a * b - 3 * c], dim=-1)
+
+
+_U_SAMPLES = torch.sin(torch.linspace(0, 3, 11, dtype=torch.float64))[:, None]
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["sliced, batch (2, 3)", "lorenz, batch ()", "zoh input", "linear input", "callable input"],
+)
+def test_component_major_compiled_runs_match_eager(case):
+    """Compiled runs without autograd of component-wise models keep the state component-major
+    (stats.extra["layout"]) and give the eager, interleaved result: batch shapes (2, 3) and
+    (), models built with slices and cat, and every kind of input."""
+    gen = torch.Generator().manual_seed(7)
+    t = torch.linspace(0, 1, 11, dtype=torch.float64)  # 10 intervals: one chunk of 8 + 2 eager
+    kwargs = {}
+    if case == "sliced, batch (2, 3)":
+        f, x0 = _van_der_pol_sliced, torch.randn(2, 3, 2, dtype=torch.float64, generator=gen)
+    elif case == "lorenz, batch ()":
+        f, x0 = _lorenz, torch.tensor([1.0, 1.0, 20.0], dtype=torch.float64)
+    else:
+        f, x0 = _oscillator_with_input, torch.randn(4, 2, dtype=torch.float64, generator=gen)
+        if case == "callable input":
+            kwargs = {"u": lambda s: torch.cos(3 * s).reshape(1, 1).expand(4, 1)}
+        else:
+            kwargs = {"u": _U_SAMPLES, "interpolation": case.split()[0]}
+    with torch.no_grad():
+        eager = odeint(f, x0, t, method="midpoint", compile=False, **kwargs)
+        compiled = odeint(f, x0, t, method="midpoint", compile=True, **kwargs)
+    assert eager.stats.extra["layout"] == "interleaved"
+    if compiled.stats.extra["compiled"]:  # (compilation may be unavailable)
+        assert compiled.stats.extra["layout"] == "component-major"
+    assert compiled.x.shape == eager.x.shape == (*x0.shape[:-1], 11, x0.shape[-1])
+    torch.testing.assert_close(compiled.x, eager.x, rtol=1e-13, atol=1e-12)
+
+
+def test_component_major_blow_up_and_compile_failure(monkeypatch):
+    """A component-major run reports a finite escape like the eager run (same status, same
+    NaN outputs, same message), also when torch.compile fails and the run continues eagerly
+    on the component-major buffer."""
+    from integrators import explicit
+
+    monkeypatch.setattr(explicit, "CHUNK_STEPS", 2)  # small graphs: quick compiles
+
+    def escape(t, x):  # x1' = x1^2 escapes at t = 1/x1(0); x2' = -x2
+        x1, x2 = x.unbind(-1)
+        return torch.stack([x1 * x1, -x2], dim=-1)
+
+    x0 = torch.tensor([[1.0, 1.0], [0.25, 2.0]], dtype=torch.float64)
+    t = torch.linspace(0.0, 2.0, 21, dtype=torch.float64)
+    with torch.no_grad():
+        eager = odeint(escape, x0, t, method="heun", substeps=2, compile=False)
+        compiled = odeint(escape, x0, t, method="heun", substeps=2, compile=True)
+        monkeypatch.setattr(explicit.torch, "compile", lambda fn, **kw: _raise_on_call)
+        explicit.clear_compile_cache()
+        fallback = odeint(escape, x0, t, method="heun", substeps=2, compile=True)
+    assert eager.status.tolist() == [Status.NON_FINITE, Status.SUCCESS]
+    assert fallback.stats.extra == {**fallback.stats.extra, "compiled": False}
+    assert fallback.stats.extra["layout"] == "component-major"
+    for sol in (compiled, fallback):
+        assert sol.status.tolist() == eager.status.tolist()
+        assert sol.messages == eager.messages
+        # (rounding differences grow like the solution near the escape: 1e88 at t = 1.2)
+        torch.testing.assert_close(sol.x, eager.x, rtol=1e-10, atol=1e-13, equal_nan=True)
+
+
+def _raise_on_call(*args):
+    raise RuntimeError("no C++ compiler")
+
+
+@pytest.mark.parametrize("grad", [False, True])
+def test_compiled_linear_model_matches_matrix_exponential(grad, monkeypatch):
+    """x' = A x through a matrix product, compiled: the interleaved layout (the model mixes
+    components) and the eager result, against expm. Regression: inductor drops the
+    coefficient of add(a, mm, alpha=c), which once made every compiled step of such a model
+    wrong by O(1)."""
+    from integrators import explicit
+
+    monkeypatch.setattr(explicit, "CHUNK_STEPS", 1)  # small graphs: quick compiles
+    A = torch.tensor([[-1.0, 2.0, 0.0], [-2.0, -1.0, 0.5], [0.0, -0.5, -0.3]], dtype=torch.float64)
+    x0 = torch.randn(5, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    x0.requires_grad_(grad)
+    t = torch.linspace(0, 2, 21, dtype=torch.float64)
+
+    def linear(t, x):
+        return x @ A.T
+
+    with torch.set_grad_enabled(grad):
+        sol = odeint(linear, x0, t, method="rk4", substeps=2, compile=True)
+        eager = odeint(linear, x0, t, method="rk4", substeps=2, compile=False)
+        sol_x, eager_x = sol.x.detach(), eager.x.detach()
+    assert sol.stats.extra["layout"] == "interleaved"
+    exact = torch.einsum("tij,bj->bti", torch.linalg.matrix_exp(A * t[:, None, None]), x0.detach())
+    torch.testing.assert_close(sol_x, eager_x, rtol=1e-13, atol=1e-13)
+    assert float((sol_x - exact).abs().max()) < 1e-5  # RK4 at h = 0.05: about 4e-7
+
+
+def test_every_model_gets_its_own_compiled_chunk(monkeypatch):
+    """Dynamo stops compiling a code object after ``recompile_limit`` (8) graphs and then runs
+    it eagerly without an error; each model's chunk has its own code, so a tenth model compiled
+    in the same process is still compiled."""
+    from torch._dynamo.utils import counters
+
+    from integrators import explicit
+
+    monkeypatch.setattr(explicit, "CHUNK_STEPS", 1)  # small graphs: quick compiles
+    t = torch.linspace(0, 1, 3, dtype=torch.float64)
+    x0 = torch.ones(2, 2, dtype=torch.float64)
+    before = counters["stats"]["unique_graphs"]
+    models = []
+    for k in range(10):
+
+        def f(t, x, k=k):
+            return torch.stack([x[..., 1], -(1.0 + k) * x[..., 0]], dim=-1)
+
+        models.append(f)  # keep every model alive (the compiled cache is weak)
+        with torch.no_grad():
+            sol = odeint(f, x0, t, method="euler", compile=True)
+        if not sol.stats.extra["compiled"]:
+            pytest.skip("torch.compile is unavailable here")
+    assert counters["stats"]["unique_graphs"] - before >= 10
