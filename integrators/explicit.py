@@ -52,7 +52,6 @@ import numpy as np
 import torch
 
 from ._buffers import empty_buffer
-from ._cat_forwarding import CatForwardingPass, reads_only_components
 from .errors import InputValidationError, TableauError
 from .inputs import BoundRHS
 from .solution import Solution, SolverStats, Status
@@ -259,6 +258,8 @@ def _is_componentwise(entry: _Entry, f, kind, u_fn, x0, t, u0) -> bool:
     """Whether model ``f`` works component by component (``reads_only_components``), traced
     once per cache entry at the first output time with its input there."""
     if entry.componentwise is None:
+        from ._cat_forwarding import reads_only_components  # imports inductor (1 s): lazily
+
         t0 = t[0].detach()
 
         def call(x):
@@ -367,19 +368,20 @@ def solve_explicit(
         raise InputValidationError(f"compile must be True, False or 'auto', got {compile!r}.")
     use_compiled = want and not entry.failed and not torch.compiler.is_compiling()
     grad_mode = torch.is_grad_enabled()
-    component_major = (
-        use_compiled
-        and not grad_mode
-        and x0.shape[-1] <= COMPONENT_MAJOR_MAX_STATES
-        and _is_componentwise(entry, f, kind, u_fn, x0, t, u0)
-    )
+    compile_s = 0.0
+    component_major = False
+    if use_compiled and not grad_mode and x0.shape[-1] <= COMPONENT_MAJOR_MAX_STATES:
+        tic = time.perf_counter()  # the first check imports inductor and traces f: compile time
+        component_major = _is_componentwise(entry, f, kind, u_fn, x0, t, u0)
+        compile_s += time.perf_counter() - tic
     n_out_chunk = _outputs_per_chunk(x0, m) if use_compiled else 1
     chunk_eager = _make_chunk(f, kind, u_fn, scheme, m, n_out_chunk)
     tail_eager = chunk_eager if n_out_chunk == 1 else _make_chunk(f, kind, u_fn, scheme, m, 1)
-    compile_s = 0.0
     key = (n_out_chunk, component_major)
     if use_compiled and key not in entry.compiled:
         tic = time.perf_counter()  # the first torch.compile imports dynamo/inductor (seconds)
+        from ._cat_forwarding import CatForwardingPass
+
         entry.compiled[key] = torch.compile(
             _with_own_code(_make_chunk(f, kind, u_fn, scheme, m, n_out_chunk, component_major)),
             dynamic=False,
