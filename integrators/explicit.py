@@ -226,7 +226,8 @@ def _with_own_code(fn):
 
     Dynamo keeps compiled graphs per code object and, past ``recompile_limit`` (8) graphs for
     one code object, silently runs it eagerly. Every chunk shares ``chunk``'s code, so without
-    a copy the ninth model (or configuration) compiled in a process would not be compiled.
+    a copy the ninth model, configuration or state shape compiled in a process would not be
+    compiled.
     """
     code = fn.__code__.replace()
     return types.FunctionType(code, fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
@@ -237,7 +238,7 @@ class _Entry:
 
     def __init__(self):
         self.steps_seen = 0
-        self.compiled: dict = {}  # (outputs per chunk, component-major) -> compiled chunk
+        self.compiled: dict = {}  # (outputs per chunk, component-major, shape...) -> chunk
         self.failed = False
         self.signatures: set = set()
         self.componentwise: bool | None = None  # see _is_componentwise
@@ -377,7 +378,9 @@ def solve_explicit(
     n_out_chunk = _outputs_per_chunk(x0, m) if use_compiled else 1
     chunk_eager = _make_chunk(f, kind, u_fn, scheme, m, n_out_chunk)
     tail_eager = chunk_eager if n_out_chunk == 1 else _make_chunk(f, kind, u_fn, scheme, m, 1)
-    key = (n_out_chunk, component_major)
+    # One compiled function (own code object, see _with_own_code) per chunk length, layout and
+    # state shape/dtype/device: dynamo's recompile limit never turns a new shape eager.
+    key = (n_out_chunk, component_major, tuple(x0.shape), x0.dtype, x0.device)
     if use_compiled and key not in entry.compiled:
         tic = time.perf_counter()  # the first torch.compile imports dynamo/inductor (seconds)
         from ._cat_forwarding import CatForwardingPass
@@ -414,7 +417,7 @@ def solve_explicit(
         out = None if buffer is None else buffer[k + 1 : k + 1 + n_c]
         if n_c == n_out_chunk and use_compiled and not entry.failed:
             args = (x, t_stage[s0:s1], h[s0:s1], None, us, ds, out)
-            signature = (tuple(x.shape), x.dtype, x.device, grad_mode, x.requires_grad)
+            signature = (key, grad_mode, x.requires_grad)
             fresh = signature not in entry.signatures
             tic = time.perf_counter()
             try:

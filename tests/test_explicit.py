@@ -275,8 +275,9 @@ def test_big_states_take_fewer_steps_per_compiled_chunk(monkeypatch):
         short_chunks = odeint(f, x0, t, method="rk4", compile=True)
     if short_chunks.stats.extra["compiled"]:  # (compilation may be unavailable)
         (entry,) = explicit._CACHE[f].values()
-        # keys: (outputs per chunk, component-major layout); this model is component-wise
-        assert sorted(entry.compiled) == [(1, True), (8, True)]
+        # keys: (outputs per chunk, component-major layout, state shape, ...); this model is
+        # component-wise
+        assert sorted(key[:3] for key in entry.compiled) == [(1, True, (3, 2)), (8, True, (2, 2))]
     torch.testing.assert_close(long_chunks.x, eager.x[:2], rtol=1e-13, atol=1e-13)
     torch.testing.assert_close(short_chunks.x, eager.x, rtol=1e-13, atol=1e-13)
 
@@ -486,19 +487,20 @@ def test_compiled_linear_model_matches_matrix_exponential(grad, monkeypatch):
 
 
 def test_every_model_gets_its_own_compiled_chunk(monkeypatch):
-    """Dynamo stops compiling a code object after ``recompile_limit`` (8) graphs and then runs
-    it eagerly without an error; each model's chunk has its own code, so a tenth model compiled
-    in the same process is still compiled."""
+    """Dynamo stops compiling a code object after ``recompile_limit`` graphs (8 by default,
+    2 here) and then runs it eagerly without an error; each model's (and state shape's) chunk
+    has its own code, so models and batch sizes past the limit are still compiled."""
     from torch._dynamo.utils import counters
 
     from integrators import explicit
 
     monkeypatch.setattr(explicit, "CHUNK_STEPS", 1)  # small graphs: quick compiles
+    monkeypatch.setattr(torch._dynamo.config, "recompile_limit", 2)
     t = torch.linspace(0, 1, 3, dtype=torch.float64)
     x0 = torch.ones(2, 2, dtype=torch.float64)
     before = counters["stats"]["unique_graphs"]
     models = []
-    for k in range(10):
+    for k in range(4):
 
         def f(t, x, k=k):
             return torch.stack([x[..., 1], -(1.0 + k) * x[..., 0]], dim=-1)
@@ -508,4 +510,10 @@ def test_every_model_gets_its_own_compiled_chunk(monkeypatch):
             sol = odeint(f, x0, t, method="euler", compile=True)
         if not sol.stats.extra["compiled"]:
             pytest.skip("torch.compile is unavailable here")
-    assert counters["stats"]["unique_graphs"] - before >= 10
+    assert counters["stats"]["unique_graphs"] - before >= 4
+    before = counters["stats"]["unique_graphs"]
+    for batch in (1, 3, 4):
+        with torch.no_grad():
+            x0 = torch.ones(batch, 2, dtype=torch.float64)
+            odeint(models[0], x0, t, method="euler", compile=True)
+    assert counters["stats"]["unique_graphs"] - before >= 3
