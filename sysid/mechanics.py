@@ -354,10 +354,14 @@ class LagrangianSystem(nn.Module):
         forces = self.point_forces(q, qdot, u)
         if forces is not None:
             create = self._needs_graph(q, qdot, forces)
+            # forces may broadcast against q (an input shared by the batch, or per-sample
+            # inputs for one state): J^T F per sample of the broadcast batch
+            batch = torch.broadcast_shapes(q.shape[:-1], forces.shape[:-2])
             with torch.enable_grad():
-                qq = self._leaf(q)
+                qq = self._leaf(q.expand(*batch, q.shape[-1]))
+                points = self.force_points(qq)
                 (q_force,) = torch.autograd.grad(
-                    self.force_points(qq), qq, forces, create_graph=create
+                    points, qq, forces.expand_as(points), create_graph=create
                 )  # per-sample J^T F: the points of different samples are independent
             q_force = q_force if create else q_force.detach()
             total = q_force if total is None else total + q_force

@@ -19,7 +19,11 @@ from ._params import as_parameter, like
 
 
 def _u(u, q):
-    return torch.zeros_like(q[..., :1]) if u is None else u.to(q)
+    """The input (*batch, nu) on q's batch (an input shared by the batch is broadcast)."""
+    if u is None:
+        return torch.zeros_like(q[..., :1])
+    u = u.to(q)
+    return u.expand(*torch.broadcast_shapes(q.shape[:-1], u.shape[:-1]), u.shape[-1])
 
 
 def _horizontal_force(u, q):
