@@ -418,9 +418,12 @@ def test_component_major_compiled_runs_match_eager(case):
     with torch.no_grad():
         eager = odeint(f, x0, t, method="midpoint", compile=False, **kwargs)
         compiled = odeint(f, x0, t, method="midpoint", compile=True, **kwargs)
+        again = odeint(f, x0, t, method="midpoint", compile=True, **kwargs)
     assert eager.stats.extra["layout"] == "interleaved"
     if compiled.stats.extra["compiled"]:  # (compilation may be unavailable)
         assert compiled.stats.extra["layout"] == "component-major"
+        assert compiled.stats.extra["compile_s"] > 0.0 and again.stats.extra["compile_s"] == 0.0
+        torch.testing.assert_close(again.x, compiled.x, rtol=0, atol=0)
     assert compiled.x.shape == eager.x.shape == (*x0.shape[:-1], 11, x0.shape[-1])
     torch.testing.assert_close(compiled.x, eager.x, rtol=1e-13, atol=1e-12)
 
