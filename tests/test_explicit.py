@@ -486,7 +486,7 @@ def test_compiled_linear_model_matches_matrix_exponential(grad, monkeypatch):
     assert sol.stats.extra["layout"] == "interleaved"
     exact = torch.einsum("tij,bj->bti", torch.linalg.matrix_exp(A * t[:, None, None]), x0.detach())
     torch.testing.assert_close(sol_x, eager_x, rtol=1e-13, atol=1e-13)
-    assert float((sol_x - exact).abs().max()) < 1e-5  # RK4 at h = 0.05: about 4e-7
+    assert float((sol_x - exact).abs().max()) < 4e-6  # RK4 at h = 0.05: 2.2e-6
 
 
 def test_every_model_gets_its_own_compiled_chunk(monkeypatch):
