@@ -108,7 +108,7 @@ class _HostModel:
 
     def f(self, tt: np.ndarray, x: np.ndarray, z: torch.Tensor) -> np.ndarray:
         """``f(t, x)`` at host times (B,) and states (B, n); counts one call. Runs under the
-        caller's ``torch.inference_mode``."""
+        caller's ``torch.no_grad`` (a model may still call autograd inside)."""
         self.core.n_f_evals += 1
         t_t = self.times(tt)
         y = self.core.system.rhs_f(t_t, self.state(x), z, self.core.signal.at(t_t))
@@ -117,7 +117,7 @@ class _HostModel:
     def stages(self, t_stage: torch.Tensor, X: np.ndarray, z: torch.Tensor) -> np.ndarray:
         """``f`` at the stage times ``t_stage`` (s, *batch, 1) (:meth:`times`) and stage states
         (s, B, n) (a strided view is fine): one stacked call when ``core.stack_stages``, else
-        one call per stage; counts ``s`` calls. Runs under the caller's ``torch.inference_mode``."""
+        one call per stage; counts ``s`` calls. Runs under the caller's ``torch.no_grad``."""
         core = self.core
         core.n_f_evals += core.s
         if core.stack_stages:
@@ -317,9 +317,10 @@ def integrate_adaptive_host(
     h = initial_step(core, x0, z0, xdot0, t[0], span, rtol, atol, expo, dt0)
     h = h.detach().numpy().reshape(B).astype(npdt)
 
-    # the model runs in inference mode (no autograd bookkeeping: ~25 % less per call); only
-    # the Jacobian leaves it, because it needs autograd
-    with np.errstate(all="ignore"), torch.inference_mode():
+    # the model runs without gradient recording, not in inference mode: models that call
+    # autograd inside ``f`` (Lagrangian systems, energy-based networks) need ``enable_grad``
+    # to work there
+    with np.errstate(all="ignore"), torch.no_grad():
         while _any(active):
             h = np.where(active & (tcur + h >= t_end), t_end - tcur, h)
             tiny_h = active & (h <= min_step * np.maximum(np.abs(tcur), 1.0))
@@ -463,7 +464,7 @@ def integrate_adaptive_host(
 def _jacobian(core, model, tk, x, z, xdot, mask, G_old):
     """``G = -df/dx`` (B, n, n) at the step start for the ``mask`` samples (autograd, through
     :meth:`IRKCore.frozen_blocks`); the others keep ``G_old``."""
-    with torch.inference_mode(False), torch.no_grad():
+    with torch.no_grad():
         _, G_t, _, _ = core.frozen_blocks(model.times(tk), model.state(x), z, model.state(xdot))
     G = model.back(G_t, np.empty((model.B, *G_t.shape[-2:])))
     return G if G_old is None else _pick(mask, G, G_old)

@@ -98,8 +98,9 @@ def integrate_single_host(
     h = initial_step(core, x0, z0, xdot0, t[0], span, rtol, atol, expo, dt0)
     h = float(h.detach().reshape(()))
 
-    # the model runs in inference mode; only the Jacobian leaves it (it needs autograd)
-    with np.errstate(all="ignore"), torch.inference_mode():
+    # no gradient recording, and not inference mode: models that call autograd inside ``f``
+    # need ``enable_grad`` to work there
+    with np.errstate(all="ignore"), torch.no_grad():
         while active:
             if tcur + h >= t_end:
                 h = t_end - tcur
@@ -122,7 +123,7 @@ def integrate_single_host(
             host = np.empty((2 + s, 1))
             host[0], host[1], host[2:, 0] = tcur, tcur + h, tcur + c * h
             if need_jac:
-                with torch.inference_mode(False), torch.no_grad():
+                with torch.no_grad():
                     G_t = core.frozen_blocks(
                         model.times(host[0]), model.state(x), z, model.state(xdot)
                     )[1]
