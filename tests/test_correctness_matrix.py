@@ -1,0 +1,252 @@
+"""Every zoo plant through every integrator and every driver the dispatch can choose.
+
+The matrix is generated: plants from :func:`sysid.zoo.scenarios.scenarios` (explicit ODEs,
+mechanical plants in their explicit form eq. 2.42) and :func:`dae_scenarios` (index-1 DAEs),
+drivers from :data:`DRIVERS`, batch shapes from :data:`BATCH_SHAPES`. Each run is compared
+with scipy's DOP853 (Radau for stiff plants) at rtol = atol = 1e-12 on every batch member,
+each driver's gradient of one physical parameter with central differences, and each fast
+path with the general path it replaces. A new plant joins the matrix through its scenario, a
+new driver through one row of :data:`DRIVERS`.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+
+import numpy as np
+import pytest
+import torch
+from scipy.integrate import solve_ivp
+
+from integrators import Status, odeint
+from sysid.zoo import scenarios as zoo_scenarios
+
+DT = torch.float64
+BATCH_SHAPES = [(), (1,), (3,)]
+#: output intervals of every run; fixed-step methods take SUBSTEPS steps per interval
+N_INTERVALS = 10
+SUBSTEPS = 5
+#: tolerances of the adaptive drivers (the reference is at 1e-12)
+RTOL, ATOL = 1e-8, 1e-10
+#: a member of a batch starts from x0 scaled by this factor (then made consistent)
+MEMBER_SCALE = (1.0, 0.95, 1.05)
+
+
+@dataclass(frozen=True)
+class Driver:
+    """One path through ``odeint``: its options, the error it must reach against the reference
+    (max-norm relative to 1 + max |x_ref|), the relative tolerance of its gradient against
+    central differences, and what ``stats.extra`` must say it ran (``"driver"`` may depend on
+    the batch shape)."""
+
+    name: str
+    options: dict
+    tol: float
+    grad_rtol: float
+    explicit: bool = False
+    extra: dict = field(default_factory=dict)
+
+
+_FIXED = dict(substeps=SUBSTEPS, rtol=1e-12)
+_ADAPTIVE = dict(rtol=RTOL, atol=ATOL)
+DRIVERS = [
+    Driver(
+        "rk4 eager",
+        dict(method="rk4", substeps=SUBSTEPS, compile=False),
+        1e-6,
+        1e-6,
+        True,
+        {"compiled": False},
+    ),  # fmt: skip
+    Driver("rk4 compiled", dict(method="rk4", substeps=SUBSTEPS, compile=True), 1e-6, 1e-6, True),
+    Driver("dopri5", dict(method="dopri5", **_ADAPTIVE), 1e-6, 1e-4, True),
+    Driver(
+        "gauss fixed",
+        dict(method="gauss_legendre", stages=2, **_FIXED),
+        1e-6,
+        1e-6,
+        extra={"driver": "torch"},
+    ),  # fmt: skip
+    Driver(
+        "radau fixed",
+        dict(method="radau_iia", adaptive=False, **_FIXED),
+        1e-6,
+        1e-6,
+        extra={"driver": "torch"},
+    ),  # fmt: skip
+    Driver(
+        "radau adaptive torch",
+        dict(method="radau_iia", host_loop=False, **_ADAPTIVE),
+        1e-6,
+        1e-4,
+        extra={"driver": "torch"},
+    ),  # fmt: skip
+    Driver(
+        "radau adaptive host",
+        dict(method="radau_iia", host_loop=True, **_ADAPTIVE),
+        1e-6,
+        1e-4,
+        extra={"driver": {(): "host, one trajectory", (1,): "host, one trajectory", (3,): "host"}},
+    ),  # fmt: skip
+]
+DRIVER = {d.name: d for d in DRIVERS}
+SCENARIOS = {s.name: s for s in zoo_scenarios.scenarios()}
+
+
+def _cases(shapes=None):
+    """(plant, driver[, batch shape]) triples: explicit drivers skip stiff plants, and the
+    compiled driver (seconds of compilation per plant) runs at the largest batch shape only."""
+    for sc in SCENARIOS.values():
+        for drv in DRIVERS:
+            if sc.stiff and drv.explicit:
+                continue
+            if shapes is None:
+                yield pytest.param(sc.name, drv.name, id=f"{sc.name}-{drv.name}")
+                continue
+            for shape in shapes:
+                if drv.name == "rk4 compiled" and shape != shapes[-1]:
+                    continue
+                yield pytest.param(sc.name, drv.name, shape, id=f"{sc.name}-{drv.name}-{shape}")
+
+
+def _grid(t_end: float) -> torch.Tensor:
+    return torch.linspace(0.0, t_end, N_INTERVALS + 1, dtype=DT)
+
+
+def _member_x0(sc, plant, k: int) -> torch.Tensor:
+    """The initial state of batch member ``k``: x0 scaled, projected onto the constraints."""
+    x0 = MEMBER_SCALE[k] * torch.tensor(sc.x0, dtype=DT)
+    if getattr(plant, "is_constrained", False):
+        q, qdot = plant.project_consistent(x0[: plant.nq], x0[plant.nq :])
+        x0 = torch.cat([q, qdot]).detach()
+    return x0
+
+
+def _batch_x0(sc, plant, shape) -> torch.Tensor:
+    n = int(np.prod(shape)) if shape else 1
+    return torch.stack([_member_x0(sc, plant, k) for k in range(n)]).reshape(*shape, -1)
+
+
+def _numpy_rhs(plant, u, nx: int):
+    """The plant on a flat numpy state of several members, ``(m * nx,) -> (m * nx,)``, autograd
+    allowed inside ``f`` (for scipy)."""
+
+    def fun(t, x):
+        tt = torch.tensor(t, dtype=DT)
+        xs = torch.from_numpy(x).reshape(-1, nx)
+        with torch.enable_grad():
+            y = plant(tt, xs, u(tt)) if u is not None else plant(tt, xs)
+        return y.detach().reshape(-1).numpy()
+
+    return fun
+
+
+@functools.cache
+def _reference(name: str) -> np.ndarray:
+    """The three members' trajectories (3, T, nx) on the output grid: the plant's closed form
+    where it has one, else scipy (DOP853; Radau for stiff plants) at rtol = atol = 1e-12 on the
+    stacked members."""
+    sc = SCENARIOS[name]
+    plant = sc.build().to(DT)
+    x0 = _batch_x0(sc, plant, (len(MEMBER_SCALE),))
+    t = _grid(sc.t_end)
+    if hasattr(plant, "exact") and sc.u is None:
+        return plant.exact(t, x0).detach().numpy()
+    nx = x0.shape[-1]
+    sol = solve_ivp(_numpy_rhs(plant, sc.u, nx), (0.0, sc.t_end), x0.reshape(-1).numpy(),
+                    "Radau" if sc.stiff else "DOP853", t_eval=t.numpy(), rtol=1e-12,
+                    atol=1e-12)  # fmt: skip
+    assert sol.success, sol.message
+    return sol.y.T.reshape(len(t), -1, nx).transpose(1, 0, 2)
+
+
+def _run(sc, plant, drv, x0):
+    return odeint(plant, x0, _grid(sc.t_end), u=sc.u, **drv.options)
+
+
+@functools.cache
+def _plant(name: str):
+    """One plant per scenario for the whole module (compiled runs are cached per model)."""
+    return SCENARIOS[name].build().to(DT)
+
+
+@functools.cache
+def _solution(name: str, driver: str, shape: tuple):
+    """The driver's no-grad run of the scenario from the first members' states (cached: the
+    fast-path tests compare these runs with each other)."""
+    sc, plant = SCENARIOS[name], _plant(name)
+    with torch.no_grad():
+        return _run(sc, plant, DRIVER[driver], _batch_x0(sc, plant, shape))
+
+
+@pytest.mark.parametrize("name,driver,shape", list(_cases(BATCH_SHAPES)))
+def test_plant_matches_reference(name, driver, shape):
+    sc, drv = SCENARIOS[name], DRIVER[driver]
+    sol = _solution(name, driver, shape)
+    for key, value in drv.extra.items():
+        expected = value[shape] if isinstance(value, dict) else value
+        assert sol.stats.extra[key] == expected, (key, sol.stats.extra[key])
+    assert sol.x.shape == (*shape, N_INTERVALS + 1, len(sc.x0))
+    assert (sol.status == Status.SUCCESS).all(), sol.messages
+    x = sol.x.reshape(-1, N_INTERVALS + 1, len(sc.x0)).numpy()
+    ref = _reference(name)
+    for k in range(x.shape[0]):
+        err = np.abs(x[k] - ref[k]).max() / (1.0 + np.abs(ref[k]).max())
+        assert err <= drv.tol, f"member {k}: relative error {err:.2e} > {drv.tol:.0e}"
+
+
+@pytest.mark.parametrize("name,driver", [c for c in _cases() if c.values[1] != "rk4 compiled"])
+def test_batch_member_equals_stand_alone_run(name, driver):
+    """Member 0 of a batch of 3 and of a batch of 1 equals the unbatched run: no driver mixes
+    members (per-sample step sizes make adaptive members independent too)."""
+    alone = _solution(name, driver, ()).x
+    for shape in [(1,), (3,)]:
+        member = _solution(name, driver, shape).x[0]
+        torch.testing.assert_close(member, alone, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", [n for n, sc in SCENARIOS.items() if not sc.stiff])
+def test_compiled_rk4_equals_eager(name):
+    """The compiled fixed-step path gives the eager path's answer."""
+    eager, compiled = (_solution(name, d, (3,)) for d in ("rk4 eager", "rk4 compiled"))
+    torch.testing.assert_close(compiled.x, eager.x, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("shape", BATCH_SHAPES, ids=lambda s: f"batch{s}")
+@pytest.mark.parametrize("name", list(SCENARIOS))
+def test_host_radau_equals_torch_radau(name, shape):
+    """The numpy host loops (batched and one trajectory) take the torch driver's steps."""
+    host, ref = (_solution(name, d, shape) for d in ("radau adaptive host", "radau adaptive torch"))
+    torch.testing.assert_close(host.stats.n_steps, ref.stats.n_steps)
+    torch.testing.assert_close(host.x, ref.x, rtol=1e-9, atol=1e-11)
+
+
+def _loss(sc, plant, drv, x0, scale):
+    """A weighted sum of the final states of every member, from ``scale * x0``."""
+    sol = _run(sc, plant, drv, scale * x0)
+    assert (sol.status == Status.SUCCESS).all(), sol.messages
+    w = torch.linspace(0.5, 1.5, x0.shape[-1], dtype=DT)
+    return (sol.x[..., -1, :] * w).sum()
+
+
+@pytest.mark.parametrize("name,driver", list(_cases()))
+def test_parameter_gradient_matches_central_differences(name, driver):
+    """d(loss)/dp by autograd through a batch of 3 members sharing the parameter p (the
+    scenario's, else a scale of x0), against central differences of the same driver with the
+    step 1e-6 max(1, |p|)."""
+    sc, drv, plant = SCENARIOS[name], DRIVER[driver], _plant(name)
+    x0 = _batch_x0(sc, plant, (3,))
+    scale = torch.ones((), dtype=DT, requires_grad=sc.param is None)
+    p = scale if sc.param is None else getattr(plant, sc.param)
+    grad = float(torch.autograd.grad(_loss(sc, plant, drv, x0, scale), p)[0])
+    h = 1e-6 * max(1.0, float(p.detach().abs()))
+    values = []
+    with torch.no_grad():
+        p0 = p.detach().clone()
+        for sign in (1.0, -1.0):
+            p.copy_(p0 + sign * h)
+            values.append(float(_loss(sc, plant, drv, x0, scale)))
+        p.copy_(p0)
+    fd = (values[0] - values[1]) / (2 * h)
+    assert abs(grad - fd) <= drv.grad_rtol * max(1.0, abs(fd)), (grad, fd)
