@@ -7,6 +7,8 @@ Typos found in the notes while writing these tests:
   (row = stage), which ``test_rows_are_stage_quadratures`` checks.
 - eq. 7.28 calls the Lagrange polynomials "orthogonal"; that holds for Gauss and Radau nodes
   (the quadrature is exact for the degree 2s-2 product) but not for a general grid.
+- §7.4 states the order 2s of Gauss-Legendre without the simplifying assumptions B, C, D that
+  prove it; test_tableau.py checks Butcher's theorem on the classical implicit families.
 """
 
 from math import factorial, sqrt
@@ -17,6 +19,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.polynomial import legendre as npleg
+from scipy.special import roots_jacobi, roots_legendre
 
 from integrators import (
     ButcherTableau,
@@ -29,6 +32,7 @@ from integrators import (
 from integrators.errors import InputValidationError
 
 STAGES = [1, 2, 3, 4, 5]
+MANY_STAGES = list(range(1, 21))
 
 
 def pade(k, j, z):
@@ -57,6 +61,86 @@ def test_order_conditions_hold_exactly_to_the_claimed_order(s):
     assert not g.satisfies_order(2 * s + 1)
     assert r.order == 2 * s - 1 and r.satisfies_order(2 * s - 1)
     assert not r.satisfies_order(2 * s)
+
+
+@pytest.mark.parametrize("s", MANY_STAGES)
+def test_orders_of_many_stages_are_proved_by_simplifying_assumptions(s):
+    """Gauss: B(2s), C(s), D(s); Radau IIA: B(2s-1), C(s), D(s-1) (Butcher 1964), for s up to
+    20, where the rooted trees of order 2s number in the millions. Independent truth for the
+    coefficients: scipy's Gauss-Legendre and Gauss-Jacobi nodes (Radau IIA interior nodes are
+    the roots of the Jacobi polynomial P^(1,0)_(s-1)) and the Pade form of R(z)."""
+    g, r = gauss_legendre(s), radau_iia(s)
+    assert g.order == 2 * s and g.simplifying_assumptions() == (2 * s, s, s)
+    assert r.order == 2 * s - 1 and r.simplifying_assumptions() == (2 * s - 1, s, s - 1)
+    np.testing.assert_allclose(g.c, (roots_legendre(s)[0] + 1) / 2, rtol=0, atol=1e-14)
+    if s > 1:
+        interior = (roots_jacobi(s - 1, 1.0, 0.0)[0] + 1) / 2
+        np.testing.assert_allclose(r.c[:-1], interior, rtol=0, atol=1e-14)
+    z = np.array([-3.0, -0.5 + 2j, 1.5j, 0.7])
+    np.testing.assert_allclose(g.stability_function(z), pade(s, s, z), rtol=1e-11)
+    np.testing.assert_allclose(r.stability_function(z), pade(s - 1, s, z), rtol=1e-11)
+
+
+@pytest.mark.parametrize("s", MANY_STAGES)
+def test_one_order_too_many_is_rejected_for_many_stages(s):
+    """Radau IIA is not order 2s, Gauss not 2s + 1. For Radau IIA, the monomial form of the
+    failing equation, sum_i b_i c_i^(2s-1) = 1/(2s), misses by only 6e-12 at s = 10 and 5e-24
+    at s = 20 (60-digit arithmetic), under the 1e-10 tolerance and under rounding, so it would
+    wrongly pass; the Legendre form used by the tableau misses by 0.21 and 0.14."""
+    r = radau_iia(s)
+    with pytest.raises(
+        TableauError, match=rf"claims order {2 * s} .* only up to order {2 * s - 1}"
+    ):
+        ButcherTableau(r.A, r.b, c=r.c, order=2 * s)
+    g = gauss_legendre(s)
+    with pytest.raises(TableauError, match=rf"only up to order {2 * s}\b"):
+        ButcherTableau(g.A, g.b, c=g.c, order=2 * s + 1)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    s=st.integers(min_value=1, max_value=20),
+    radau=st.booleans(),
+    where=st.tuples(st.floats(0, 1, exclude_max=True), st.floats(0, 1, exclude_max=True)),
+    sign=st.sampled_from([-1.0, 1.0]),
+)
+def test_collocation_tableau_with_one_coefficient_off_by_1e_6_is_rejected(s, radau, where, sign):
+    tab = radau_iia(s) if radau else gauss_legendre(s)
+    i, j = int(where[0] * s), int(where[1] * s)
+    A = np.array(tab.A)
+    A[i, j] += sign * 1e-6
+    if not (radau and s == 1):  # any a_11 keeps order 1 (implicit Euler's claim) valid
+        with pytest.raises(TableauError, match=rf"claims order {tab.order}\b"):
+            ButcherTableau(A, tab.b, order=tab.order)  # c = row sums of the perturbed A
+    with pytest.raises(TableauError, match=rf"c\[{i}\]"):
+        ButcherTableau(A, tab.b, c=tab.c, order=tab.order)
+
+
+def vandermonde_collocation(nodes):
+    """Collocation tableau of ``nodes`` from C(s) and B(s) solved as Vandermonde systems."""
+    s = len(nodes)
+    k = np.arange(s)
+    V = nodes[:, None] ** k  # V[j, k] = c_j^k
+    A = np.linalg.solve(V.T, (nodes[:, None] ** (k + 1) / (k + 1)).T).T
+    b = np.linalg.solve(V.T, 1.0 / (k + 1))
+    return A, b
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    gaps=st.lists(st.floats(min_value=0.08, max_value=1.0), min_size=2, max_size=5),
+)
+def test_random_collocation_order_equals_rooted_tree_order(gaps):
+    """Any collocation method with B(p) has order p (C(s) and D(p - s) hold). The order the
+    tableau reports equals the rooted-tree order and the bound min(p, q + r + 1, 2q + 2)."""
+    nodes = np.cumsum(gaps)[:-1] / np.sum(gaps)  # distinct nodes in (0, 1)
+    A, b = vandermonde_collocation(nodes)
+    tab = ButcherTableau(A, b)
+    p, q, r = tab.simplifying_assumptions()
+    s = nodes.size
+    assert s <= p <= 2 * s and q == s
+    assert tab.order == p == min(p, q + r + 1, 2 * q + 2)
+    assert tab.rooted_tree_order(min(p + 1, 9)) == p
 
 
 @pytest.mark.parametrize("s", [6, 7])

@@ -14,10 +14,15 @@ Typos found in the notes while writing these tests:
 * Eq. (6.41) gives R(z) as the exponential series truncated at the order o; that holds for
   explicit methods with s = o stages only (s <= 4). Dormand-Prince (7 stages, order 5) has the
   extra term z^6 / 600 (see ``test_dopri5_stability_polynomial``).
+* §7.4 states the order 2s of the Gauss-Legendre collocation method but not Butcher's
+  simplifying assumptions B(p), C(q), D(r) that prove it (order >= min(p, q + r + 1, 2q + 2),
+  order <= p); ``test_simplifying_assumptions_of_classical_implicit_methods`` checks the
+  theorem on the families tabulated in Hairer & Wanner, *Solving ODEs II*, §IV.5.
 """
 
 from __future__ import annotations
 
+import importlib
 import math
 import warnings
 
@@ -27,7 +32,17 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from integrators import TABLEAU_NAMES, ButcherTableau, TableauError, tableau
+from integrators import (
+    TABLEAU_NAMES,
+    ButcherTableau,
+    TableauError,
+    gauss_legendre,
+    odeint,
+    radau_iia,
+    tableau,
+)
+
+TABLEAU_MODULE = importlib.import_module("integrators.tableau")  # the package exports tableau()
 
 EXPLICIT_NAMES = [n for n in TABLEAU_NAMES if tableau(n).is_explicit]
 CLAIMED_ORDER = {
@@ -80,6 +95,7 @@ def test_bushy_and_tall_tree_conditions_are_among_the_residuals(p, seed):
     s = 4
     A = np.tril(rng.normal(size=(s, s)), -1)
     b = rng.normal(size=s)
+    b[-1] = 1.0 - b[:-1].sum()  # consistent weights (order >= 1), as every tableau must have
     tab = ButcherTableau(A, b)
     res = tab.order_residuals(p)
     bushy = b @ tab.c ** (p - 1) - 1.0 / p
@@ -100,6 +116,104 @@ def test_catalogued_tableau_has_its_order_and_not_the_next(name):
     assert not tab.satisfies_order(p + 1)
     # At least one condition of order p + 1 fails by a clear margin, not by rounding.
     assert np.max(np.abs(tab.order_residuals(p + 1))) > 1e-4
+
+
+def butcher_bound(p, q, r):
+    """Order proved by B(p), C(q), D(r) (Butcher 1964)."""
+    return min(p, q + r + 1, 2 * q + 2)
+
+
+SMALL_COLLOCATION = [(f"gauss_legendre_{s}", gauss_legendre(s)) for s in (1, 2, 3, 4)] + [
+    (f"radau_iia_{s}", radau_iia(s)) for s in (1, 2, 3, 4)
+]
+
+
+@pytest.mark.parametrize(
+    "name, tab",
+    [(n, tableau(n)) for n in TABLEAU_NAMES] + SMALL_COLLOCATION,
+    ids=list(TABLEAU_NAMES) + [n for n, _ in SMALL_COLLOCATION],
+)
+def test_reported_order_equals_rooted_tree_order(name, tab):
+    """The order found from the simplifying assumptions (plus trees in the gap they leave)
+    equals the order found from all rooted trees alone; for collocation methods the
+    assumptions settle it without any tree."""
+    p, q, r = tab.simplifying_assumptions()
+    trees = tab.rooted_tree_order(tab.order + 1)
+    assert tab.order == trees
+    assert butcher_bound(p, q, r) <= trees <= p
+    if name.startswith(("gauss", "radau", "implicit")):
+        assert butcher_bound(p, q, r) == trees == p
+    if tab.b_err is not None:
+        assert tab.embedded_order == tab.rooted_tree_order(tab.embedded_order + 1, tab.b_err)
+
+
+def _lobatto_and_radau_ia():
+    sqrt6 = np.sqrt(6.0)
+    return {
+        # name: (A, b, (p, q, r), order); Hairer & Wanner II, Tables IV.5.3-IV.5.8
+        "radau_ia_2": ([[1 / 4, -1 / 4], [1 / 4, 5 / 12]], [1 / 4, 3 / 4], (3, 1, 2), 3),
+        "radau_ia_3": (
+            [
+                [1 / 9, (-1 - sqrt6) / 18, (-1 + sqrt6) / 18],
+                [1 / 9, (88 + 7 * sqrt6) / 360, (88 - 43 * sqrt6) / 360],
+                [1 / 9, (88 + 43 * sqrt6) / 360, (88 - 7 * sqrt6) / 360],
+            ],
+            [1 / 9, (16 + sqrt6) / 36, (16 - sqrt6) / 36],
+            (5, 2, 3),
+            5,
+        ),
+        "lobatto_iiia_3": (
+            [[0, 0, 0], [5 / 24, 1 / 3, -1 / 24], [1 / 6, 2 / 3, 1 / 6]],
+            [1 / 6, 2 / 3, 1 / 6],
+            (4, 3, 1),
+            4,
+        ),
+        # q = 1: here 2q + 2 = 4 is the binding bound
+        "lobatto_iiib_3": (
+            [[1 / 6, -1 / 6, 0], [1 / 6, 1 / 3, 0], [1 / 6, 5 / 6, 0]],
+            [1 / 6, 2 / 3, 1 / 6],
+            (4, 1, 3),
+            4,
+        ),
+        "lobatto_iiic_2": ([[1 / 2, -1 / 2], [1 / 2, 1 / 2]], [1 / 2, 1 / 2], (2, 1, 1), 2),
+        "lobatto_iiic_3": (
+            [[1 / 6, -1 / 3, 1 / 6], [1 / 6, 5 / 12, -1 / 12], [1 / 6, 2 / 3, 1 / 6]],
+            [1 / 6, 2 / 3, 1 / 6],
+            (4, 2, 2),
+            4,
+        ),
+    }
+
+
+@pytest.mark.parametrize("name", list(_lobatto_and_radau_ia()))
+def test_simplifying_assumptions_of_classical_implicit_methods(name):
+    A, b, pqr, order = _lobatto_and_radau_ia()[name]
+    tab = ButcherTableau(A, b, order=order, name=name)
+    assert tab.simplifying_assumptions() == pqr
+    assert butcher_bound(*pqr) == order == tab.rooted_tree_order(order + 1)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.integers(min_value=1, max_value=4),
+    st.booleans(),
+    st.integers(min_value=0, max_value=2**31 - 1),
+)
+def test_butcher_bound_brackets_the_rooted_tree_order(s, explicit, seed):
+    """For any consistent tableau, min(p, q + r + 1, 2q + 2) <= order <= p, and the reported
+    order is the rooted-tree order. Nodes are drawn from a few rational values so that some
+    draws satisfy higher conditions."""
+    rng = np.random.default_rng(seed)
+    A = rng.choice([0.0, 0.25, 0.5, -0.5, 1.0 / 3.0, 1.0], size=(s, s))
+    if explicit:
+        A = np.tril(A, -1)
+    b = rng.choice([0.0, 0.25, 0.5, 1.0 / 6.0, 2.0 / 3.0], size=s)
+    b[-1] = 1.0 - b[:-1].sum()
+    tab = ButcherTableau(A, b)
+    p, q, r = tab.simplifying_assumptions()
+    trees = tab.rooted_tree_order(2 * s + 1)
+    assert butcher_bound(p, q, r) <= trees <= p
+    assert tab.order == trees
 
 
 @pytest.mark.parametrize("name", TABLEAU_NAMES)
@@ -214,6 +328,9 @@ def test_notes_heun_typo_is_rejected():
         (dict(A=[[0.0]], b=[[1.0]]), "dimension"),
         (dict(A=[["a"]], b=[1.0]), "numeric"),
         (dict(A=[[0.0, 0], [0.5, 0]], b=[0.0, 1.0], b_err=[1.0]), "length"),
+        (dict(A=[[0.0, 0], [0.5, 0]], b=[0.0, np.inf]), "b contains non-finite"),
+        (dict(A=[[0.0, 0], [0.5, 0]], b=[0.0, 1.0], b_err=[np.nan, 1.0]), "b_err contains"),
+        (dict(A=[[0.0, 0], [0.5, 0]], b=[0.0, 1.0], c=[0.0, -np.inf]), "c contains"),
     ],
 )
 def test_malformed_tableaus_raise(kwargs, pattern):
@@ -223,18 +340,87 @@ def test_malformed_tableaus_raise(kwargs, pattern):
 
 def test_wrong_claimed_order_raises():
     heun = tableau("heun")
-    with pytest.raises(TableauError, match="claims order 3"):
+    with pytest.raises(TableauError, match="claims order 3 .* only up to order 2 "):
         ButcherTableau(heun.A, heun.b, order=3)
     rk4 = tableau("rk4")
-    with pytest.raises(TableauError, match="claims order 5"):
+    with pytest.raises(TableauError, match="claims order 5 .* only up to order 4 "):
         ButcherTableau(rk4.A, rk4.b, order=5)
     # one perturbed coefficient breaks order 4 (a_32 = 1/2 -> 0.51)
     A = rk4.A.copy()
     A[2, 1] = 0.51
-    with pytest.raises(TableauError, match="claims order 4"):
+    with pytest.raises(TableauError, match="claims order 4 .* only up to order 1 "):
         ButcherTableau(A, rk4.b, order=4)
     assert ButcherTableau(rk4.A, rk4.b, order=4).order == 4
     assert ButcherTableau(rk4.A, rk4.b, order=3).order == 3  # a weaker claim is accepted
+
+
+@pytest.mark.parametrize("claim", [0, -1, 2.5, True, "2"])
+def test_claimed_order_must_be_a_positive_integer(claim):
+    with pytest.raises(TableauError, match="order must be an integer >= 1"):
+        ButcherTableau(tableau("heun").A, tableau("heun").b, order=claim)
+
+
+def test_order_beyond_the_tree_limit_is_not_claimed_unproved(monkeypatch):
+    """Simplifying assumptions prove order 3 for RK4 (C(1), D(1)); the gap up to B(4) is closed
+    by rooted trees, and only up to MAX_TREE_ORDER. With that limit at 3, order 4 is
+    unverifiable: a claim is rejected and the computed order is the proved lower bound."""
+    rk4 = tableau("rk4")
+    assert rk4.simplifying_assumptions() == (4, 1, 1)
+    monkeypatch.setattr(TABLEAU_MODULE, "MAX_TREE_ORDER", 3)
+    with pytest.raises(
+        TableauError,
+        match="claims order 4, which could be verified only up to "
+        "order 3: .* B\\(4\\), C\\(1\\), D\\(1\\)",
+    ):
+        ButcherTableau(rk4.A, rk4.b, order=4)
+    assert ButcherTableau(rk4.A, rk4.b).order == 3
+
+
+def test_inconsistent_weights_are_rejected_with_their_sum():
+    """sum b_i = 1.2: on x' = 1 every step advances 1.2 dt, an error of 0.2 T that no step
+    size removes (order 0). It used to be accepted as an order-0 tableau."""
+    with pytest.raises(TableauError, match=r"weights b sum to 1\.2\d*, not 1.*inconsistent"):
+        ButcherTableau([[0.0, 0.0], [0.5, 0.0]], [0.2, 1.0])
+    with pytest.raises(TableauError, match=r"weights b sum to 1\.2"):
+        ButcherTableau([[0.5]], [1.2])  # implicit
+    with pytest.raises(TableauError, match=r"weights b_err sum to 0\.9"):
+        ButcherTableau([[0.0, 0.0], [1.0, 0.0]], [0.5, 0.5], b_err=[0.9, 0.0])
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.lists(st.floats(min_value=-2.0, max_value=2.0), min_size=1, max_size=6),
+    st.floats(min_value=1e-8, max_value=10.0),
+    st.sampled_from([-1.0, 1.0]),
+    st.booleans(),
+)
+def test_weights_off_unit_sum_always_raise(free, offset, sign, explicit):
+    s = len(free)
+    A = np.tril(np.full((s, s), 0.3), -1 if explicit else 0)
+    b = np.array(free)
+    b[-1] += 1.0 + sign * offset - b.sum()  # sum b = 1 +- offset
+    with pytest.raises(TableauError, match="sum to"):
+        ButcherTableau(A, b)
+    with pytest.raises(TableauError, match="b_err sum to"):
+        ButcherTableau(A, np.full(s, 1.0 / s), b_err=b)
+
+
+def test_odeint_integrates_only_checked_tableaus():
+    """A user tableau reaches odeint only through the constructor's checks, and its checked
+    coefficients cannot be replaced or edited afterwards."""
+    x0 = torch.zeros(1, 1, dtype=torch.float64)
+    t = torch.linspace(0.0, 1.0, 11, dtype=torch.float64)
+    with pytest.raises(TableauError, match="sum to 1.2"):
+        odeint(lambda tt, x: torch.ones_like(x), x0, t, method=ButcherTableau([[0.0]], [1.2]))
+    tab = ButcherTableau([[0.0, 0.0], [1.0, 0.0]], [0.5, 0.5], name="user_heun")
+    for attr in ("A", "b", "c", "b_err"):
+        with pytest.raises(AttributeError):
+            setattr(tab, attr, np.array([0.6, 0.6]))
+    with pytest.raises(ValueError):
+        tab.b[0] = 0.7
+    # x' = 1: an order >= 1 method is exact, x(1) = 1
+    sol = odeint(lambda tt, x: torch.ones_like(x), x0, t, method=tab)
+    assert abs(float(sol.x[0, -1, 0]) - 1.0) < 1e-14
 
 
 @settings(max_examples=30, deadline=None)
