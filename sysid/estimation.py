@@ -628,7 +628,22 @@ def _weights(weights, data: IOData) -> torch.Tensor | None:
         )
     if bool((~torch.isfinite(w) | (w <= 0)).any()):
         raise InputValidationError("weights must be finite and positive (1 / noise variance).")
+    _check_broadcast("weights", w, (*data.batch_shape, data.N), "(*batch, N) or (N,)")
     return w.expand(*data.batch_shape, data.N)
+
+
+def _check_broadcast(name: str, x: torch.Tensor, shape: tuple, expected: str) -> None:
+    """Raise unless ``x`` broadcasts to ``shape`` (the data's batch shape and one more size)."""
+    try:
+        torch.broadcast_shapes(x.shape, shape)
+        ok = x.dim() <= len(shape) and torch.broadcast_shapes(x.shape, shape) == shape
+    except RuntimeError:
+        ok = False
+    if not ok:
+        raise InputValidationError(
+            f"{name} has shape {tuple(x.shape)}, which does not broadcast to {tuple(shape)}: "
+            f"it must be {expected} for data of batch shape {tuple(shape[:-1])}."
+        )
 
 
 # ---------------------------------------------------------------------------- initial values
@@ -1043,6 +1058,7 @@ def _fit_iterative(
         theta0 = model.parameter_vector().detach().expand(*batch, p).clone()
     else:
         theta0 = torch.as_tensor(init, dtype=data.dtype, device=data.device)
+        _check_broadcast("init", theta0, (*batch, p), "(*batch, p) or (p,)")
         theta0 = theta0.expand(*batch, p).clone()
     if admissible is not None and not bool(admissible(theta0).all()):
         idx = tuple(int(i) for i in torch.nonzero(~admissible(theta0))[0])

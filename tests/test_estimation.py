@@ -465,3 +465,13 @@ def test_output_error_without_denominator_has_finite_standard_errors():
         res.theta, ref.theta, rtol=0, atol=0.2 * ref.standard_errors.min().item()
     )
     torch.testing.assert_close(res.standard_errors, ref.standard_errors, rtol=0.05, atol=0)
+
+
+def test_init_and_weights_with_a_foreign_batch_shape_are_named():
+    model, th = TRUE["OE"]
+    u = input_signal("white", 100, (3,), generator=gen(50))
+    data = simulate_data(model, u, theta=torch.tensor(th), noise_std=0.1, generator=gen(51))
+    with pytest.raises(InputValidationError, match=r"init has shape \(2, 4\)"):
+        fit(OE(2, 2, 1), data, init=torch.zeros(2, 4))
+    with pytest.raises(InputValidationError, match=r"weights has shape \(5, 100\)"):
+        fit(ARX(2, 2, 1), data, weights=torch.ones(5, 100))
