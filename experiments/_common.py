@@ -20,6 +20,10 @@ helpers below keep them uniform::
 * ``--quick``: a run of a few seconds, used by the tests.
 * ``--out DIR``: where results go; default ``experiments/out/<name>``.
 
+Files that a rerun reads back (partial results of a resumable study) are written with
+:func:`atomic_write_text`: a run killed mid-write leaves the previous complete file, never a
+half-written one. :func:`write_table` writes that way too.
+
 Import pyplot through this module (``from experiments._common import plt``), or call
 ``matplotlib.use("Agg")`` yourself before importing ``pyplot``, so that figures are written
 without a display.
@@ -29,8 +33,11 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import math
+import os
 import pathlib
+import tempfile
 
 import matplotlib
 
@@ -40,6 +47,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 __all__ = [
     "DEFAULT_OUT_ROOT",
+    "atomic_write_text",
     "experiment_parser",
     "output_dir",
     "plt",
@@ -86,6 +94,28 @@ def output_dir(args: argparse.Namespace, name: str) -> pathlib.Path:
     return path
 
 
+def atomic_write_text(path, text: str) -> pathlib.Path:
+    """Replace ``path`` by a file holding ``text``, atomically.
+
+    The text goes to a temporary file in the same folder (same file system), is flushed to
+    disk, and then renamed over ``path`` with :func:`os.replace`, which is atomic: a reader (or
+    a rerun after a crash) sees either the old complete file or the new one.
+    """
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", newline="") as handle:
+            handle.write(text)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+    return path
+
+
 def _format_cell(value) -> str:
     if isinstance(value, bool) or value is None:
         return str(value)
@@ -124,11 +154,12 @@ def write_table(rows: list[dict], path_stem: pathlib.Path) -> str:
         except (AttributeError, ValueError):
             return value
 
-    with open(path_stem.with_suffix(".csv"), "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=columns)
-        writer.writeheader()
-        for row in rows:
-            writer.writerow({key: plain(row.get(key, "")) for key in columns})
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=columns)
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({key: plain(row.get(key, "")) for key in columns})
+    atomic_write_text(path_stem.with_suffix(".csv"), buffer.getvalue())
     lines = [
         "| " + " | ".join(columns) + " |",
         "|" + "|".join("---" for _ in columns) + "|",
@@ -137,7 +168,7 @@ def write_table(rows: list[dict], path_stem: pathlib.Path) -> str:
         cells = [_format_cell(row[key]) if key in row else "" for key in columns]
         lines.append("| " + " | ".join(cells) + " |")
     markdown = "\n".join(lines) + "\n"
-    path_stem.with_suffix(".md").write_text(markdown)
+    atomic_write_text(path_stem.with_suffix(".md"), markdown)
     return markdown
 
 

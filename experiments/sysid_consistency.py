@@ -12,8 +12,10 @@ Three Monte-Carlo studies per record length N (each one batched call over all tr
   output-noise data: consistent, standard deviation falling like 1/sqrt(N);
 * ``arx_iv / output``: instrumental variables on the same data (consistent, less efficient).
 
-Results are appended to ``consistency.csv`` per N (the run resumes where it stopped); the
-figure shows |bias| and std of the a1/f1 coefficient vs N with the fitted log-log slopes.
+Results go to ``consistency.csv``, rewritten atomically after each N, so a rerun resumes
+where the last one stopped; on resume, rows that cannot be parsed and record lengths with
+fewer than all four estimator rows are dropped (with a message) and recomputed. The figure
+shows |bias| and std of the a1/f1 coefficient vs N with the fitted log-log slopes.
 
 Run: ``python -m experiments.sysid_consistency [--quick] [--out DIR]``.
 """
@@ -21,12 +23,20 @@ Run: ``python -m experiments.sysid_consistency [--quick] [--out DIR]``.
 from __future__ import annotations
 
 import csv
+import io
 import math
 
 import numpy as np
 import torch
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import (
+    atomic_write_text,
+    experiment_parser,
+    output_dir,
+    plt,
+    save_figure,
+    write_table,
+)
 from sysid import ARX, OE, fit
 from sysid.montecarlo import input_signal, simulate_data, summarize_estimates
 
@@ -47,6 +57,7 @@ FIELDS = [
     "mse",
     "converged",
 ]
+CASES = [("arx_ls", "equation"), ("arx_ls", "output"), ("arx_iv", "output"), ("oe_gn", "output")]
 
 
 def run_n(N: int, trials: int, sigma: float, seed: int) -> list[dict]:
@@ -87,16 +98,50 @@ def run_n(N: int, trials: int, sigma: float, seed: int) -> list[dict]:
     return rows
 
 
+def _parse(row: dict) -> dict | None:
+    """A CSV row with its numbers converted, or None where a field is missing or unparsable
+    (e.g. the half-written last line of an interrupted run)."""
+    if None in row or any(row.get(k) in (None, "") for k in FIELDS):
+        return None
+    try:
+        out = {k: (row[k] if k in ("estimator", "noise") else float(row[k])) for k in FIELDS}
+        out["N"], out["trials"] = int(row["N"]), int(row["trials"])
+    except ValueError:
+        return None
+    return out if (out["estimator"], out["noise"]) in CASES else None
+
+
 def _load(path) -> list[dict]:
+    """The complete record lengths of ``path``: every row that parses, of every
+    ``(N, trials, sigma)`` that has exactly one row per estimator case; the rest is dropped
+    with a message (and recomputed by the caller)."""
     if not path.exists():
         return []
-    with open(path) as handle:
-        rows = list(csv.DictReader(handle))
+    with open(path, newline="") as handle:
+        raw = list(csv.DictReader(handle))
+    rows = [r for r in map(_parse, raw) if r is not None]
+    groups: dict[tuple, list[dict]] = {}
     for r in rows:
-        for k in r:
-            if k not in ("estimator", "noise"):
-                r[k] = float(r[k])
-    return rows
+        groups.setdefault((r["N"], r["trials"], r["sigma"]), []).append(r)
+    keep = []
+    for key, group in groups.items():
+        if sorted((r["estimator"], r["noise"]) for r in group) == sorted(CASES):
+            keep += group
+        else:
+            print(
+                f"{path}: N = {int(key[0])} has {len(group)} of {len(CASES)} rows; recomputing it"
+            )
+    if len(rows) < len(raw):
+        print(f"{path}: dropped {len(raw) - len(rows)} unreadable row(s) (interrupted write?)")
+    return keep
+
+
+def _save(path, rows: list[dict]) -> None:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=FIELDS)
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_text(path, buffer.getvalue())
 
 
 def loglog_slope(ns, values) -> float:
@@ -116,29 +161,21 @@ def main(argv=None):
     partial = out / "consistency.csv"
     done = _load(partial)
     have = {int(r["N"]) for r in done if int(r["trials"]) == trials and r["sigma"] == args.sigma}
-    for N in ns:  # resumable: append each finished N
+    for N in ns:  # resumable: the file holds every finished N, rewritten atomically
         if N in have:
             continue
-        rows = run_n(N, trials, args.sigma, seed=N)
-        new = not partial.exists()
-        with open(partial, "a", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=FIELDS)
-            if new:
-                writer.writeheader()
-            writer.writerows(rows)
+        done += run_n(N, trials, args.sigma, seed=N)
+        _save(partial, done)
+    _save(partial, done)  # also clears rows dropped on loading
     rows = [
         r
-        for r in _load(partial)
+        for r in done
         if int(r["trials"]) == trials and r["sigma"] == args.sigma and int(r["N"]) in ns
     ]
     rows.sort(key=lambda r: (r["estimator"], r["noise"], r["N"]))
     summary = []
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for (name, noise), style in zip(
-        [("arx_ls", "equation"), ("arx_ls", "output"), ("arx_iv", "output"), ("oe_gn", "output")],
-        ["o-", "s-", "^-", "d-"],
-        strict=True,
-    ):
+    for (name, noise), style in zip(CASES, ["o-", "s-", "^-", "d-"], strict=True):
         sel = [r for r in rows if r["estimator"] == name and r["noise"] == noise]
         if not sel:
             continue

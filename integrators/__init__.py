@@ -6,6 +6,7 @@ from .controllers import IController, PIController
 from .dae_layer import DAELayer
 from .errors import (
     ConvergenceError,
+    ConvergenceWarning,
     HighIndexError,
     HighIndexWarning,
     InputValidationError,
@@ -15,6 +16,7 @@ from .errors import (
     RKIdentWarning,
     SingularMatrixError,
     TableauError,
+    UnstableModelWarning,
 )
 from .implicit import daeint, solve_implicit_ode
 from .inputs import CollocationInput, bind_rhs
@@ -46,6 +48,7 @@ __all__ = [
     "TABLEAU_NAMES",
     "ButcherTableau",
     "ConvergenceError",
+    "ConvergenceWarning",
     "HighIndexError",
     "HighIndexWarning",
     "InputValidationError",
@@ -58,6 +61,7 @@ __all__ = [
     "SolverStats",
     "Status",
     "TableauError",
+    "UnstableModelWarning",
     "tableau",
     "collocation_output_weights",
     "gauss_legendre",

@@ -42,5 +42,16 @@ class PoorExcitationWarning(RKIdentWarning):
     """The input does not excite all parameters: the regressor matrix is ill-conditioned."""
 
 
+class ConvergenceWarning(RKIdentWarning):
+    """An iterative estimate stopped short of a stationary point (iteration limit, failed
+    line search, or a step that would still move it by a sizeable part of its standard
+    errors); the per-data-set flags say which."""
+
+
+class UnstableModelWarning(RKIdentWarning):
+    """An estimated model is unstable: its free-run simulation diverges, so simulation
+    errors, fit percentages and step responses computed from it are meaningless."""
+
+
 class HighIndexWarning(RKIdentWarning):
     """An algebraic Jacobian became (nearly) rank deficient during a DAE integration."""

@@ -59,15 +59,17 @@ import torch.autograd.forward_ad as fwAD
 import torch.nn.functional as F
 
 from integrators.errors import (
+    ConvergenceWarning,
     InputValidationError,
     PoorExcitationWarning,
     SingularMatrixError,
+    UnstableModelWarning,
 )
 
 from .data import IOData
 from .filters import iir_filter
 from .lls import lls
-from .models import OE, PolynomialModel
+from .models import ARX, PolynomialModel
 
 __all__ = [
     "FitResult",
@@ -78,6 +80,20 @@ __all__ = [
 
 METHODS = ("lls", "gauss_newton", "mle", "iv")
 LOSSES = ("gaussian", "fair", "laplace")
+
+#: An iterative estimate counts as converged when the Newton/Gauss–Newton step from it
+#: (the step to the stationary point of the local quadratic model of the criterion) is
+#: shorter than this many standard errors, measured in the estimate's own covariance:
+#: ``z = sqrt(d' Cov^{-1} d) <= STATIONARY_TOL``. The numerical error is then a small part
+#: of the statistical one. (At a true optimum ``z`` is ~1e-5 in float64 and ~1e-2 in
+#: float32; an estimate stopped on the stability boundary, e.g. an output-error model of an
+#: unstable plant, has ``z`` of several units.)
+STATIONARY_TOL = 0.1
+
+#: Largest pole modulus above which a non-converged estimate is reported as sitting on the
+#: stability boundary (the Levenberg–Marquardt steps keep it strictly inside), as is one
+#: whose step to the stationary point leads to an unstable predictor.
+_BOUNDARY_MODULUS = 0.99
 
 
 # ---------------------------------------------------------------------------- losses
@@ -137,7 +153,11 @@ class FitResult:
         loss_history: criterion value per iteration, ``(n_iter + 1, *batch)`` (the value
             ``sum rho(r_k)``, e.g. ``1/2 ||r||^2`` for the Gaussian loss).
         iterations: iterations used per data set, ``(*batch,)`` int64.
-        converged: per data set, ``(*batch,)`` bool.
+        converged: per data set, ``(*batch,)`` bool: for the iterative methods, whether the
+            estimate is a stationary point of the criterion to within
+            :data:`STATIONARY_TOL` standard errors (``info["step_in_standard_errors"]``),
+            whatever stopped the iteration; always True for the direct solves (``"lls"``,
+            ``"iv"``).
         method, loss: as requested.
         parameter_names: names of the entries of ``theta``.
         n_samples: number of residuals in the criterion.
@@ -145,7 +165,14 @@ class FitResult:
             ``(*batch, n_samples)``.
         model: the fitted model (the input model updated in place, or a batched copy when
             the model had no batch dimension and the data had one).
-        info: extra per-method statistics (condition numbers, damping, ...).
+        info: extra per-method statistics (condition numbers, damping, largest pole
+            modulus, ...).
+        stable: per data set, ``(*batch,)`` bool: every pole of the estimated model (roots
+            of A, D and every F_i) strictly inside the unit circle; where False its
+            free-run simulation diverges.
+        messages: one line per data set that did not converge or whose estimate is
+            unstable, naming its batch index and the reason (also issued as
+            :class:`ConvergenceWarning` / :class:`UnstableModelWarning`).
     """
 
     theta: torch.Tensor
@@ -162,6 +189,8 @@ class FitResult:
     residuals: torch.Tensor
     model: PolynomialModel | None = None
     info: dict = field(default_factory=dict)
+    stable: torch.Tensor | None = None
+    messages: list[str] = field(default_factory=list)
 
     @property
     def batch_shape(self) -> torch.Size:
@@ -194,6 +223,7 @@ class FitResult:
             f"{'sigma^2:':<16}{float(self.sigma2[index]):.6g}",
             f"{'Iterations:':<16}{int(self.iterations[index]):<23}"
             f"{'Converged:':<16}{bool(self.converged[index])}",
+            f"{'Stable:':<16}{str(self.stable is None or bool(self.stable[index])):<23}",
             f"{'Batch index:':<16}{str(index):<23}{'Batch shape:':<16}{tuple(self.batch_shape)}",
             "-" * width,
             f"{'':<10}{'coef':>11}{'std err':>11}{'z':>9}{'P>|z|':>9}"
@@ -339,7 +369,7 @@ class _OutputError:
         faster ``J'J``)."""
         with torch.no_grad():
             B, den = self.model._transfer_polys(theta)  # (*b, nu, width), (*b, nu, nf)
-            ones = torch.ones_like(den[..., :1])
+            ones = den.new_ones(*den.shape[:-1], 1)  # numerator 1 (den may be empty: nf = 0)
             responses = self._responses(theta, B, den)
             jacobians = []
             for part, x in zip(self.data.experiment_list, responses, strict=True):
@@ -369,6 +399,7 @@ class _LMResult:
     history: torch.Tensor
     iterations: torch.Tensor
     converged: torch.Tensor
+    failed: torch.Tensor
     residuals: torch.Tensor
     jacobian: torch.Tensor
     damping: torch.Tensor
@@ -485,6 +516,7 @@ def _levenberg_marquardt(
         history=torch.stack(history),
         iterations=iterations,
         converged=converged,
+        failed=failed,
         residuals=r,
         jacobian=J,
         damping=lam,
@@ -516,8 +548,11 @@ def _inverse_normal_matrix(J: torch.Tensor) -> torch.Tensor:
     return P
 
 
-def _covariance(J: torch.Tensor, r: torch.Tensor, loss: _Loss) -> tuple[torch.Tensor, torch.Tensor]:
-    """Asymptotic covariance of an M-estimate and the residual variance ``sum r^2/(M - p)``.
+def _covariance(
+    J: torch.Tensor, r: torch.Tensor, loss: _Loss
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Asymptotic covariance ``factor (J'J)^{-1}`` of an M-estimate, the residual variance
+    ``sum r^2/(M - p)`` and ``factor`` (all ``(*batch, ...)``).
 
     Gaussian: ``sigma^2 (J'J)^{-1}``. Fair: Huber's sandwich
     ``E[psi^2] / E[psi']^2 (J'J)^{-1}`` with sample moments. Laplace: the least-absolute-
@@ -540,7 +575,23 @@ def _covariance(J: torch.Tensor, r: torch.Tensor, loss: _Loss) -> tuple[torch.Te
         h = 0.9 * torch.minimum(std, iqr) * M ** (-0.2)
         f0 = torch.exp(-0.5 * (r / h.unsqueeze(-1)) ** 2).mean(-1) / (h * math.sqrt(2 * math.pi))
         factor = 1.0 / (4 * f0 * f0)
-    return factor[..., None, None] * P, sigma2
+    return factor[..., None, None] * P, sigma2, factor
+
+
+def _remaining_step(
+    J: torch.Tensor, r: torch.Tensor, loss: _Loss, factor: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The undamped step ``d = -H^+ g`` of the iteration's quadratic model at the estimate
+    (``H = J'CJ``, ``g = J' psi(r)``, see :func:`_levenberg_marquardt`) and its length in
+    standard errors ``z = sqrt(d' Cov^{-1} d) = ||J d|| / sqrt(factor)`` for the covariance
+    ``factor (J'J)^{-1}`` of :func:`_covariance`. Returns ``d`` ``(*batch, p)`` and ``z``
+    ``(*batch,)``; the pseudo-inverse leaves unidentifiable directions (``H`` singular) out."""
+    Jt = J.transpose(-1, -2)
+    H = Jt @ (J * loss.curvature(r).unsqueeze(-1))
+    g = Jt @ loss.psi(r).unsqueeze(-1)
+    d = -(torch.linalg.pinv(H, hermitian=True) @ g)
+    z = (J @ d).squeeze(-1).norm(dim=-1) / factor.sqrt()
+    return d.squeeze(-1), z
 
 
 # ---------------------------------------------------------------------------- data plumbing
@@ -577,34 +628,50 @@ def _weights(weights, data: IOData) -> torch.Tensor | None:
         )
     if bool((~torch.isfinite(w) | (w <= 0)).any()):
         raise InputValidationError("weights must be finite and positive (1 / noise variance).")
+    _check_broadcast("weights", w, (*data.batch_shape, data.N), "(*batch, N) or (N,)")
     return w.expand(*data.batch_shape, data.N)
+
+
+def _check_broadcast(name: str, x: torch.Tensor, shape: tuple, expected: str) -> None:
+    """Raise unless ``x`` broadcasts to ``shape`` (the data's batch shape and one more size)."""
+    try:
+        torch.broadcast_shapes(x.shape, shape)
+        ok = x.dim() <= len(shape) and torch.broadcast_shapes(x.shape, shape) == shape
+    except RuntimeError:
+        ok = False
+    if not ok:
+        raise InputValidationError(
+            f"{name} has shape {tuple(x.shape)}, which does not broadcast to {tuple(shape)}: "
+            f"it must be {expected} for data of batch shape {tuple(shape[:-1])}."
+        )
 
 
 # ---------------------------------------------------------------------------- initial values
 def _aux_arx(model: PolynomialModel, na: int, nb, nk, batch) -> PolynomialModel:
-    from .models import ARX
-
-    return ARX(
+    """An ARX-structured auxiliary model (``nb = 0`` allowed: an AR model of a residual)."""
+    aux = PolynomialModel(
         na,
         nb,
-        nk,
+        nk=nk,
         n_inputs=model.n_inputs,
         batch_shape=batch,
         dtype=model.a.dtype,
         device=model.a.device,
         Ts=model.Ts,
     )
+    aux.__class__ = ARX  # linear in its parameters: ARX's regression form
+    return aux
 
 
 def _stable_denominator(b_parts: list[torch.Tensor], a: torch.Tensor, model, batch) -> torch.Tensor:
-    """``a`` with roots outside the unit circle reflected inside (via an OE model)."""
+    """``a`` with roots outside the unit circle reflected inside (via an output-error model)."""
     na = a.shape[-1]
     if na == 0:
         return a
-    oe = OE(
-        [bp.shape[-1] for bp in b_parts],
-        [na] * len(b_parts),
-        model.nk,
+    oe = PolynomialModel(
+        nb=[bp.shape[-1] for bp in b_parts],
+        nf=[na] * len(b_parts),
+        nk=model.nk,
         n_inputs=model.n_inputs,
         batch_shape=batch,
         dtype=a.dtype,
@@ -776,6 +843,8 @@ def fit(
         raise InputValidationError(
             f"criterion must be 'prediction' or 'simulation', got {criterion!r}."
         )
+    if alpha is not None:
+        _check_alpha(alpha)
     linear = model.is_linear_in_parameters and criterion == "prediction"
     if method is None:
         method = "mle" if loss != "gaussian" else ("lls" if linear else "gauss_newton")
@@ -809,7 +878,86 @@ def fit(
     result.parameter_names = names
     model.set_parameter_vector(result.theta)
     result.model = model
+    _diagnose(result, model)
     return result
+
+
+def _diagnose(result: FitResult, model: PolynomialModel) -> None:
+    """Set ``result.stable`` and ``result.messages``; warn about the data sets whose estimate
+    did not converge (:class:`ConvergenceWarning`) or is unstable
+    (:class:`UnstableModelWarning`)."""
+    poles = model.poles()
+    modulus = poles.abs().amax(dim=-1) if poles.shape[-1] else torch.zeros(model.batch_shape)
+    modulus = modulus.to(result.theta.device)
+    result.info["max_pole_modulus"] = modulus
+    result.stable = modulus < 1
+    info = result.info
+    not_converged, unstable = [], []
+    for idx in _indices(~result.converged):  # only the data sets with a problem
+        m = float(modulus[idx])
+        if bool(info["line_search_failed"][idx]):
+            why = "the line search found no decrease (damping grew past 1e10)"
+        elif bool(info["iteration_limit_reached"][idx]):
+            why = f"the iteration limit max_iter = {info['max_iter']} was reached"
+        else:
+            why = "the iteration stopped away from a stationary point"
+        why += (
+            f"; a Newton step from the estimate would still move it by "
+            f"{float(info['step_in_standard_errors'][idx]):.3g} standard errors "
+            f"(converged means <= {STATIONARY_TOL})"
+        )
+        if bool(info["stationary_point_unstable"][idx]) or m > _BOUNDARY_MODULUS:
+            why += (
+                f". That step would leave the stable models (the estimate's largest pole "
+                f"modulus is {m:.4g}): the data look like the response of an unstable "
+                "system, which a model simulated in free run (output error) cannot follow; "
+                "fit an ARX or "
+                "ARMAX model (their predictors are stable for any A) or use closed-loop data"
+            )
+        else:
+            why += "; raise max_iter, start closer (init=...), or use float64"
+        not_converged.append(f"batch index {idx}: did not converge: {why}.")
+    for idx in _indices(~result.stable):
+        unstable.append(
+            f"batch index {idx}: the estimated model is unstable (largest pole modulus "
+            f"{float(modulus[idx]):.6g} >= 1): its free-run simulation diverges, so "
+            "simulation errors and fit percentages are meaningless; the data may come from an "
+            "unstable system (or a closed loop): use one-step predictions, not simulations."
+        )
+    result.messages = not_converged + unstable
+    for lines, category, what in (
+        (not_converged, ConvergenceWarning, "did not converge"),
+        (unstable, UnstableModelWarning, "gave an unstable model"),
+    ):
+        if lines:
+            shown = "\n  ".join(lines[:5])
+            more = f"\n  ... and {len(lines) - 5} more" if len(lines) > 5 else ""
+            warnings.warn(
+                f"fit: {len(lines)} of {result.converged.numel()} data sets {what}:"
+                f"\n  {shown}{more}\n(result.messages lists them all; result.converged and "
+                "result.stable flag them.)",
+                category,
+                stacklevel=3,
+            )
+
+
+def _indices(mask: torch.Tensor) -> list[tuple[int, ...]]:
+    """Batch multi-indices of the True entries of ``mask`` (``()`` for an unbatched one)."""
+    return [tuple(int(i) for i in row) for row in torch.nonzero(mask).tolist()]
+
+
+def _check_alpha(alpha) -> None:
+    """Raise unless the fair loss' ``alpha`` is finite and > 0 (scalar or per data set)."""
+    a = torch.as_tensor(alpha, dtype=torch.float64)
+    if not bool((torch.isfinite(a) & (a > 0)).all()):
+        bad = a.reshape(-1)[~(torch.isfinite(a) & (a > 0)).reshape(-1)][0].item()
+        raise InputValidationError(
+            f"alpha of the fair loss must be finite and > 0, got {bad}. alpha (1/output units) "
+            "sets where rho(r) = r^2 / (2 (1 + alpha |r|)) (eq. 4.73) turns from quadratic to "
+            "linear: at |r| ~ 1/alpha. alpha <= 0 makes the loss non-convex and its standard "
+            "errors wrong. A typical value is 1/sigma with sigma the noise standard deviation; "
+            "alpha=None uses 1/s with s a robust (MAD) scale of the least-squares residuals."
+        )
 
 
 def _fit_lls(model, data, w, method) -> FitResult:
@@ -910,6 +1058,7 @@ def _fit_iterative(
         theta0 = model.parameter_vector().detach().expand(*batch, p).clone()
     else:
         theta0 = torch.as_tensor(init, dtype=data.dtype, device=data.device)
+        _check_broadcast("init", theta0, (*batch, p), "(*batch, p) or (p,)")
         theta0 = theta0.expand(*batch, p).clone()
     if admissible is not None and not bool(admissible(theta0).all()):
         idx = tuple(int(i) for i in torch.nonzero(~admissible(theta0))[0])
@@ -940,7 +1089,15 @@ def _fit_iterative(
         )
         history = lm.history
         iterations = iterations + lm.iterations
-    cov, sigma2 = _covariance(lm.jacobian, lm.residuals, the_loss)
+    cov, sigma2, factor = _covariance(lm.jacobian, lm.residuals, the_loss)
+    # converged: at a stationary point to within STATIONARY_TOL standard errors (or, for
+    # noise-free data where the standard errors vanish, to within sqrt(eps) relative)
+    d, z = _remaining_step(lm.jacobian, lm.residuals, the_loss, factor)
+    tiny_step = d.norm(dim=-1) <= math.sqrt(torch.finfo(d.dtype).eps) * (1 + lm.theta.norm(dim=-1))
+    converged = (z <= STATIONARY_TOL) | tiny_step
+    # where the step to the stationary point would leave the stable models, the optimum of
+    # the criterion lies beyond the stability boundary (e.g. an unstable plant)
+    beyond = torch.zeros_like(converged) if admissible is None else ~admissible(lm.theta + d)
     return FitResult(
         theta=lm.theta,
         covariance=cov,
@@ -948,13 +1105,21 @@ def _fit_iterative(
         sigma2=sigma2,
         loss_history=history,
         iterations=iterations,
-        converged=lm.converged,
+        converged=converged,
         method=method,
         loss=loss,
         parameter_names=[],
         n_samples=lm.residuals.shape[-1],
         residuals=lm.residuals,
-        info={"damping": lm.damping, "initial_theta": theta0},
+        info={
+            "damping": lm.damping,
+            "initial_theta": theta0,
+            "step_in_standard_errors": z,
+            "line_search_failed": lm.failed,
+            "stationary_point_unstable": beyond,
+            "iteration_limit_reached": ~(lm.converged | lm.failed),
+            "max_iter": max_iter,
+        },
     )
 
 

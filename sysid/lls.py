@@ -19,6 +19,7 @@ Covariance of the estimate (notes §4.5):
 from __future__ import annotations
 
 import functools
+import math
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -30,7 +31,7 @@ from integrators.errors import InputValidationError, PoorExcitationWarning, Sing
 
 from .filters import fir_filter
 
-__all__ = ["DEFAULT_COND_WARN", "LLSResult", "fir_lls", "lls"]
+__all__ = ["DEFAULT_COND_WARN", "ROUNDING_WARN", "LLSResult", "fir_lls", "lls"]
 
 #: Condition number of the column-scaled ``A'WA`` above which :func:`lls` warns of poor
 #: excitation. At 1e4 the standard deviation of the estimate in the worst excited direction is
@@ -39,6 +40,15 @@ __all__ = ["DEFAULT_COND_WARN", "LLSResult", "fir_lls", "lls"]
 #: only, so the condition number grows with the number of samples), or two regressors with a
 #: correlation above 0.9998. White noise and PRBS give condition numbers of a few units.
 DEFAULT_COND_WARN = 1e4
+
+#: :func:`lls` also warns, whatever ``cond_warn``, where the first-order bound on the relative
+#: rounding error of the estimate exceeds ``ROUNDING_WARN`` (fewer than two correct digits).
+#: With ``kappa = sqrt(cond)`` (the scaled condition number of ``W^{1/2} A``) the bound is
+#: ``eps kappa^2`` for the normal equations (``method="cholesky"``, :func:`fir_lls`) and
+#: ``eps (kappa + kappa^2 tan(phi))`` for QR, ``tan(phi) = ||r|| / ||A theta||`` (Golub & Van
+#: Loan, Matrix Computations, Thm. 5.3.1); ``eps`` is the dtype's: 1.2e-7 in float32,
+#: 2.2e-16 in float64.
+ROUNDING_WARN = 1e-2
 
 
 @dataclass
@@ -122,6 +132,19 @@ def _first_index(mask: torch.Tensor) -> tuple[int, ...]:
     return tuple(int(i) for i in torch.unravel_index(torch.tensor(flat), mask.shape))
 
 
+def _check_real(name: str, x) -> None:
+    """Raise for complex data: least squares here is over the reals, and a cast would drop
+    the imaginary parts."""
+    if (isinstance(x, torch.Tensor) and x.is_complex()) or (
+        not isinstance(x, torch.Tensor) and torch.as_tensor(x).is_complex()
+    ):
+        raise InputValidationError(
+            f"{name} is complex; least squares here is over the reals. Stack the real and "
+            "imaginary parts as separate rows (A -> [Re A; Im A], y -> [Re y; Im y]) for a "
+            "real parameter vector."
+        )
+
+
 def _check_finite(name: str, x: torch.Tensor) -> None:
     if bool(torch.isfinite(x.sum())):  # one cheap reduction; locate only on failure
         return
@@ -166,14 +189,36 @@ def _prepare_sigma(sigma, M: int, like: torch.Tensor, y_dim: int):
     dimension than ``y``)."""
     if sigma is None:
         return "none", None
+    _check_real("lls: sigma", sigma)
     S = torch.as_tensor(sigma, dtype=like.dtype, device=like.device)
-    _check_finite("sigma", S)
+    if not bool(torch.isfinite(S).all()):
+        idx = _first_index(~torch.isfinite(S))
+        raise InputValidationError(
+            f"lls: sigma (noise variance or covariance) is not finite at index {idx}; give "
+            "finite variances > 0, or sigma=None to estimate the noise variance from the "
+            "residuals."
+        )
     if S.dim() == 0:
-        return "scalar", S
-    if S.dim() > y_dim and S.dim() >= 2 and S.shape[-1] == M and S.shape[-2] == M:
-        return "full", S
-    if S.shape[-1] == M:
-        return "diag", S
+        kind, variances = "scalar", S
+    elif S.dim() > y_dim and S.dim() >= 2 and S.shape[-1] == M and S.shape[-2] == M:
+        asym = (S - S.transpose(-1, -2)).abs().amax(dim=(-2, -1))
+        if bool((asym > 1e-8 * S.abs().amax(dim=(-2, -1))).any()):
+            raise InputValidationError("lls: the full noise covariance sigma must be symmetric.")
+        kind, variances = "full", torch.diagonal(S, dim1=-2, dim2=-1)
+    elif S.shape[-1] == M:
+        kind, variances = "diag", S
+    else:
+        kind = None
+    if kind is not None:
+        if bool((variances <= 0).any()):
+            idx = _first_index(variances <= 0)
+            raise InputValidationError(
+                f"lls: sigma is the noise variance or covariance (sigma^2, not a standard "
+                f"deviation), whose variances must be > 0; got {variances[idx].item()} at index "
+                f"{idx}. Give variances > 0, or sigma=None to estimate the noise variance from "
+                "the residuals."
+            )
+        return kind, S
     raise InputValidationError(
         f"lls: sigma (noise covariance) must be a scalar variance, (*batch, M) variances or a "
         f"(*batch, M, M) covariance; got {tuple(S.shape)} with M = {M}."
@@ -219,7 +264,9 @@ def lls(
             (Cholesky of the equilibrated normal matrix ``D A'WA D`` with
             ``D = diag(A'WA)^{-1/2}``; faster and lighter for very tall batches).
         cond_warn: warn with :class:`PoorExcitationWarning` when the column-scaled
-            condition number of ``A'WA`` exceeds this (see :data:`DEFAULT_COND_WARN`).
+            condition number of ``A'WA`` exceeds this (see :data:`DEFAULT_COND_WARN`), or
+            ``ROUNDING_WARN / eps`` of the dtype if smaller (see :data:`ROUNDING_WARN`); the
+            message gives the number of correct digits left, ``-log10(eps * cond)``.
 
     Returns:
         :class:`LLSResult`.
@@ -240,6 +287,10 @@ def lls(
             f"lls: A must be (*batch, M, p) and y (*batch, M); got {tuple(A.shape)} and "
             f"{tuple(y.shape)}."
         )
+    _check_real("lls: A", A)
+    _check_real("lls: y", y)
+    if W is not None:
+        _check_real("lls: W", W)
     if not A.is_floating_point():
         A = A.to(torch.get_default_dtype())
     y = y.to(dtype=A.dtype, device=A.device)
@@ -288,14 +339,15 @@ def lls(
         )
         normal_inverse = Rinv @ Rinv.transpose(-1, -2)
         cond = (s[..., 0] / s[..., -1]) ** 2
-        _warn_poor_excitation(scaled_cond, cond_warn)
     else:
         G = Aw.transpose(-1, -2) @ Aw
         rhs = (Aw.transpose(-1, -2) @ yw.unsqueeze(-1)).squeeze(-1)
-        theta, inverse, screened, scaled_cond = _solve_normal_equations(G, rhs, M, cond_warn)
+        theta, inverse, screened, scaled_cond = _solve_normal_equations(
+            G, rhs, M, _warn_threshold(cond_warn, A.dtype)
+        )
         normal_inverse = inverse.inverse()
         cond = functools.partial(_condition_estimate, G, normal_inverse)
-        _warn_poor_excitation(screened, cond_warn)
+        _warn_poor_excitation(screened, cond_warn, eps * screened, A.dtype)
 
     residuals = y - (A @ theta.unsqueeze(-1)).squeeze(-1)
     if wkind == "none":
@@ -305,6 +357,11 @@ def lls(
     else:
         rw = (Lt @ residuals.unsqueeze(-1)).squeeze(-1)
     sigma2 = (rw * rw).sum(-1) / (M - p)
+    if method == "qr":
+        kappa = scaled_cond.sqrt()
+        tan_phi = rw.norm(dim=-1) / (yw - rw).norm(dim=-1).clamp_min(torch.finfo(A.dtype).tiny)
+        rounding = eps * (kappa + scaled_cond * tan_phi)
+        _warn_poor_excitation(scaled_cond, cond_warn, rounding, A.dtype)
 
     if skind == "none":
         covariance = sigma2[..., None, None] * normal_inverse
@@ -444,15 +501,45 @@ def _condition_estimate(S: torch.Tensor, S_inv: torch.Tensor, iters: int = 15) -
     return top(S) * top(S_inv)
 
 
-def _warn_poor_excitation(scaled_cond: torch.Tensor, cond_warn: float) -> None:
-    if bool((scaled_cond > cond_warn).any()):
-        idx = _first_index(scaled_cond > cond_warn)
+def _warn_threshold(cond_warn: float, dtype: torch.dtype) -> float:
+    """Condition number above which :func:`_warn_poor_excitation` warns: ``cond_warn``, or
+    fewer than ``-log10(ROUNDING_WARN)`` correct digits in ``dtype``, whichever comes first."""
+    return min(cond_warn, ROUNDING_WARN / torch.finfo(dtype).eps)
+
+
+def _warn_poor_excitation(
+    scaled_cond: torch.Tensor, cond_warn: float, rounding: torch.Tensor, dtype
+) -> None:
+    """Warn where the scaled condition number of ``A'WA`` exceeds ``cond_warn`` or the bound
+    ``rounding`` (``(*batch,)``) on the relative rounding error of the estimate exceeds
+    :data:`ROUNDING_WARN`; the message gives the correct digits the bound guarantees."""
+    bad = (scaled_cond > cond_warn) | (rounding > ROUNDING_WARN)
+    if bool(bad.any()):
+        idx = _first_index(bad)
+        worst = float(scaled_cond[bad].max())
+        bound = float(rounding[bad].max())
+        eps = torch.finfo(dtype).eps
+        name = str(dtype).replace("torch.", "")
+        if bound >= 1:
+            precision = (
+                f"in {name} (eps {eps:.2g}) the rounding-error bound {bound:.2g} leaves NO "
+                "guaranteed correct digit in the estimate. Compute in float64 (A.double(), "
+                "y.double())"
+            )
+        else:
+            precision = (
+                f"in {name} (eps {eps:.2g}) at least about {-math.log10(bound):.0f} correct "
+                f"digits remain (relative rounding-error bound {bound:.2g})"
+            )
+            if dtype != torch.float64 and bound > ROUNDING_WARN:
+                precision += "; compute in float64 for more"
         warnings.warn(
             f"lls: A'WA is ill-conditioned (condition number after column scaling "
-            f"{float(scaled_cond.max()):.3g} > {cond_warn:.3g}, first at batch index {idx}): "
-            "the regressors are nearly collinear, i.e. the input does not excite all "
-            "parameters (e.g. a sinusoid for a long FIR model). Use a richer input "
-            "(white noise, PRBS) or fewer parameters.",
+            f"{worst:.3g}, first at batch index {idx}; warning threshold "
+            f"{_warn_threshold(cond_warn, dtype):.3g}): {precision}. "
+            "The regressors are nearly collinear, i.e. the input does not excite all "
+            "parameters (e.g. a sinusoid for a long FIR model), so the estimate is also very "
+            "sensitive to noise. Use a richer input (white noise, PRBS) or fewer parameters.",
             PoorExcitationWarning,
             stacklevel=3,
         )
@@ -581,6 +668,8 @@ def fir_lls(
     """
     if not isinstance(u, torch.Tensor) or not isinstance(y, torch.Tensor):
         raise InputValidationError("fir_lls: u and y must be torch tensors.")
+    _check_real("fir_lls: u", u)
+    _check_real("fir_lls: y", y)
     if not u.is_floating_point():
         u = u.to(torch.get_default_dtype())
     y = y.to(dtype=u.dtype, device=u.device)
@@ -609,8 +698,10 @@ def fir_lls(
     E = last.unfold(-1, nb, 1)[..., : nb - 1, :].flip(-1)  # E[k, i] = last[k + nb-1 - i]
     G = (R - E.transpose(-1, -2) @ E).expand(*batch, nb, nb)
     c = c.expand(*batch, nb)
-    theta, inverse, screened, scaled_cond = _solve_normal_equations(G, c, N, cond_warn)
-    _warn_poor_excitation(screened, cond_warn)
+    theta, inverse, screened, scaled_cond = _solve_normal_equations(
+        G, c, N, _warn_threshold(cond_warn, u.dtype)
+    )
+    _warn_poor_excitation(screened, cond_warn, torch.finfo(u.dtype).eps * screened, u.dtype)
     Gtheta = (G @ theta.unsqueeze(-1)).squeeze(-1)
     rss = yy - 2 * (theta * c).sum(-1) + (theta * Gtheta).sum(-1)
     inexact = (rss < 1e-3 * yy).reshape(-1)

@@ -533,6 +533,32 @@ class PolynomialModel(nn.Module):
 
 _COMMON = dict(n_inputs=1, batch_shape=(), dtype=torch.float64, device=None, Ts=1.0)
 
+_ORDER_MEANING = {
+    "na": "the number of coefficients a1..a_na of A",
+    "nb": "the number of coefficients b1..b_nb of B (per input)",
+    "nc": "the number of coefficients c1..c_nc of C",
+    "nd": "the number of coefficients d1..d_nd of D",
+    "nf": "the number of coefficients f1..f_nf of F (per input)",
+}
+
+
+def _require_polynomials(model: PolynomialModel, names: str) -> None:
+    """Raise unless every order in ``names`` (e.g. ``"nb nf"``) is >= 1 (for every input):
+    a named structure needs each of its polynomials (a zero order drops one, e.g. OE with
+    nf = 0 is FIR, nb = 0 leaves an input unused)."""
+    structure = type(model).__name__
+    for name in names.split():
+        value = getattr(model, name)
+        if min(value if isinstance(value, list) else [value]) < 1:
+            orders = ", ".join(names.split())
+            raise InputValidationError(
+                f"{structure}: {name} = {value} but {structure} needs {name} >= 1 "
+                f"({name} is {_ORDER_MEANING[name]}). Orders count coefficients as in MATLAB "
+                f"({orders}: numbers of coefficients, nk: input delay in samples); "
+                f"{structure} needs each of {orders} >= 1. For a structure without that "
+                "polynomial use FIR, ARX, OE, ARMAX or the general PolynomialModel."
+            )
+
 
 class FIR(PolynomialModel):
     """Finite impulse response ``y_t = B(q) u(t - nk) + e_t`` (eq. 4.96 / 4.114).
@@ -544,6 +570,7 @@ class FIR(PolynomialModel):
 
     def __init__(self, nb, nk=1, **kwargs):
         super().__init__(nb=nb, nk=nk, **{**_COMMON, **kwargs})
+        _require_polynomials(self, "nb")
 
 
 class ARX(PolynomialModel):
@@ -556,6 +583,7 @@ class ARX(PolynomialModel):
 
     def __init__(self, na, nb, nk=1, **kwargs):
         super().__init__(na=na, nb=nb, nk=nk, **{**_COMMON, **kwargs})
+        _require_polynomials(self, "na nb")
 
 
 class OE(PolynomialModel):
@@ -566,6 +594,7 @@ class OE(PolynomialModel):
 
     def __init__(self, nb, nf, nk=1, **kwargs):
         super().__init__(nb=nb, nf=nf, nk=nk, **{**_COMMON, **kwargs})
+        _require_polynomials(self, "nb nf")
 
 
 class ARMAX(PolynomialModel):
@@ -573,6 +602,7 @@ class ARMAX(PolynomialModel):
 
     def __init__(self, na, nb, nc, nk=1, **kwargs):
         super().__init__(na=na, nb=nb, nc=nc, nk=nk, **{**_COMMON, **kwargs})
+        _require_polynomials(self, "na nb nc")
 
 
 class BJ(PolynomialModel):
@@ -583,3 +613,4 @@ class BJ(PolynomialModel):
 
     def __init__(self, nb, nc, nd, nf, nk=1, **kwargs):
         super().__init__(nb=nb, nc=nc, nd=nd, nf=nf, nk=nk, **{**_COMMON, **kwargs})
+        _require_polynomials(self, "nb nc nd nf")

@@ -364,3 +364,114 @@ def test_uniform_noise_polytope_eq_4_58():
     y_bad = torch.stack([y, y + 10 * (torch.arange(M) % 2) - 5])
     s2 = uniform_noise_mle_set(A, y_bad, a)
     assert s2.feasible.tolist() == [True, False]
+
+
+def _unstable_batch():
+    """Three OE data sets; the middle one from an unstable plant (F roots of modulus sqrt(1.2))."""
+    th = torch.tensor([[0.5, 0.3, -1.2, 0.5], [0.5, 0.3, -2.1, 1.2], [0.5, 0.3, -1.2, 0.5]])
+    u = input_signal("white", 200, (3,), generator=gen(40))
+    model = OE(2, 2, 1, batch_shape=(3,))
+    return simulate_data(model, u, theta=th.double(), noise_std=0.1, generator=gen(41))
+
+
+def test_oe_on_unstable_plant_is_reported_not_converged():
+    """OE cannot simulate an unstable plant: the estimate stops on the stability boundary.
+
+    It used to report converged=True (fit ~ -1 %) silently. The criterion is not stationary
+    there: a Gauss-Newton step would move the estimate by several standard errors.
+    """
+    import warnings
+
+    from integrators.errors import ConvergenceWarning
+
+    data = _unstable_batch()
+    with pytest.warns(
+        ConvergenceWarning, match=r"batch index \(1,\).*leave the stable models"
+    ) as rec:
+        res = fit(OE(2, 2, 1), data)
+    assert "1 of 3 data sets did not converge" in str(rec[0].message)
+    assert res.converged.tolist() == [True, False, True]
+    assert res.info["step_in_standard_errors"][1] > 1
+    assert (res.info["step_in_standard_errors"][[0, 2]] < 1e-3).all()
+    assert len(res.messages) == 1 and res.messages[0].startswith("batch index (1,)")
+    assert res.stable.tolist() == [True, True, True]  # the steps keep it stable
+    assert bool(res.info["stationary_point_unstable"][1])
+    with warnings.catch_warnings():  # the stable data sets alone: no warning
+        warnings.simplefilter("error")
+        fit(OE(2, 2, 1), data[[0, 2]])
+
+
+def test_arx_on_unstable_plant_warns_unstable_model():
+    """Least squares identifies the unstable plant (consistent for ARX data): the estimate is
+    flagged unstable (its simulation diverges) with the true pole modulus 1.5 (closed form
+    roots of z^2 - 2.3 z + 1.2 = (z - 1.5)(z - 0.8))."""
+    from integrators.errors import UnstableModelWarning
+
+    th = torch.tensor([[-1.2, 0.5, 0.5, 0.3], [-2.3, 1.2, 0.5, 0.3]], dtype=DT)
+    u = input_signal("white", 60, (2,), generator=gen(42))
+    data = simulate_data(
+        ARX(2, 2, 1, batch_shape=(2,)),
+        u,
+        theta=th,
+        noise_std=0.01,
+        noise="model",
+        generator=gen(43),
+    )
+    with pytest.warns(UnstableModelWarning, match=r"batch index \(1,\).*unstable"):
+        res = fit(ARX(2, 2, 1), data)
+    assert res.stable.tolist() == [True, False] and res.converged.all()
+    assert abs(float(res.info["max_pole_modulus"][1]) - 1.5) < 0.05
+
+
+def test_iteration_limit_is_reported():
+    from integrators.errors import ConvergenceWarning
+
+    model, th = TRUE["BJ"]
+    u = input_signal("white", 300, generator=gen(44))
+    data = simulate_data(
+        model, u, theta=torch.tensor(th), noise_std=0.3, noise="model", generator=gen(45)
+    )
+    with pytest.warns(ConvergenceWarning, match=r"iteration limit max_iter = 1"):
+        res = fit(BJ(2, 1, 1, 2, 1), data, max_iter=1)
+    assert not bool(res.converged)
+
+
+@pytest.mark.parametrize("alpha", [0.0, -1.0, float("inf"), float("nan")])
+def test_fair_loss_rejects_non_positive_or_non_finite_alpha(alpha):
+    """alpha <= 0 makes the fair loss non-convex (standard errors 3-30x too small) and
+    alpha = inf made the linear algebra print oneMKL errors: both are rejected."""
+    model, th = TRUE["ARX"]
+    u = input_signal("white", 100, generator=gen(46))
+    data = simulate_data(model, u, theta=torch.tensor(th), noise_std=0.1, generator=gen(47))
+    with pytest.raises(
+        InputValidationError, match=r"alpha of the fair loss must be finite and > 0"
+    ):
+        fit(ARX(2, 2, 1), data, loss="fair", alpha=alpha)
+
+
+def test_output_error_without_denominator_has_finite_standard_errors():
+    """A general model with B only (nf = 0) fitted by Gauss-Newton on the output error: its
+    Jacobian columns are the delayed inputs (they were zero, giving inf standard errors).
+    Truth: the FIR least-squares estimate and standard errors (same model; the Gauss-Newton
+    criterion has the nb extra start-up rows)."""
+    from sysid.models import PolynomialModel
+
+    model, th = TRUE["FIR"]
+    u = input_signal("white", 400, generator=gen(48))
+    data = simulate_data(model, u, theta=torch.tensor(th), noise_std=0.1, generator=gen(49))
+    ref = fit(FIR(4, 1), data)
+    res = fit(PolynomialModel(nb=4, nk=1), data, method="gauss_newton")
+    torch.testing.assert_close(
+        res.theta, ref.theta, rtol=0, atol=0.2 * ref.standard_errors.min().item()
+    )
+    torch.testing.assert_close(res.standard_errors, ref.standard_errors, rtol=0.05, atol=0)
+
+
+def test_init_and_weights_with_a_foreign_batch_shape_are_named():
+    model, th = TRUE["OE"]
+    u = input_signal("white", 100, (3,), generator=gen(50))
+    data = simulate_data(model, u, theta=torch.tensor(th), noise_std=0.1, generator=gen(51))
+    with pytest.raises(InputValidationError, match=r"init has shape \(2, 4\)"):
+        fit(OE(2, 2, 1), data, init=torch.zeros(2, 4))
+    with pytest.raises(InputValidationError, match=r"weights has shape \(5, 100\)"):
+        fit(ARX(2, 2, 1), data, weights=torch.ones(5, 100))

@@ -83,3 +83,29 @@ def test_bode_and_residual_tests(tmp_path):
     assert not oe_bj["white"] and oe_bj["max_rel_error_G"] < 0.2
     assert all(r["stable"] for r in rows)
     assert (tmp_path / "bode.png").exists() and (tmp_path / "residuals.png").exists()
+
+
+def test_consistency_recovers_from_a_corrupt_partial_file(tmp_path, capsys):
+    """A half-written last line used to crash every rerun (TypeError) and a partly written N
+    counted as done. Truncate the file mid-line, and separately drop rows of one N: the
+    rerun drops what is incomplete, says so, recomputes it and gives the clean run's numbers.
+    """
+    clean_dir, dirty_dir = tmp_path / "clean", tmp_path / "dirty"
+    sysid_consistency.main(["--quick", "--out", str(clean_dir)])
+    text = (clean_dir / "consistency.csv").read_text()
+    clean = (clean_dir / "consistency_table.csv").read_text()
+    lines = text.splitlines(keepends=True)
+    assert len(lines) == 9 and not list(dirty_dir.glob("*"))
+    dirty_dir.mkdir()
+    for corrupt in (
+        text[: len(text) - len(lines[-1]) // 2],  # last row cut mid-line
+        "".join(lines[:2] + lines[3:6] + lines[7:]),  # one row of each N missing
+        "".join(lines[:-1]) + lines[-1][:-1] + ",1.0,2.0\n",  # a row with extra fields
+    ):
+        (dirty_dir / "consistency.csv").write_text(corrupt)
+        capsys.readouterr()
+        sysid_consistency.main(["--quick", "--out", str(dirty_dir)])
+        assert "recomputing" in capsys.readouterr().out
+        assert (dirty_dir / "consistency_table.csv").read_text() == clean
+        assert (dirty_dir / "consistency.csv").read_text().count("\n") == 9
+    assert not list(dirty_dir.glob(".*.tmp"))  # no temporary file left behind

@@ -346,3 +346,64 @@ def test_fir_lls_singular_member_and_non_finite_samples_are_named():
             InputValidationError, match=rf"{name} contains .* {re.escape(str(index))}"
         ):
             fir_lls(*args, 4, 2)
+
+
+@pytest.mark.parametrize(
+    "sigma",
+    [-1.0, 0.0, float("inf"), float("nan"), torch.full((60,), -0.5), torch.zeros(60)],
+)
+def test_non_positive_or_non_finite_noise_variance_is_rejected(sigma):
+    """sigma is a variance: a value <= 0 gave zero (or NaN) standard errors before."""
+    g = torch.Generator().manual_seed(3)
+    A, y = (
+        torch.randn(60, 3, generator=g, dtype=torch.float64),
+        torch.randn(60, dtype=torch.float64),
+    )
+    with pytest.raises(InputValidationError, match="sigma"):
+        lls(A, y, sigma=sigma)
+
+
+def test_complex_regressor_or_output_is_rejected():
+    g = torch.Generator().manual_seed(4)
+    A, y = (
+        torch.randn(40, 2, generator=g, dtype=torch.float64),
+        torch.randn(40, dtype=torch.float64),
+    )
+    for a, b, name in [(A.to(torch.complex128), y, "A"), (A, y.to(torch.complex128), "y")]:
+        with pytest.raises(InputValidationError, match=f"{name} is complex"):
+            lls(a, b)
+    from sysid.lls import fir_lls
+
+    with pytest.raises(InputValidationError, match="u is complex"):
+        fir_lls(A[:, 0].to(torch.complex128), y, 3)
+
+
+def test_poor_excitation_warning_accounts_for_the_dtype():
+    """Same nearly collinear regressor in float32 and float64 (scaled cond(A'A) ~ 3.5e6).
+
+    With the statistical threshold raised out of the way (cond_warn=1e12) float64 keeps
+    >= 9 digits and is silent, while float32 warns and names the precision. The rounding
+    bound the message quotes must bound the actual float32 error (truth: the float64
+    solution), and the float64 message must report many more digits than the float32 one.
+    """
+    g = torch.Generator().manual_seed(0)
+    M = 200
+    x = torch.randn(M, generator=g, dtype=torch.float64)
+    near = x + 1e-3 * torch.randn(M, generator=g, dtype=torch.float64)
+    A = torch.stack([x, near, torch.randn(M, generator=g, dtype=torch.float64)], -1)
+    noise = 0.3 * torch.randn(M, generator=g, dtype=torch.float64)
+    y = A @ torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64) + noise
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ref = lls(A, y, cond_warn=1e12)  # float64: no warning
+    with pytest.warns(PoorExcitationWarning, match="float32") as record:
+        r32 = lls(A.float(), y.float(), cond_warn=1e12)
+    message = str(record[0].message)
+    bound = float(re.search(r"rounding-error bound ([0-9.e+-]+)\)", message).group(1))
+    error = ((r32.theta.double() - ref.theta).norm() / ref.theta.norm()).item()
+    assert 1e-2 < bound < 1 and error <= bound
+    with pytest.warns(PoorExcitationWarning) as rec64:
+        lls(A, y)  # default threshold 1e4: warns about noise sensitivity, not precision
+    digits64 = int(re.search(r"about (\d+) correct digits", str(rec64[0].message)).group(1))
+    digits32 = int(re.search(r"about (\d+) correct digits", message).group(1))
+    assert digits64 >= 9 and digits32 <= 1

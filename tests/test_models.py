@@ -310,3 +310,23 @@ def test_input_noise_example_after_eq_4_134():
     lhs = scipy.signal.lfilter(B, [1.0], yhat)
     rhs = scipy.signal.lfilter(B, [1.0], u[:, 0].numpy()) + scipy.signal.lfilter(B - A, [1.0], y)
     np.testing.assert_allclose(lhs, rhs, atol=1e-11)
+
+
+@pytest.mark.parametrize(
+    "build, order",
+    [
+        (lambda: FIR(0), "nb"),
+        (lambda: ARX(0, 2), "na"),
+        (lambda: ARX(2, 0), "nb"),
+        (lambda: OE(2, 0), "nf"),
+        (lambda: OE(0, 2), "nb"),
+        (lambda: OE([2, 0], [1, 1], n_inputs=2), "nb"),
+        (lambda: ARMAX(2, 2, 0), "nc"),
+        (lambda: BJ(2, 1, 1, 0), "nf"),
+    ],
+)
+def test_structures_reject_a_missing_polynomial(build, order):
+    """A zero order drops a polynomial the structure is named for (OE(2, 0) gave infinite
+    standard errors, FIR(0) a bare IndexError): raise, saying what the orders mean."""
+    with pytest.raises(InputValidationError, match=rf"{order} >= 1.*number of coefficients"):
+        build()
