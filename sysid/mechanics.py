@@ -39,13 +39,19 @@ arbitrary leading batch dimensions, and samples must not interact.
 
 import contextlib
 import threading
+import warnings
 from collections.abc import Callable
 
 import numpy as np
 import torch
 from torch import nn
 
-from integrators.errors import ConvergenceError, InputValidationError, SingularMatrixError
+from integrators.errors import (
+    ConvergenceError,
+    InputValidationError,
+    RKIdentWarning,
+    SingularMatrixError,
+)
 
 
 def spring_potential(p_a, p_b, stiffness, rest_length=0.0):
@@ -173,17 +179,90 @@ def _nested(method, self, args, kwargs):
         _STATE.depth -= 1
 
 
-def _solve(matrix: torch.Tensor, rhs: torch.Tensor, what: str) -> torch.Tensor:
-    """Batched solve of matrix @ sol = rhs (rhs (..., n)); SingularMatrixError names a sample."""
-    sol, info = torch.linalg.solve_ex(matrix, rhs.unsqueeze(-1))
-    if bool((info != 0).any()) or not bool(torch.isfinite(sol).all()):
-        bad = torch.nonzero((info != 0) | ~torch.isfinite(sol).all(-1).all(-1))
-        idx = bad[0].tolist() if bad.numel() else "?"
-        raise SingularMatrixError(
-            f"{what} is singular at batch index {idx}; check the configuration (e.g. a "
-            "degenerate constraint gradient or a zero mass) or project the initial conditions"
+def _grad(output, inputs, grad_output=None, create_graph=False):
+    """``torch.autograd.grad(output, inputs, grad_output)`` with zeros for every input that
+    ``output`` does not depend on (positions affine in q, constraints linear in q, a kinetic
+    energy without q, constant force points: the derivative is then identically zero, and
+    autograd has no graph to differentiate). ``inputs``: a tensor or a tuple of tensors."""
+    single = isinstance(inputs, torch.Tensor)
+    inputs = (inputs,) if single else tuple(inputs)
+    if output.requires_grad:
+        grads = torch.autograd.grad(
+            output,
+            inputs,
+            grad_output,
+            create_graph=create_graph,
+            retain_graph=True,
+            allow_unused=True,
         )
-    return sol.squeeze(-1)
+    else:
+        grads = (None,) * len(inputs)
+    grads = tuple(
+        torch.zeros_like(x) if g is None else g for g, x in zip(grads, inputs, strict=True)
+    )
+    return grads[0] if single else grads
+
+
+def _solve(matrix: torch.Tensor, rhs: torch.Tensor, what: str, strict: bool = False):
+    """Batched solve of matrix @ sol = rhs: matrix (*batch, n, n), rhs (*batch, n) (broadcast).
+
+    A batch member whose (finite) matrix is exactly singular gets a NaN solution and an
+    :class:`RKIdentWarning` names it (``strict``: a :class:`SingularMatrixError` instead), so
+    one bad member of a batched simulation does not stop the others: the integrators report
+    it as NON_FINITE. A member with a non-finite matrix (a state that already diverged) gets
+    NaN without a warning. Singular members are solved with the identity instead, so that
+    their (masked) gradients stay zero rather than NaN.
+    """
+    sol, info = torch.linalg.solve_ex(matrix, rhs.unsqueeze(-1))
+    sol = sol.squeeze(-1)
+    failed = info != 0
+    if not bool(failed.any()):  # one host synchronisation per solve
+        return sol
+    singular = failed & torch.isfinite(matrix).all(-1).all(-1)
+    if bool(singular.any()):
+        idx = [i[0] if len(i) == 1 else tuple(i) for i in torch.nonzero(singular)[:5].tolist()]
+        message = (
+            f"{what} is singular at batch index {idx}"
+            f"{' (and more)' if int(singular.sum()) > 5 else ''}; "
+        )
+        if strict:
+            raise SingularMatrixError(
+                message + "check the configuration (e.g. a degenerate constraint gradient or a "
+                "zero mass) or project the initial conditions"
+            )
+        warnings.warn(
+            message + "its accelerations are NaN (an integrator reports it as NON_FINITE). "
+            "Check the configuration there (a coordinate singularity, a zero mass or lever "
+            "arm, dependent constraint gradients).",
+            RKIdentWarning,
+            stacklevel=2,
+        )
+    eye = torch.eye(matrix.shape[-1], dtype=matrix.dtype, device=matrix.device)
+    safe = torch.where(failed[..., None, None], eye, matrix)
+    sol = torch.linalg.solve(safe, rhs.unsqueeze(-1)).squeeze(-1)
+    return torch.where(failed.unsqueeze(-1), torch.full_like(sol, float("nan")), sol)
+
+
+def _check_masses(masses, name: str, n: int | None = None) -> None:
+    """Raise InputValidationError unless masses given as numbers are finite and > 0 (a zero
+    or negative mass makes W(q) singular or indefinite), and, for ``n``, of shape (n,).
+    Callables (masses that are parameters changing during a fit) are not checked here."""
+    if masses is None or callable(masses):
+        return
+    values = torch.as_tensor(masses.detach() if isinstance(masses, torch.Tensor) else masses)
+    if n is not None and values.shape not in ((), (n,)):
+        raise InputValidationError(
+            f"{name} must be a scalar or have shape ({n},) (one per coordinate), got "
+            f"{tuple(values.shape)}"
+        )
+    bad = ~(torch.isfinite(values) & (values > 0))
+    if bool(bad.any()):
+        idx = torch.nonzero(bad.reshape(-1))[:5].reshape(-1).tolist()
+        raise InputValidationError(
+            f"{name} must be finite and > 0, got {values.reshape(-1)[idx].tolist()} at "
+            f"index {idx}; a zero or negative mass makes the mass matrix W(q) singular or "
+            "indefinite"
+        )
 
 
 class LagrangianSystem(nn.Module):
@@ -192,8 +271,9 @@ class LagrangianSystem(nn.Module):
     Give the kinetic energy in one of three ways (subclasses may instead override the hook
     methods of the same names):
 
-    - ``diagonal_mass``: tensor (nq,) or callable () -> (nq,): T = 1/2 sum_k w_k qdot_k^2 with a
-      constant diagonal W (Cartesian coordinates, eq. 2.85, 2.92); fastest path;
+    - ``diagonal_mass``: tensor (nq,) (or a scalar) or callable () -> (nq,):
+      T = 1/2 sum_k w_k qdot_k^2 with a constant diagonal W (Cartesian coordinates, eq. 2.85,
+      2.92); fastest path;
     - ``point_masses`` (n_p,) and ``positions(q) -> (*batch, n_p, D)``: T = 1/2 sum m_i |pdot_i|^2
       (eq. 2.3), pdot_i = J_i qdot by autograd (eq. 2.4);
     - ``kinetic_energy(q, qdot) -> (*batch,)``: any T, quadratic in qdot (eq. 2.7).
@@ -208,6 +288,19 @@ class LagrangianSystem(nn.Module):
 
     ``forward(t, x, u=None)`` is the explicit first-order ODE xdot = [qdot, qddot] (the KKT
     index-1 form for a constrained system), usable directly as ``f`` in ``odeint``.
+
+    Masses given as numbers or tensors must be finite and > 0 (InputValidationError at
+    construction). Masses from callables or overridden hooks (parameters that change during a
+    fit) are not checked per call: where W(q) or the KKT matrix is singular for a batch member,
+    its accelerations are NaN and an :class:`RKIdentWarning` names it (a zero entry of a
+    diagonal W divides by zero instead, without a warning); the integrators report such members
+    as NON_FINITE. Positions, constraints, energies and force points may be affine in q, or
+    independent of some coordinates: the missing derivatives are zero.
+
+    Gradients reach the state, the module's parameters (an ``nn.Module`` passed as a callable
+    is registered as a submodule) and mass / gravity tensors returned by the hooks; tensors
+    captured in closures of the other callables are not seen, so results are detached from
+    them unless one of the former requires grad: register such tensors on the module.
     """
 
     def __init__(
@@ -243,6 +336,12 @@ class LagrangianSystem(nn.Module):
         self.baumgarte = baumgarte
         if (force_points is None) != (point_forces is None):
             raise InputValidationError("give both force_points and point_forces, or neither")
+        if self.nq < 1 or self.nu < 0:
+            raise InputValidationError(f"need nq >= 1 and nu >= 0, got nq={nq}, nu={nu}")
+        _check_masses(diagonal_mass, "diagonal_mass", self.nq)
+        _check_masses(point_masses, "point_masses")
+        if point_masses is not None and positions is None and kinetic_energy is None:
+            raise InputValidationError("point_masses need positions(q) -> (*batch, n_p, D)")
 
     # ------------------------------------------------------------------ hooks (overridable)
     def diagonal_mass(self):
@@ -284,13 +383,63 @@ class LagrangianSystem(nn.Module):
         """Holonomic constraints c(q), (*batch, nc), or None."""
         return None if self._constraints is None else self._constraints(q)
 
+    # ------------------------------------------------------------------ argument checks
+    def _split_state(self, x, where: str):
+        """(q, qdot) of a state x = [q, qdot] (*batch, 2 nq); InputValidationError otherwise."""
+        n = 2 * self.nq
+        if not isinstance(x, torch.Tensor) or x.dim() < 1 or x.shape[-1] != n:
+            got = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
+            raise InputValidationError(
+                f"{type(self).__name__}.{where}: the state x = [q, qdot] must have shape "
+                f"(*batch, 2 nq) = (*batch, {n}), got {got}"
+            )
+        return x[..., : self.nq], x[..., self.nq :]
+
+    def _check_args(self, where: str, u=None, **coordinates) -> None:
+        """InputValidationError unless every given coordinate tensor is (*batch, nq) and the
+        input u is (*batch, nu) (u is checked only when the system declares nu > 0)."""
+        for name, value in coordinates.items():
+            if value is not None and (value.dim() < 1 or value.shape[-1] != self.nq):
+                raise InputValidationError(
+                    f"{type(self).__name__}.{where}: {name} must have shape (*batch, nq) = "
+                    f"(*batch, {self.nq}), got {tuple(value.shape)}"
+                )
+        if self.nu > 0 and isinstance(u, torch.Tensor) and (u.dim() < 1 or u.shape[-1] != self.nu):
+            raise InputValidationError(
+                f"{type(self).__name__}.{where}: the input u must have shape (*batch, nu) = "
+                f"(*batch, {self.nu}), got {tuple(u.shape)}"
+            )
+
     # ------------------------------------------------------------------ energies
     def _cast(self, value, like):
         return torch.as_tensor(value, dtype=like.dtype, device=like.device)
 
+    def _masses_of(self, points, q):
+        """The point masses (n_p,) in q's dtype, checked against points (*batch, n_p, D)."""
+        masses = self._cast(self.point_masses(), q)
+        if masses.shape != points.shape[-2:-1]:
+            raise InputValidationError(
+                f"{type(self).__name__}: point_masses has shape {tuple(masses.shape)} but "
+                f"positions(q) gives {points.shape[-2]} points (shape (*batch, n_p, D) = "
+                f"{tuple(points.shape)}); give one mass per point"
+            )
+        return masses
+
     @property
     def is_constrained(self) -> bool:
-        return self.constraints(torch.zeros(1, self.nq, dtype=torch.float64)) is not None
+        """Whether the system has holonomic constraints (``constraints`` given or the hook
+        overridden and not returning None)."""
+        return self._constrained_at(None)
+
+    def _constrained_at(self, q) -> bool:
+        """:attr:`is_constrained`, evaluating an overridden hook at q (None: at q = 0 in the
+        dtype and device of the module's parameters, float64 on the CPU without any)."""
+        if type(self).constraints is LagrangianSystem.constraints:
+            return self._constraints is not None
+        if q is None:
+            like = next(self.parameters(), torch.zeros((), dtype=torch.float64))
+            q = torch.zeros(1, self.nq, dtype=like.dtype, device=like.device)
+        return self.constraints(q) is not None
 
     @_local_graph
     def kinetic_energy(self, q, qdot):
@@ -307,7 +456,7 @@ class LagrangianSystem(nn.Module):
                 "kinetic_energy"
             )
         pdot = self.point_velocities(q, qdot)
-        return 0.5 * (self._cast(masses, q) * (pdot * pdot).sum(-1)).sum(-1)
+        return 0.5 * (self._masses_of(pdot, q) * (pdot * pdot).sum(-1)).sum(-1)
 
     @_local_graph
     def point_velocities(self, q, qdot):
@@ -318,8 +467,8 @@ class LagrangianSystem(nn.Module):
             qq = self._leaf(q)
             p = self.positions(qq)
             probe = torch.zeros_like(p, requires_grad=True)
-            (jt_probe,) = torch.autograd.grad(p, qq, probe, create_graph=True)
-            (pdot,) = torch.autograd.grad(jt_probe, probe, qdot, create_graph=True)
+            jt_probe = _grad(p, qq, probe, create_graph=True)
+            pdot = _grad(jt_probe, probe, qdot, create_graph=True)
         return pdot
 
     @_local_graph
@@ -333,12 +482,13 @@ class LagrangianSystem(nn.Module):
             if masses is None or p is None:
                 raise InputValidationError("gravity needs point_masses and positions")
             height = (p * self._cast(g, q)).sum(-1)  # g . p_i
-            v = v - (self._cast(masses, q) * height).sum(-1)
+            v = v - (self._masses_of(p, q) * height).sum(-1)
         return v
 
     @_local_graph
     def energy(self, q, qdot):
         """Total energy T + V, (*batch,); conserved by unforced, undamped systems."""
+        self._check_args("energy", q=q, qdot=qdot)
         return self.kinetic_energy(q, qdot) + self.potential_energy(q)
 
     def lagrangian(self, q, qdot):
@@ -360,7 +510,7 @@ class LagrangianSystem(nn.Module):
             with torch.enable_grad():
                 qq = self._leaf(q.expand(*batch, q.shape[-1]))
                 points = self.force_points(qq)
-                (q_force,) = torch.autograd.grad(
+                q_force = _grad(
                     points, qq, forces.expand_as(points), create_graph=create
                 )  # per-sample J^T F: the points of different samples are independent
             q_force = q_force if create else q_force.detach()
@@ -368,12 +518,18 @@ class LagrangianSystem(nn.Module):
         return total
 
     def _needs_graph(self, *tensors) -> bool:
-        """Whether results must stay differentiable (grad mode on and something requires grad)."""
+        """Whether results must stay differentiable: grad mode is on and an argument, a
+        parameter of the module or a mass / gravity tensor given by the hooks requires grad.
+        Tensors captured by other user callables are not seen: register them on the module
+        (an ``nn.Module`` callable is a submodule; or subclass with ``nn.Parameter``s)."""
         if not torch.is_grad_enabled():
             return False
-        return any(t.requires_grad for t in tensors) or any(
-            p.requires_grad for p in self.parameters()
-        )
+        if any(t.requires_grad for t in tensors):
+            return True
+        if any(p.requires_grad for p in self.parameters()):
+            return True
+        hooks = (self.diagonal_mass(), self.point_masses(), self.gravity())
+        return any(isinstance(h, torch.Tensor) and h.requires_grad for h in hooks)
 
     @staticmethod
     def _leaf(x):
@@ -392,20 +548,12 @@ class LagrangianSystem(nn.Module):
         with torch.enable_grad():
             qq, qdd = self._leaf(q), self._leaf(qdot)
             lag = self.lagrangian(qq, qdd).sum()
-            grad_l, momentum = torch.autograd.grad(lag, (qq, qdd), create_graph=True)
+            grad_l, momentum = _grad(lag, (qq, qdd), create_graph=True)
             rows, convective = [], []
             for j in range(n):
-                d_q, d_qd = torch.autograd.grad(
-                    momentum[..., j].sum(),
-                    (qq, qdd),
-                    create_graph=create,
-                    allow_unused=True,
-                    retain_graph=True,
-                )
-                rows.append(torch.zeros_like(q) if d_qd is None else d_qd)
-                convective.append(
-                    torch.zeros_like(q[..., 0]) if d_q is None else (d_q * qdot).sum(-1)
-                )
+                d_q, d_qd = _grad(momentum[..., j].sum(), (qq, qdd), create_graph=create)
+                rows.append(d_qd)
+                convective.append((d_q * qdot).sum(-1))
         mass, convective = torch.stack(rows, -2), torch.stack(convective, -1)
         if not create:
             return grad_l.detach(), mass.detach(), convective.detach()
@@ -431,23 +579,17 @@ class LagrangianSystem(nn.Module):
             p = self.positions(qq)
             flat = p.reshape(*p.shape[:-2], -1)
             probe = torch.zeros_like(flat, requires_grad=True)
-            (jt_probe,) = torch.autograd.grad(flat, qq, probe, create_graph=True)
+            jt_probe = _grad(flat, qq, probe, create_graph=True)
             eye = torch.eye(n, dtype=q.dtype, device=q.device)
             columns = [
-                torch.autograd.grad(
-                    jt_probe, probe, eye[j].expand_as(q), create_graph=create, retain_graph=True
-                )[0]
-                for j in range(n)
+                _grad(jt_probe, probe, eye[j].expand_as(q), create_graph=create) for j in range(n)
             ]
-            (pdot,) = torch.autograd.grad(jt_probe, probe, qdot, create_graph=True)
+            pdot = _grad(jt_probe, probe, qdot, create_graph=True)
             probe2 = torch.zeros_like(pdot, requires_grad=True)
-            (jt2,) = torch.autograd.grad(pdot, qq, probe2, create_graph=True, allow_unused=True)
-            if jt2 is None:
-                accel = torch.zeros_like(pdot)
-            else:
-                (accel,) = torch.autograd.grad(jt2, probe2, qdot, create_graph=create)
+            jt2 = _grad(pdot, qq, probe2, create_graph=True)
+            accel = _grad(jt2, probe2, qdot, create_graph=create)
         jac = torch.stack(columns, -1)  # (*batch, n_p * D, nq)
-        masses = self._cast(self.point_masses(), q)
+        masses = self._masses_of(p, q)
         dim = p.shape[-1]
         weights = masses.repeat_interleave(dim)  # per coordinate of flat
         mass = jac.transpose(-1, -2) @ (weights.unsqueeze(-1) * jac)
@@ -462,14 +604,13 @@ class LagrangianSystem(nn.Module):
         with torch.enable_grad():
             qq = self._leaf(q)
             v = self.potential_energy(qq)
-            if v.grad_fn is None:
-                return torch.zeros_like(q)
-            (g,) = torch.autograd.grad(v, qq, torch.ones_like(v), create_graph=create)
+            g = _grad(v, qq, torch.ones_like(v), create_graph=create)
         return g if create else g.detach()
 
     @_local_graph
     def mass_matrix(self, q, qdot=None):
         """W(q) = d^2 T / d qdot^2 (eq. 2.61), (*batch, nq, nq)."""
+        self._check_args("mass_matrix", q=q, qdot=qdot)
         w = self.diagonal_mass()
         if w is not None:
             return torch.diag_embed(self._cast(w, q).expand(q.shape))
@@ -483,6 +624,7 @@ class LagrangianSystem(nn.Module):
         """(W, r) with W qddot = r the unconstrained Lagrange equation (eq. 2.40 with Q, 2.112):
         r = Q + grad_q L - (d(W qdot)/dq) qdot. W is (*batch, nq) (its diagonal) when the mass
         matrix is constant and diagonal, else (*batch, nq, nq)."""
+        self._check_args("lagrange_terms", u, q=q, qdot=qdot)
         force = self.generalized_forces(q, qdot, u)
         w = self.diagonal_mass()
         if w is not None:
@@ -509,19 +651,18 @@ class LagrangianSystem(nn.Module):
     def constraint_terms(self, q, qdot):
         """(c, a, cdot, curvature): c (*batch, nc), a = dc/dq (*batch, nc, nq), cdot = a qdot
         (eq. 2.165a), curvature = (d(a qdot)/dq) qdot (eq. 2.165b); 2 nc reverse passes."""
+        self._check_args("constraint_terms", q=q, qdot=qdot)
         create = self._needs_graph(q, qdot)
         with torch.enable_grad():
             qq = self._leaf(q)
             c = self.constraints(qq)
             rows, curvature = [], []
             for i in range(c.shape[-1]):
-                (a_i,) = torch.autograd.grad(c[..., i].sum(), qq, create_graph=True)
+                a_i = _grad(c[..., i].sum(), qq, create_graph=True)
                 cdot_i = (a_i * qdot).sum(-1)
-                (d_q,) = torch.autograd.grad(
-                    cdot_i.sum(), qq, create_graph=create, allow_unused=True
-                )
+                d_q = _grad(cdot_i.sum(), qq, create_graph=create)
                 rows.append(a_i)
-                curvature.append(torch.zeros_like(cdot_i) if d_q is None else (d_q * qdot).sum(-1))
+                curvature.append((d_q * qdot).sum(-1))
             a = torch.stack(rows, -2)
             curvature = torch.stack(curvature, -1)
         cdot = (a @ qdot.unsqueeze(-1)).squeeze(-1)
@@ -538,7 +679,7 @@ class LagrangianSystem(nn.Module):
     @_local_graph
     def drift(self, x):
         """Drift monitors (c(q(t)), cdot(t)) along states x (*batch, T, 2 nq) or (*batch, 2 nq)."""
-        q, qdot = x[..., : self.nq], x[..., self.nq :]
+        q, qdot = self._split_state(x, "drift")
         c, _, cdot, _ = self.constraint_terms(q, qdot)
         return c, cdot
 
@@ -566,7 +707,11 @@ class LagrangianSystem(nn.Module):
         if mass.dim() == rhs.dim():  # diagonal W: Schur complement on the multipliers
             a_winv = a / mass.unsqueeze(-2)
             schur = a_winv @ a.transpose(-1, -2)
-            z = _solve(schur, (a_winv @ rhs.unsqueeze(-1)).squeeze(-1) - b, "a W^-1 a^T")
+            z = _solve(
+                schur,
+                (a_winv @ rhs.unsqueeze(-1)).squeeze(-1) - b,
+                "a W^-1 a^T (dependent or zero constraint gradients a(q))",
+            )
             qddot = (rhs - (a.transpose(-1, -2) @ z.unsqueeze(-1)).squeeze(-1)) / mass
             return qddot, z
         nc = a.shape[-2]
@@ -578,9 +723,16 @@ class LagrangianSystem(nn.Module):
     # ------------------------------------------------------------------ model forms
     @_local_graph
     def forward(self, t, x, u=None):
-        """Explicit first-order ODE xdot = [qdot, qddot], x = [q, qdot] (*batch, 2 nq)."""
-        q, qdot = x[..., : self.nq], x[..., self.nq :]
-        if self.is_constrained:
+        """Explicit first-order ODE xdot = [qdot, qddot], x = [q, qdot] (*batch, 2 nq).
+
+        A batch member where W(q) (or the KKT matrix) is singular gets NaN accelerations and
+        an :class:`RKIdentWarning` names it; the integrators then report it as NON_FINITE and
+        integrate the other members on. InputValidationError for a state whose last
+        dimension is not 2 nq or an input whose last dimension is not nu.
+        """
+        q, qdot = self._split_state(x, "forward")
+        self._check_args("forward", u)
+        if self._constrained_at(q):
             qddot, _ = self.kkt_solve(q, qdot, u)
         else:
             qddot = self.accelerations(q, qdot, u)
@@ -589,7 +741,8 @@ class LagrangianSystem(nn.Module):
     @_local_graph
     def implicit_residual(self, t, xdot, x, u=None):
         """F(t, xdot, x, u) of eq. (7.47): [qdot' - v; W(q) v' - r(q, v, u)] (unconstrained)."""
-        q, v = x[..., : self.nq], x[..., self.nq :]
+        q, v = self._split_state(x, "implicit_residual")
+        self._split_state(xdot, "implicit_residual")
         mass, rhs = self.lagrange_terms(q, v, u)
         vdot = xdot[..., self.nq :]
         wv = mass * vdot if mass.dim() == rhs.dim() else (mass @ vdot.unsqueeze(-1)).squeeze(-1)
@@ -597,7 +750,7 @@ class LagrangianSystem(nn.Module):
 
     @_local_graph
     def _f_with_multipliers(self, t, x, z, u=None):
-        q, v = x[..., : self.nq], x[..., self.nq :]
+        q, v = self._split_state(x, "index3_dae/index1_dae f")
         mass, rhs = self.lagrange_terms(q, v, u)
         _, a, _, _ = self.constraint_terms(q, v)
         rhs = rhs - (a.transpose(-1, -2) @ z.unsqueeze(-1)).squeeze(-1)
@@ -642,7 +795,7 @@ class LagrangianSystem(nn.Module):
             if float(c.detach().abs().max()) <= tol:
                 break
             gram = a @ a.transpose(-1, -2)
-            step = _solve(gram, c, "a a^T (constraint gradients are dependent)")
+            step = _solve(gram, c, "a a^T (constraint gradients are dependent)", strict=True)
             q = q - (a.transpose(-1, -2) @ step.unsqueeze(-1)).squeeze(-1)
         else:
             c, a, _, _ = self.constraint_terms(q, zero)
@@ -654,7 +807,7 @@ class LagrangianSystem(nn.Module):
                 )
         gram = a @ a.transpose(-1, -2)
         cdot = (a @ qdot.unsqueeze(-1)).squeeze(-1)
-        step = _solve(gram, cdot, "a a^T")
+        step = _solve(gram, cdot, "a a^T", strict=True)
         qdot = qdot - (a.transpose(-1, -2) @ step.unsqueeze(-1)).squeeze(-1)
         return q, qdot
 

@@ -183,11 +183,13 @@ def test_linearisation_of_crane_at_rest():
     torch.testing.assert_close(b[0, :, 0], torch.tensor([0, 0, 1 / M, -1 / (M * L)], dtype=DT))
 
 
-def test_singular_kkt_matrix_raises_with_sample_index():
+def test_projection_with_singular_constraint_gradients_raises_with_sample_index():
+    """kkt_solve gives NaN for such a member (tests/test_mechanics_inputs.py); the projection
+    cannot proceed and raises."""
     plant = RigidCraneCartesian()
     q = torch.tensor([[0.0, 0.5, 1.0], [0.3, 0.3, 0.0]], dtype=DT)  # sample 1: mass at the cart
-    with pytest.raises(SingularMatrixError, match=r"\[1\]"):
-        plant.kkt_solve(q, torch.zeros_like(q))
+    with pytest.raises(SingularMatrixError, match=r"a a\^T .* singular at batch index \[1\]"):
+        plant.project_consistent(q, torch.zeros_like(q))
 
 
 def test_float32_constrained():

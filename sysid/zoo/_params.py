@@ -12,8 +12,11 @@ from torch import nn
 from integrators.errors import InputValidationError
 
 
-def as_parameter(value, name: str) -> nn.Parameter:
-    """Wrap a float, array or tensor as a float ``nn.Parameter`` (float64 unless a float tensor)."""
+def as_parameter(value, name: str, positive: bool = False) -> nn.Parameter:
+    """Wrap a float, array or tensor as a float ``nn.Parameter`` (float64 unless a float tensor).
+
+    ``positive``: also require every entry > 0 (masses, lengths). Checked here only: a fit
+    that drives the parameter to zero or below is not stopped (see the plant's docstring)."""
     if isinstance(value, torch.Tensor):
         tensor = value.detach().clone()
         if not tensor.is_floating_point():
@@ -22,6 +25,8 @@ def as_parameter(value, name: str) -> nn.Parameter:
         tensor = torch.as_tensor(value, dtype=torch.float64)
     if not torch.isfinite(tensor).all():
         raise InputValidationError(f"parameter {name!r} must be finite, got {value!r}")
+    if positive and not bool((tensor > 0).all()):
+        raise InputValidationError(f"parameter {name!r} must be > 0, got {value!r}")
     return nn.Parameter(tensor)
 
 

@@ -10,6 +10,11 @@ those comparisons are fixed in the closed forms and listed in each docstring.
 Inputs (``u`` of shape (*batch, 1)): the notes give no inputs for most plants; where a plant
 has one here it is a horizontal force on the cart (crane family) or a force on the mass, added
 through eq. (2.115) and documented as an addition.
+
+Masses and rigid rod lengths must be > 0 at construction (InputValidationError otherwise). A
+fit that drives one to zero or below is not stopped: a singular W(q) then gives NaN
+accelerations for the affected batch members (with an RKIdentWarning where W is not diagonal;
+inf/NaN from the division where it is), which the integrators report as NON_FINITE.
 """
 
 import torch
@@ -43,7 +48,11 @@ class SpringMass(LagrangianSystem):
 
     def __init__(self, m=1.0, k=10.0, g=9.81):
         super().__init__(nq=1, nu=1)
-        self.m, self.k, self.g = as_parameter(m, "m"), as_parameter(k, "k"), as_parameter(g, "g")
+        self.m, self.k, self.g = (
+            as_parameter(m, "m", positive=True),
+            as_parameter(k, "k"),
+            as_parameter(g, "g"),
+        )
 
     def diagonal_mass(self):
         return self.m.reshape(1) if self.m.dim() == 0 else self.m  # (1,) or (*batch, 1)
@@ -67,7 +76,11 @@ class SpringMassDamper(LagrangianSystem):
 
     def __init__(self, m=1.0, xi=0.5, K=4.0):
         super().__init__(nq=1, nu=1)
-        self.m, self.xi, self.K = as_parameter(m, "m"), as_parameter(xi, "xi"), as_parameter(K, "K")
+        self.m, self.xi, self.K = (
+            as_parameter(m, "m", positive=True),
+            as_parameter(xi, "xi"),
+            as_parameter(K, "K"),
+        )
 
     def diagonal_mass(self):
         return self.m.reshape(1) if self.m.dim() == 0 else self.m  # (1,) or (*batch, 1)
@@ -106,8 +119,8 @@ class Crane(_CartCrane):
 
     def __init__(self, M=1.0, m=0.5, L=1.0, g=9.81):
         super().__init__(nq=2, nu=1)
-        self.M, self.m = as_parameter(M, "M"), as_parameter(m, "m")
-        self.L, self.g = as_parameter(L, "L"), as_parameter(g, "g")
+        self.M, self.m = as_parameter(M, "M", positive=True), as_parameter(m, "m", positive=True)
+        self.L, self.g = as_parameter(L, "L", positive=True), as_parameter(g, "g")
 
     def point_masses(self):
         return torch.stack([self.M, self.m])
@@ -147,7 +160,7 @@ class ElasticCranePolar(_CartCrane):
 
     def __init__(self, M=1.0, m=0.5, L0=1.0, K=50.0, g=9.81):
         super().__init__(nq=3, nu=1)
-        self.M, self.m = as_parameter(M, "M"), as_parameter(m, "m")
+        self.M, self.m = as_parameter(M, "M", positive=True), as_parameter(m, "m", positive=True)
         self.L0, self.K, self.g = as_parameter(L0, "L0"), as_parameter(K, "K"), as_parameter(g, "g")
 
     def point_masses(self):
@@ -205,7 +218,7 @@ class ElasticCraneCartesian(LagrangianSystem):
 
     def __init__(self, M=1.0, m=0.5, L0=1.0, K=50.0, g=9.81):
         super().__init__(nq=3, nu=1)
-        self.M, self.m = as_parameter(M, "M"), as_parameter(m, "m")
+        self.M, self.m = as_parameter(M, "M", positive=True), as_parameter(m, "m", positive=True)
         self.L0, self.K, self.g = as_parameter(L0, "L0"), as_parameter(K, "K"), as_parameter(g, "g")
 
     def diagonal_mass(self):
@@ -245,8 +258,8 @@ class RigidCraneCartesian(LagrangianSystem):
 
     def __init__(self, M=1.0, m=0.5, L=1.0, g=9.81, baumgarte=None):
         super().__init__(nq=3, nu=1, baumgarte=baumgarte)
-        self.M, self.m = as_parameter(M, "M"), as_parameter(m, "m")
-        self.L, self.g = as_parameter(L, "L"), as_parameter(g, "g")
+        self.M, self.m = as_parameter(M, "M", positive=True), as_parameter(m, "m", positive=True)
+        self.L, self.g = as_parameter(L, "L", positive=True), as_parameter(g, "g")
 
     def diagonal_mass(self):
         return torch.stack([self.M, self.m, self.m])
@@ -300,7 +313,11 @@ class TwoPendulumCranePolar(_CartCrane):
 
     def __init__(self, m=1.0, L=1.0, g=9.81):
         super().__init__(nq=3, nu=1)
-        self.m, self.L, self.g = as_parameter(m, "m"), as_parameter(L, "L"), as_parameter(g, "g")
+        self.m, self.L, self.g = (
+            as_parameter(m, "m", positive=True),
+            as_parameter(L, "L", positive=True),
+            as_parameter(g, "g"),
+        )
 
     def point_masses(self):
         return torch.stack([self.m, self.m, self.m])
@@ -369,7 +386,11 @@ class TwoPendulumCraneCartesian(LagrangianSystem):
 
     def __init__(self, m=1.0, L=1.0, g=9.81, baumgarte=None):
         super().__init__(nq=5, nu=1, baumgarte=baumgarte)
-        self.m, self.L, self.g = as_parameter(m, "m"), as_parameter(L, "L"), as_parameter(g, "g")
+        self.m, self.L, self.g = (
+            as_parameter(m, "m", positive=True),
+            as_parameter(L, "L", positive=True),
+            as_parameter(g, "g"),
+        )
 
     def diagonal_mass(self):
         return self.m * torch.ones(5, dtype=self.m.dtype)
@@ -437,7 +458,11 @@ class HangingChain(LagrangianSystem):
     ):
         super().__init__(nq=3 * n_masses)
         self.n_masses = int(n_masses)
-        self.m, self.K, self.g = as_parameter(m, "m"), as_parameter(K, "K"), as_parameter(g, "g")
+        self.m, self.K, self.g = (
+            as_parameter(m, "m", positive=True),
+            as_parameter(K, "K"),
+            as_parameter(g, "g"),
+        )
         self.p_start, self.p_end = as_parameter(p_start, "p_start"), as_parameter(p_end, "p_end")
 
     def diagonal_mass(self):
@@ -476,7 +501,7 @@ class Bowl(LagrangianSystem):
 
     def __init__(self, m=1.0, g=9.81, baumgarte=None):
         super().__init__(nq=3, baumgarte=baumgarte)
-        self.m, self.g = as_parameter(m, "m"), as_parameter(g, "g")
+        self.m, self.g = as_parameter(m, "m", positive=True), as_parameter(g, "g")
 
     def diagonal_mass(self):
         return self.m * torch.ones(3, dtype=self.m.dtype)
@@ -523,7 +548,11 @@ class DistributedRod(LagrangianSystem):
 
     def __init__(self, m=1.0, L=1.0, g=9.81, n_nodes=2):
         super().__init__(nq=1, nu=1)
-        self.m, self.L, self.g = as_parameter(m, "m"), as_parameter(L, "L"), as_parameter(g, "g")
+        self.m, self.L, self.g = (
+            as_parameter(m, "m", positive=True),
+            as_parameter(L, "L", positive=True),
+            as_parameter(g, "g"),
+        )
         self.n_nodes = n_nodes
 
     def _body(self):
