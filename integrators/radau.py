@@ -143,9 +143,8 @@ def integrate_adaptive(
                 active,
                 messages,
                 tcur,
-                "the step size fell below the time resolution; the problem may be non-smooth "
-                + ("or of index > 1 " if m else "")
-                + "there — loosen the tolerances or check the model",
+                "the step size fell below the time resolution; the problem may be non-smooth, "
+                "of index > 1, or blow up there — loosen the tolerances or check the model",
             )
         over = active & (attempts >= max_steps)
         stop_samples(
