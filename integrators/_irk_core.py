@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from ._irk_linalg import StageLinearSolver
-from ._irk_system import StageSystem, rank_ratio
+from ._irk_system import StageSystem, jacobian_scale, rank_ratio
 from .newton import newton
 
 EPS = {
@@ -435,6 +435,7 @@ class IterationMatrix:
         self.core = core
         self.index_tol = index_tol
         self.E = self.G = self.factors = self.parts = None
+        self.scale0 = None  # (*batch,) Jacobian norm at the start: caps the rank test's scale
         self.n_jac = 0
         self.n_lu = 0
 
@@ -443,7 +444,8 @@ class IterationMatrix:
 
         Returns:
             (*batch,) numpy bool: samples whose index-check matrix is numerically rank
-            deficient.
+            deficient at finite values (:func:`rank_ratio`, its scale capped by the
+            Jacobian's norm at the first evaluation, the start of the integration).
         """
         with torch.no_grad():
             E, G, index_matrix, reference = self.core.frozen_blocks(t, x, z, xdot)
@@ -455,7 +457,10 @@ class IterationMatrix:
         self.parts = self.core.solver.prepare(None if identity_E else self.E, self.G)
         if index_matrix is None:
             return np.zeros_like(mask)
-        return mask & (to_host(rank_ratio(index_matrix, reference), mask.shape) <= self.index_tol)
+        if self.scale0 is None:  # the first evaluation is at the (consistent) start
+            self.scale0 = jacobian_scale(reference)
+        ratio = rank_ratio(index_matrix, reference, self.scale0)
+        return mask & (to_host(ratio, mask.shape) <= self.index_tol)
 
     def update_factors(self, mask, h):
         """Factorise the Newton matrix with step ``h`` (*batch,) for the host bool ``mask``

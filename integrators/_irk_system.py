@@ -175,14 +175,35 @@ class StageSystem:
         return E, G, E, J
 
 
-def rank_ratio(index_matrix: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+def rank_ratio(index_matrix: torch.Tensor, reference: torch.Tensor, scale_cap=None) -> torch.Tensor:
     """Smallest singular value of ``index_matrix`` relative to the norm of ``reference``.
 
+    The norm of the full Jacobian makes the test invariant to a rescaling of the residual.
+    ``scale_cap`` ((*batch,), the norm at the start of the integration) caps that norm: on a
+    solution that escapes to infinity the Jacobian's norm grows with the states (``dg/dx``
+    for ``g = z - x^3``) while ``dg/dz`` stays regular, and such a growth alone must not pass
+    for a loss of rank.
+
     Returns:
-        (*batch,) ratios; 0 for an exactly rank-deficient (e.g. zero) index matrix.
+        (*batch,) ratios; 0 for an exactly rank-deficient (e.g. zero) index matrix, inf where
+        either matrix has a non-finite entry (no rank statement is possible there).
     """
-    sv = torch.linalg.svdvals(index_matrix.detach())
-    scale = torch.linalg.matrix_norm(reference.detach(), ord=2).clamp_min(
-        torch.finfo(index_matrix.dtype).tiny
-    )
-    return sv[..., -1] / scale
+    index_matrix, reference = index_matrix.detach(), reference.detach()
+    finite = torch.isfinite(index_matrix).flatten(-2).all(-1) & torch.isfinite(reference).flatten(
+        -2
+    ).all(-1)
+    sv = torch.linalg.svdvals(torch.where(finite[..., None, None], index_matrix, 0.0))
+    scale = torch.linalg.matrix_norm(torch.where(finite[..., None, None], reference, 0.0), ord=2)
+    if scale_cap is not None:
+        scale = torch.minimum(scale, scale_cap)
+    ratio = sv[..., -1] / scale.clamp_min(torch.finfo(index_matrix.dtype).tiny)
+    return torch.where(finite, ratio, torch.inf)
+
+
+def jacobian_scale(reference: torch.Tensor) -> torch.Tensor:
+    """(*batch,) spectral norm of the full Jacobian (inf where it is not finite): the
+    ``scale_cap`` of :func:`rank_ratio` measured at the start of an integration."""
+    reference = reference.detach()
+    finite = torch.isfinite(reference).flatten(-2).all(-1)
+    norm = torch.linalg.matrix_norm(torch.where(finite[..., None, None], reference, 0.0), ord=2)
+    return torch.where(finite, norm, torch.inf)

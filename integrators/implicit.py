@@ -407,9 +407,25 @@ def daeint(
             )
         z0 = _validate_state(z0, "z0", x0.dtype, x0.device)
         if z0.shape[:-1] != x0.shape[:-1]:
+            try:
+                fits = torch.broadcast_shapes(z0.shape[:-1], x0.shape[:-1]) == x0.shape[:-1]
+            except RuntimeError:
+                fits = False
+            if not fits:
+                raise InputValidationError(
+                    f"z0 has batch shape {tuple(z0.shape[:-1])} but x0 has "
+                    f"{tuple(x0.shape[:-1])}: give z0 the shape (*batch, m) of x0's batch (or "
+                    "a shape that broadcasts to it, e.g. (m,) for one guess shared by all)."
+                )
             z0 = z0.expand(*x0.shape[:-1], z0.shape[-1])
     tab = resolve_tableau(method, stages)
     adaptive = _check_adaptive(tab, adaptive)
+    if adaptive and x0.shape[-1] == 0:
+        raise InputValidationError(
+            "x0 has width 0 (a purely algebraic problem): the adaptive step control measures "
+            "the error of the differential states, so there is nothing to control; pass "
+            "adaptive=False (z is then solved from g = 0 at every step)."
+        )
     from .inputs import bind_rhs
 
     signal = InputSignal(
@@ -420,6 +436,7 @@ def daeint(
     )
     core = IRKCore(tab, system, signal, x0.dtype, x0.device, options.get("linear_solver", "auto"))
     t0 = t[0].expand(*x0.shape[:-1], 1) if adaptive else t[0]
+    problem.check_start(t0, x0, z0, signal.at(t0) if u is not None else None)
     index_tol = float(options.get("index_tol", 1e-10))
     z0c, xdot0, correction, msgs = consistent_start(system, signal, t0, x0, z0, index_tol)
     extra = {"z0_correction": correction} if system.m else {}
@@ -477,10 +494,13 @@ def consistent_start(system: StageSystem, signal: InputSignal, t0, x0, z0, index
     correction = (z_new - z0).detach().abs().amax(-1) if m else x0.new_zeros(x0.shape[:-1])
     msgs = []
     if m and bool((correction > 0).any()):
-        worst = float(correction.max())
+        changed = torch.nonzero(correction.reshape(correction.shape or (1,)) > 0).tolist()
+        worst = tuple(torch.nonzero(correction == correction.max())[0].tolist())
         msgs.append(
-            f"initial algebraic states z0 were inconsistent (g != 0); corrected by Newton, "
-            f"largest change {worst:.3g} (see stats.extra['z0_correction'])."
+            f"initial algebraic states z0 were inconsistent (g != 0) for {len(changed)} "
+            f"sample(s) {[tuple(i) for i in changed[:10]]}; corrected by Newton, largest "
+            f"change {float(correction.max()):.3g} (max-norm) at sample {worst} (see "
+            "stats.extra['z0_correction'])."
         )
     return z_new, xdot0.detach(), correction, msgs
 

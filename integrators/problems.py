@@ -25,6 +25,11 @@ def _check_callable(fn, label):
     return fn
 
 
+def _sample_index(mask: torch.Tensor) -> tuple:
+    """The batch index of the first True entry of a (*batch,) mask (``()`` unbatched)."""
+    return tuple(torch.nonzero(mask.reshape(mask.shape or (1,)))[0].tolist()) if mask.dim() else ()
+
+
 class _Problem:
     kind = ""
 
@@ -34,6 +39,63 @@ class _Problem:
 
     def functions(self) -> tuple:
         raise NotImplementedError
+
+    def check_start(self, t0, x0, z0, u0) -> None:
+        """Evaluate every function once at the start and check what it returns.
+
+        Each output must be a tensor whose last dimension is the expected number of residuals
+        and whose batch shape broadcasts to that of ``x0``, with finite entries. Called by
+        :func:`daeint` before the index check and the consistent initialisation, so that a
+        wrong width or a non-finite value is reported against the function that produced it.
+
+        Args:
+            t0: start time (0-dim, or (*batch, 1)).
+            x0: (*batch, n) initial differential states.
+            z0: (*batch, m) guess of the initial algebraic states (m = 0 for ImplicitODE).
+            u0: the input at ``t0`` (*batch, nu), or None when the problem takes no input.
+
+        Raises:
+            InputValidationError: naming the function, the shape it returned and the one
+                expected (or the first sample with a non-finite entry).
+        """
+        raise NotImplementedError
+
+    @staticmethod
+    def _check_output(out, label, width, why, batch, point) -> None:
+        """``out`` must be a (*batch, width) tensor (batch broadcastable) of finite values."""
+        if not isinstance(out, torch.Tensor):
+            raise InputValidationError(f"{label} must return a tensor, got {type(out).__name__}.")
+        if out.dim() == 0 or out.shape[-1] != width:
+            got = "a scalar" if out.dim() == 0 else f"width {out.shape[-1]}"
+            raise InputValidationError(
+                f"{label} returned {got} (shape {tuple(out.shape)}) but {why}."
+            )
+        try:
+            fits = torch.broadcast_shapes(out.shape[:-1], batch) == batch
+        except RuntimeError:
+            fits = False
+        if not fits:
+            raise InputValidationError(
+                f"{label} returned batch shape {tuple(out.shape[:-1])} for states of batch "
+                f"shape {tuple(batch)}; it must return (*batch, {width}). If the model's "
+                "parameters carry a batch, give x0 and z0 that batch shape."
+            )
+        bad = ~torch.isfinite(out.detach()).all(-1)
+        if bool(bad.any()):
+            raise InputValidationError(
+                f"{label} returned inf/nan at {point} for sample {_sample_index(bad)}; the "
+                "initial states must lie where the model is finite (check x0, the z0 guess "
+                "and the input at t0)."
+            )
+
+    @staticmethod
+    def _args(u0, *names) -> str:
+        return ", ".join(("t", *names) + (("u",) if u0 is not None else ()))
+
+    @staticmethod
+    def _call(fn, t0, u0, *args):
+        with torch.no_grad():
+            return fn(t0, *args) if u0 is None else fn(t0, *args, u0)
 
 
 class ImplicitODE(_Problem):
@@ -51,6 +113,18 @@ class ImplicitODE(_Problem):
 
     def functions(self) -> tuple:
         return (self.F,)
+
+    def check_start(self, t0, x0, z0, u0) -> None:
+        n = x0.shape[-1]
+        out = self._call(self.F, t0, u0, torch.zeros_like(x0), x0)
+        self._check_output(
+            out,
+            f"F({self._args(u0, 'xdot', 'x')})",
+            n,
+            f"x0 has width {n}: F must return one residual per state",
+            x0.shape[:-1],
+            "(t0, xdot = 0, x0)",
+        )
 
 
 class SemiExplicitDAE(_Problem):
@@ -73,6 +147,32 @@ class SemiExplicitDAE(_Problem):
     def functions(self) -> tuple:
         return (self.f, self.g)
 
+    def check_start(self, t0, x0, z0, u0) -> None:
+        n, m = x0.shape[-1], z0.shape[-1]
+        if m == 0:
+            raise InputValidationError(
+                "a SemiExplicitDAE needs at least one algebraic state, got z0 of width 0; "
+                "for x' = f(t, x) use odeint (or solve_implicit_ode for stiff problems)."
+            )
+        args = self._args(u0, "x", "z")
+        point = "(t0, x0, z0)"
+        self._check_output(
+            self._call(self.f, t0, u0, x0, z0),
+            f"f({args})",
+            n,
+            f"x0 has width {n}: f must return one derivative per differential state",
+            x0.shape[:-1],
+            point,
+        )
+        self._check_output(
+            self._call(self.g, t0, u0, x0, z0),
+            f"g({args})",
+            m,
+            f"z0 has width {m}: g must return one residual per algebraic state",
+            x0.shape[:-1],
+            point,
+        )
+
 
 class ImplicitDAE(_Problem):
     """Fully implicit DAE ``F(t, x', x, z[, u]) = 0`` (notes eq. 5.22, 7.53).
@@ -91,3 +191,21 @@ class ImplicitDAE(_Problem):
 
     def functions(self) -> tuple:
         return (self.F,)
+
+    def check_start(self, t0, x0, z0, u0) -> None:
+        n, m = x0.shape[-1], z0.shape[-1]
+        if m == 0:
+            raise InputValidationError(
+                "an ImplicitDAE needs at least one algebraic state, got z0 of width 0; for "
+                "F(t, x', x) = 0 use ImplicitODE (F is then called without z)."
+            )
+        out = self._call(self.F, t0, u0, torch.zeros_like(x0), x0, z0)
+        self._check_output(
+            out,
+            f"F({self._args(u0, 'xdot', 'x', 'z')})",
+            n + m,
+            f"x0 and z0 have widths {n} + {m}: F must return one residual per differential "
+            f"and algebraic state ({n + m})",
+            x0.shape[:-1],
+            "(t0, xdot = 0, x0, z0)",
+        )

@@ -121,6 +121,21 @@ def integrate_adaptive(
         h = np.where(active & (tcur + h >= t_end), t_end - tcur, h)
         tiny = active & (h <= min_step * np.maximum(np.abs(tcur), 1.0))
         if tiny.any():
+            escape = tiny & ~nonfinite_last & (core.system.kind != "ode")
+            escape &= escaping(x, z, x0, z0, hshape) if escape.any() else escape
+            stop_samples(
+                escape,
+                Status.NON_FINITE,
+                status,
+                active,
+                messages,
+                tcur,
+                "the step size fell below the time resolution while the states grew beyond "
+                f"{ESCAPE_GROWTH:.1e} times their initial size: the solution escapes to "
+                "infinity there (finite escape time, like x' = x^2, x(0) = 1 at t = 1, notes "
+                "eq. 1.44); its outputs from there on are not defined",
+            )
+            tiny &= ~escape
             stop_samples(
                 tiny,
                 np.where(nonfinite_last, Status.NON_FINITE, Status.STEP_TOO_SMALL),
@@ -405,6 +420,24 @@ def initial_step(core, x0, z0, xdot0, t0, span, rtol, atol, expo, dt0):
             (0.01 / dmax.clamp_min(1e-300)).pow(expo),
         )
         return torch.minimum(100 * h0, h1).clamp(max=span)
+
+
+ESCAPE_GROWTH = 1e8  # growth of max |(x, z)| taken, at a collapsed step, as a finite escape
+
+
+def escaping(x, z, x0, z0, hshape) -> np.ndarray:
+    """(*batch,) host bool: samples whose largest state magnitude ``max |(x, z)|`` exceeds
+    ``ESCAPE_GROWTH`` times that at the start (at least 1). Evaluated where the step size has
+    collapsed: an implicit method approaching a finite escape time keeps finite states (its
+    stage equations lose their solution first), so the growth, not an inf, tells the escape
+    apart from a non-smooth or high-index point, where the states stay moderate."""
+
+    def size(a, b):
+        v = torch.cat([a.detach(), b.detach()], -1).abs()
+        return v.amax(-1) if v.shape[-1] else v.new_zeros(v.shape[:-1])
+
+    grown = size(x, z) > ESCAPE_GROWTH * size(x0, z0).clamp_min(1.0)
+    return to_host(grown, hshape)
 
 
 def stop_samples(mask, code, status, active, messages, tcur, why):
