@@ -52,7 +52,8 @@ import numpy as np
 import torch
 
 from ._buffers import empty_buffer
-from .errors import InputValidationError, TableauError
+from ._options import check_flag, check_int, raise_shape_change
+from .errors import TableauError
 from .inputs import BoundRHS
 from .solution import Solution, SolverStats, Status
 
@@ -204,6 +205,8 @@ def _make_chunk(f, kind, u_fn, scheme: _Scheme, substeps: int, n_out: int, compo
                         theta = (j + c[p]) / m
                         us = uq if theta == 0.0 else uq + dq * theta
                         K.append(f(ts, xs, us))
+                    if K[-1].shape != xs.shape:  # a static shape: free when compiled
+                        raise_shape_change(K[-1], xs, ts)
                 if component_major:
                     x = [
                         _lincomb(xi, hn, [(coef, K[r][..., i]) for r, coef in b])
@@ -323,7 +326,9 @@ def solve_explicit(
 
     Raises:
         TableauError: for an implicit tableau.
-        InputValidationError: for ``substeps`` that is not an integer >= 1.
+        InputValidationError: for ``substeps`` that is not an integer >= 1, ``compile`` that
+            is not True, False or "auto", or a model whose output shape differs from the
+            state's at some stage evaluation.
     """
     if not tab.is_explicit:
         raise TableauError(
@@ -331,9 +336,8 @@ def solve_explicit(
             "integration needs a strictly lower-triangular A. Use odeint(..., method=tab), "
             "which dispatches implicit tableaus to the implicit solver."
         )
-    if isinstance(substeps, bool) or not isinstance(substeps, (int, np.integer)) or substeps < 1:
-        raise InputValidationError(f"substeps must be an integer >= 1, got {substeps!r}.")
-    substeps = int(substeps)
+    substeps = check_int(substeps, "substeps")
+    compile = check_flag(compile, "compile", allow=("auto",))
     scheme = _Scheme.from_tableau(tab)
     if isinstance(rhs, BoundRHS):
         f, kind, u_fn = rhs.f, rhs.kind, rhs.u
@@ -365,8 +369,6 @@ def solve_explicit(
     entry = _cache_entry(f, config)
     entry.steps_seen += n_steps
     want = compile is True or (compile == "auto" and entry.steps_seen >= AUTO_COMPILE_MIN_STEPS)
-    if compile not in (True, False, "auto"):
-        raise InputValidationError(f"compile must be True, False or 'auto', got {compile!r}.")
     use_compiled = want and not entry.failed and not torch.compiler.is_compiling()
     grad_mode = torch.is_grad_enabled()
     compile_s = 0.0

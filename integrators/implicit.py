@@ -32,6 +32,16 @@ import torch
 from ._irk_core import EPS, InputSignal, IRKCore
 from ._irk_fixed import integrate_fixed
 from ._irk_system import StageSystem, rank_ratio
+from ._options import (
+    LINEAR_SOLVERS,
+    check_flag,
+    check_int,
+    check_positive,
+    check_state_dtype,
+    check_tolerances,
+    raise_shape_change,
+    refuse_time_gradient,
+)
 from .errors import HighIndexError, InputValidationError, TableauError
 from .problems import ImplicitDAE, ImplicitODE, SemiExplicitDAE
 from .solution import Solution, SolverStats
@@ -56,6 +66,12 @@ def resolve_tableau(method, stages=None) -> ButcherTableau:
     "implicit_euler", "implicit_midpoint") or given as a :class:`ButcherTableau`."""
     from .collocation import gauss_legendre, radau_iia
 
+    if stages is not None and not (isinstance(method, str) and method in _DEFAULT_STAGES):
+        name = method.name if isinstance(method, ButcherTableau) else method
+        raise InputValidationError(
+            f"stages={stages!r} applies to 'gauss_legendre' and 'radau_iia' only, not to "
+            f"{name!r} (its number of stages is fixed)."
+        )
     if isinstance(method, ButcherTableau):
         tab = method
     elif method in _DEFAULT_STAGES:
@@ -88,6 +104,7 @@ def _validate_state(x, label, dtype=None, device=None):
         x = torch.as_tensor(x, dtype=dtype or torch.get_default_dtype(), device=device)
     if not x.is_floating_point():
         x = x.to(torch.get_default_dtype())
+    check_state_dtype(x.dtype, label)
     if x.dim() < 1:
         raise InputValidationError(f"{label} must have shape (*batch, n), got a scalar.")
     bad = ~torch.isfinite(x.detach())
@@ -112,14 +129,62 @@ def _validate_time(t, like: torch.Tensor) -> torch.Tensor:
     return t
 
 
-def _split_options(options: dict) -> dict:
+def _split_options(options: dict, adaptive: bool) -> dict:
+    """Check the solver options (``**newton_options``) of an integration with or without
+    step-size control (``adaptive``) and return them."""
     unknown = set(options) - _NEWTON_KEYS
     if unknown:
         raise InputValidationError(
             f"unknown option(s) {sorted(unknown)} for the implicit solver; known options are "
             f"{sorted(_NEWTON_KEYS)}."
         )
+    for name in ("max_iter", "index_check_every"):
+        if name in options:
+            check_int(options[name], name)
+    for name in ("newton_tol", "index_tol"):
+        if options.get(name) is not None:
+            check_positive(options[name], name)
+    solver = options.get("linear_solver", "auto")
+    if not (isinstance(solver, str) and solver in LINEAR_SOLVERS):
+        raise InputValidationError(
+            f"unknown linear_solver {solver!r}; use one of {', '.join(map(repr, LINEAR_SOLVERS))}."
+        )
+    options = dict(
+        options,
+        host_loop=check_flag(options.get("host_loop", "auto"), "host_loop", allow=("auto",)),
+    )
+    if options.get("dt0") is not None:
+        if not adaptive:
+            raise InputValidationError(
+                "dt0 sets the first step of adaptive Radau IIA; this integration runs at fixed "
+                "steps (set their number per output interval with substeps)."
+            )
+        check_positive(options["dt0"], "dt0", " (the first trial step; one number for the batch)")
     return options
+
+
+def _check_run_options(t, rtol, atol, substeps, max_steps, dtype, method_name) -> None:
+    """The options shared by :func:`solve_implicit_ode` and :func:`daeint`."""
+    check_tolerances(rtol, atol, dtype)
+    check_int(substeps, "substeps")
+    check_int(max_steps, "max_steps")
+    refuse_time_gradient(t, method_name)
+
+
+def _empty_solution(x0, z0, t, method_name, with_z) -> Solution:
+    """The result of an integration of an empty batch (a zero batch dimension)."""
+    batch, T = x0.shape[:-1], t.shape[0]
+    x = x0.new_empty(*batch, T, x0.shape[-1])
+    z = z0.new_empty(*batch, T, z0.shape[-1])
+    return Solution(
+        t=t.detach(),
+        x=x,
+        z=z if with_z else None,
+        status=torch.zeros(batch, dtype=torch.int8, device=x0.device),
+        stats=SolverStats(),
+        method=method_name,
+        interpolant=lambda tq: x0.new_empty(*batch, tq.shape[0], x0.shape[-1]),
+    )
 
 
 def newton_tolerance(rtol: float, dtype, override=None) -> float:
@@ -189,8 +254,6 @@ def _run(
             dt0=options.get("dt0"),
         )
     else:
-        if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
-            raise InputValidationError(f"substeps must be an integer >= 1, got {substeps!r}.")
         out = integrate_fixed(
             core,
             x0,
@@ -279,25 +342,40 @@ def solve_implicit_ode(
 
     Returns:
         :class:`Solution` with per-sample ``status`` and ``stats`` (Newton iterations,
-        factorisations, Jacobian evaluations, steps, rejections) and dense output ``at``.
+        factorisations, Jacobian evaluations, steps, rejections) and dense output ``at``;
+        an empty batch (a zero batch dimension) gives an empty Solution.
+
+    Raises:
+        InputValidationError: at entry, for any option outside its domain (non-bool
+            ``adaptive`` / ``host_loop``, non-integer or < 1 ``substeps`` / ``max_steps`` /
+            ``max_iter`` / ``index_check_every``, ``newton_tol`` / ``index_tol`` / ``dt0``
+            not finite and > 0, ``dt0`` without step-size control, an unknown
+            ``linear_solver``, tolerances failing
+            :func:`integrators._options.check_tolerances`), ``stages`` with a method other
+            than "gauss_legendre" / "radau_iia", a state dtype other than float32/float64, or
+            ``t`` requiring grad (output times are not differentiated); during the run, a
+            model output whose shape differs from the state's.
     """
-    options = _split_options(newton_options)
     x0 = _validate_state(x0, "x0")
-    t = _validate_time(t, x0)
     tab = resolve_tableau(method, stages)
     adaptive = _check_adaptive(tab, adaptive)
+    options = _split_options(newton_options, adaptive)
+    _check_run_options(t, rtol, atol, substeps, max_steps, x0.dtype, tab.name)
+    t = _validate_time(t, x0)
     kind = getattr(rhs, "kind", None)
     if kind is not None and hasattr(rhs, "f"):
         fn, has_input, signal = rhs.f, kind != "none", InputSignal(rhs)
     else:
         fn, has_input, signal = rhs, False, InputSignal(None)
-    system = StageSystem("ode", x0.shape[-1], 0, (fn,), has_input)
+    system = StageSystem("ode", x0.shape[-1], 0, (_shape_checked(fn),), has_input)
     core = IRKCore(tab, system, signal, x0.dtype, x0.device, options.get("linear_solver", "auto"))
     z0 = x0.new_zeros(*x0.shape[:-1], 0)
     t0 = t[0].expand(*x0.shape[:-1], 1) if adaptive else t[0]
     with torch.no_grad():
-        xdot0 = system.rhs_f(t0, x0, z0, signal.at(t0))
+        xdot0 = fn(t0, x0, signal.at(t0)) if has_input else fn(t0, x0)
     _check_derivative_shape(xdot0, x0)
+    if x0.numel() == 0:
+        return _empty_solution(x0, z0, t, tab.name, with_z=False)
     return _run(
         core,
         x0,
@@ -316,6 +394,20 @@ def solve_implicit_ode(
     )
 
 
+def _shape_checked(fn):
+    """``fn(t, x[, u])`` that raises when its output does not have the shape of the state
+    ``x`` it is given: broadcasting would otherwise hide a model whose output changes shape
+    during the integration (one tuple comparison per call)."""
+
+    def checked(t, x, *u):
+        out = fn(t, x, *u)
+        if getattr(out, "shape", None) != x.shape:
+            raise_shape_change(out, x, t)
+        return out
+
+    return checked
+
+
 def _check_derivative_shape(xdot0, x0) -> None:
     """The model's output at (t0, x0) must be a tensor of the state's shape."""
     if not isinstance(xdot0, torch.Tensor):
@@ -329,6 +421,7 @@ def _check_derivative_shape(xdot0, x0) -> None:
 
 
 def _check_adaptive(tab, adaptive):
+    adaptive = check_flag(adaptive, "adaptive", allow=(None,))
     radau = _is_radau(tab)
     if adaptive is None:  # named Radau IIA methods adapt; implicit Euler etc. keep fixed steps
         return radau and tab.stages % 2 == 1 and tab.name.startswith("radau_iia")
@@ -384,6 +477,7 @@ def daeint(
         ImplicitODE).
 
     Raises:
+        InputValidationError: options as in :func:`solve_implicit_ode`.
         HighIndexError: the index-check matrix is rank deficient at the initial point.
         ConvergenceError: no consistent initial algebraic state was found.
     """
@@ -392,8 +486,11 @@ def daeint(
             f"daeint expects an ImplicitODE, SemiExplicitDAE or ImplicitDAE, got "
             f"{type(problem).__name__}; for x' = f(t, x) use odeint."
         )
-    options = _split_options(newton_options)
     x0 = _validate_state(x0, "x0")
+    tab = resolve_tableau(method, stages)
+    adaptive = _check_adaptive(tab, adaptive)
+    options = _split_options(newton_options, adaptive)
+    _check_run_options(t, rtol, atol, substeps, max_steps, x0.dtype, tab.name)
     t = _validate_time(t, x0)
     if isinstance(problem, ImplicitODE):
         if z0 is not None and torch.as_tensor(z0).numel():
@@ -418,14 +515,14 @@ def daeint(
                     "a shape that broadcasts to it, e.g. (m,) for one guess shared by all)."
                 )
             z0 = z0.expand(*x0.shape[:-1], z0.shape[-1])
-    tab = resolve_tableau(method, stages)
-    adaptive = _check_adaptive(tab, adaptive)
     if adaptive and x0.shape[-1] == 0:
         raise InputValidationError(
             "x0 has width 0 (a purely algebraic problem): the adaptive step control measures "
             "the error of the differential states, so there is nothing to control; pass "
             "adaptive=False (z is then solved from g = 0 at every step)."
         )
+    if x0.numel() == 0:
+        return _empty_solution(x0, z0, t, tab.name, with_z=not isinstance(problem, ImplicitODE))
     from .inputs import bind_rhs
 
     signal = InputSignal(

@@ -19,6 +19,13 @@ from __future__ import annotations
 
 import torch
 
+from ._options import (
+    check_flag,
+    check_int,
+    check_positive,
+    check_state_dtype,
+    check_tolerances,
+)
 from .errors import InputValidationError, TableauError
 from .explicit import solve_explicit
 from .inputs import bind_rhs, check_finite
@@ -62,26 +69,53 @@ def odeint(
             (see :func:`integrators.inputs.bind_rhs`).
         interpolation: ``"zoh"`` (notes eq. 8.34) or ``"linear"`` for sampled ``u``.
         substeps: fixed-step methods: integer number of steps per output interval.
-        rtol, atol: tolerances of adaptive methods.
-        controller, dt0, max_steps: adaptive step control (contract C2).
-        stages: number of stages of ``"gauss_legendre"`` / ``"radau_iia"``.
+        rtol, atol: tolerances of adaptive methods (and the Newton scale ``atol + rtol |x|``
+            of implicit ones): numbers or tensors, ``atol >= 0`` and ``rtol`` at least
+            :data:`integrators._options.RTOL_MIN_EPS` machine epsilons of the state dtype
+            (8.9e-16 in float64, 4.8e-7 in float32).
+        controller, dt0, max_steps: adaptive step control (contract C2); ``dt0`` (first trial
+            step, > 0; a longer one is cut to the span) and ``controller`` apply to adaptive
+            methods only.
+        stages: number of stages of ``"gauss_legendre"`` / ``"radau_iia"`` (those only).
         compile: fixed-step explicit methods: ``True``, ``False`` or ``"auto"`` (see
             :func:`integrators.explicit.solve_explicit`).
-        **kwargs: ``adaptive=False`` runs an embedded pair (e.g. dopri5) at fixed step;
-            other keywords go to the implicit solver (Newton options).
+        **kwargs: ``adaptive`` (``True``, ``False`` or ``None``: the method's default);
+            ``adaptive=False`` runs an embedded pair (e.g. dopri5) at fixed step; other
+            keywords go to the implicit solver (Newton options, see
+            :func:`integrators.implicit.solve_implicit_ode`).
+
+    Gradients reach ``x0`` and the model's parameters with every method. Gradients with
+    respect to the output times ``t`` are supported by the fixed-step explicit methods (the
+    derivative of the discrete map: the step grid follows ``t``); other methods raise
+    :class:`InputValidationError` when ``t`` requires grad.
+
+    An empty batch (``x0`` of shape (0, nx), or any zero batch dimension) gives an empty
+    :class:`Solution` of the right shapes with every method.
 
     Returns:
         :class:`Solution` with ``x`` of shape (*batch, T, nx), per-sample status, stats.
 
     Raises:
-        InputValidationError: wrong shapes of ``x0``, ``t``, ``u`` or of ``f``'s output;
+        InputValidationError: wrong shapes of ``x0``, ``t``, ``u`` or of ``f``'s output
+            (checked at ``(t0, x0)`` and, by every solver, at each later evaluation);
             non-finite ``x0``, ``t``, ``u`` or ``f(t0, x0)``; ``t`` not strictly increasing;
-            bad ``substeps``/tolerances; unexpected keywords.
+            a state dtype other than float32/float64; bad ``substeps``, ``max_steps``,
+            ``dt0``, ``stages`` or tolerances; non-bool flags (``adaptive``, ``compile``,
+            ``host_loop``); options the chosen method does not use; unexpected keywords;
+            ``t`` requiring grad with a method that does not differentiate with respect to it.
         TableauError: unknown method name; ``adaptive=True`` without an embedded pair.
     """
     x0 = _validate_x0(x0)
     t = _validate_t(t, x0)
-    _validate_options(substeps, rtol, atol, max_steps)
+    check_int(substeps, "substeps")
+    check_int(max_steps, "max_steps")
+    check_tolerances(rtol, atol, x0.dtype)
+    compile = check_flag(compile, "compile", allow=("auto",))
+    adaptive = check_flag(kwargs.pop("adaptive", None), "adaptive", allow=(None,))
+    if stages is not None:
+        check_int(stages, "stages")
+    if dt0 is not None:
+        _check_dt0(dt0)
     rhs = bind_rhs(f, u, t, interpolation=interpolation)
     if rhs.samples is not None:
         try:
@@ -92,7 +126,6 @@ def odeint(
                 f"broadcast with the batch shape {tuple(x0.shape[:-1])} of x0."
             ) from exc
     x0 = _probe_rhs(rhs, x0, t, u is not None)
-    adaptive = kwargs.pop("adaptive", None)
     options = dict(
         substeps=substeps,
         rtol=rtol,
@@ -121,6 +154,11 @@ def _dispatch(rhs, x0, t, method, options, kwargs) -> Solution:
     tab = _resolve_tableau(method)
     if not tab.is_explicit:
         return _implicit(rhs, x0, t, tab, options, kwargs)
+    if options["stages"] is not None:
+        raise InputValidationError(
+            f"stages={options['stages']!r} applies to 'gauss_legendre' and 'radau_iia' only, "
+            f"not to the explicit tableau {tab.name!r} (its number of stages is fixed)."
+        )
     adaptive = options["adaptive"]
     if adaptive is None:
         adaptive = tab.b_err is not None
@@ -148,15 +186,25 @@ def _dispatch(rhs, x0, t, method, options, kwargs) -> Solution:
             dt0=options["dt0"],
             max_steps=options["max_steps"],
         )
+    for name in ("dt0", "controller"):
+        if options[name] is not None:
+            raise InputValidationError(
+                f"{name} applies to adaptive methods only; {tab.name!r} runs at fixed steps "
+                "(set their number per output interval with substeps)."
+            )
     return solve_explicit(rhs, x0, t, tab, substeps=options["substeps"], compile=options["compile"])
 
 
 def _implicit(rhs, x0, t, method, options, kwargs) -> Solution:
     from .implicit import solve_implicit_ode
 
+    if options["controller"] is not None:
+        raise InputValidationError(
+            "controller applies to the adaptive explicit methods (dopri5); the implicit "
+            "methods control their steps themselves (rtol, atol, dt0, max_steps)."
+        )
     if options["dt0"] is not None:
         kwargs = {"dt0": options["dt0"], **kwargs}
-
     return solve_implicit_ode(
         rhs,
         x0,
@@ -192,6 +240,7 @@ def _validate_x0(x0) -> torch.Tensor:
         raise InputValidationError(f"x0 must be real floating point, got dtype {x0.dtype}.")
     if not x0.is_floating_point():
         x0 = x0.to(torch.float64)
+    check_state_dtype(x0.dtype)
     if x0.dim() == 0 or x0.shape[-1] == 0:
         raise InputValidationError(
             f"x0 must have shape (*batch, nx) with nx >= 1, got shape {tuple(x0.shape)}; "
@@ -231,29 +280,14 @@ def _validate_t(t, x0) -> torch.Tensor:
     return t
 
 
-def _validate_options(substeps, rtol, atol, max_steps) -> None:
-    if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
-        raise InputValidationError(f"substeps must be an integer >= 1, got {substeps!r}.")
-    for name, value in (("rtol", rtol), ("atol", atol)):
-        try:
-            if isinstance(value, (int, float)):
-                ok = value >= 0  # false for nan
-            else:
-                ok = bool(torch.all(torch.as_tensor(value) >= 0))
-        except (TypeError, ValueError, RuntimeError):
-            ok = False
-        if not ok or isinstance(value, bool):
-            raise InputValidationError(
-                f"{name} must be a non-negative number or tensor, got {value!r}."
-            )
-    if isinstance(rtol, (int, float)) and isinstance(atol, (int, float)):
-        positive = rtol + atol > 0
-    else:
-        positive = bool(torch.any(torch.as_tensor(rtol) + torch.as_tensor(atol) > 0))
-    if not positive:
-        raise InputValidationError("rtol and atol cannot both be zero.")
-    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
-        raise InputValidationError(f"max_steps must be an integer >= 1, got {max_steps!r}.")
+def _check_dt0(dt0) -> None:
+    """``dt0``: a positive finite number, or a tensor of them (per sample, adaptive explicit)."""
+    if isinstance(dt0, torch.Tensor) and dt0.numel() > 1:
+        values = dt0.detach()
+        if not bool((torch.isfinite(values) & (values > 0)).all()):
+            raise InputValidationError(f"dt0 must be finite and > 0 in every sample, got {dt0}.")
+        return
+    check_positive(dt0, "dt0", " (the first trial step of an adaptive method)")
 
 
 def _probe_rhs(rhs, x0, t, with_input) -> torch.Tensor:

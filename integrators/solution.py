@@ -76,10 +76,16 @@ class Solution:
         """Dense output: the states at arbitrary times inside the integration interval.
 
         Args:
-            t: scalar or (M,) tensor of times.
+            t: scalar or (M,) tensor of times in ``[t[0], t[-1]]`` (a few rounding errors
+                outside count as the end points).
 
         Returns:
             (*batch, M, nx) states (M = 1 for a scalar time).
+
+        Raises:
+            InputValidationError: no dense output for this method, or non-finite times or
+                times outside the integration interval (the interpolants do not
+                extrapolate).
         """
         from .errors import InputValidationError
 
@@ -89,4 +95,26 @@ class Solution:
                 "('dopri5') or a collocation method, or request the times in `t`."
             )
         t = torch.as_tensor(t, dtype=self.t.dtype, device=self.t.device).reshape(-1)
+        check_query_times(t, float(self.t[0]), float(self.t[-1]))
         return self.interpolant(t)
+
+
+def check_query_times(tq: torch.Tensor, t0: float, t_end: float) -> None:
+    """Raise InputValidationError unless every time of ``tq`` (M,) is finite and inside
+    ``[t0, t_end]``, up to 8 rounding errors of the largest time involved (one host
+    synchronisation)."""
+    from .errors import InputValidationError
+
+    if tq.numel() == 0:
+        return
+    q = tq.detach()
+    slack = 8.0 * torch.finfo(q.dtype).eps * max(abs(t0), abs(t_end), t_end - t0)
+    bad = ~torch.isfinite(q) | (q < t0 - slack) | (q > t_end + slack)
+    if not bool(bad.any()):
+        return
+    k = int(torch.nonzero(bad)[0])
+    raise InputValidationError(
+        f"dense output requested at t[{k}] = {float(q[k])}, but the solution covers "
+        f"[{t0:.10g}, {t_end:.10g}]; the interpolant does not extrapolate: pass finite times "
+        "inside the integration interval."
+    )

@@ -31,7 +31,7 @@ def logistic_exact(t, x0):
     return torch.stack([x0[..., 0:1] * torch.exp(t) / grow, x0[..., 1:2] / grow], -1)
 
 
-X0 = torch.tensor([[0.2, 1.0], [0.6, -0.5]])
+X0 = torch.tensor([[0.2, 1.0], [0.6, -0.5]], dtype=torch.float64)
 
 
 # --------------------------------------------------------------------------- linear algebra

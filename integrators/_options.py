@@ -1,0 +1,142 @@
+"""Entry checks of the options shared by ``odeint``, ``daeint`` and the solvers behind them.
+
+Every option is checked before anything is integrated, with the same rule on every path the
+option reaches, so a bad value fails at once with :class:`InputValidationError` instead of
+surfacing later as a step-size failure, a raw torch error or a silently different run.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from .errors import InputValidationError
+
+#: State dtypes the integrators compute in.
+STATE_DTYPES = (torch.float32, torch.float64)
+#: ``rtol`` must be at least this many machine epsilons of the state dtype. Measured on a
+#: harmonic oscillator (amplitude 1 and 1e8 in float64, 1 and 1e4 in float32), dopri5 and Radau
+#: IIA succeed down to rtol = eps with errors of a few eps relative, while at rtol = 1e-16
+#: (0.45 eps, float64) Radau IIA ran out of max_steps: below eps the error estimates and the
+#: Newton tolerance (:func:`integrators.implicit.newton_tolerance`) drown in rounding errors.
+#: Four epsilons leave a margin and accept float32's usual rtol = 1e-6 (8.4 eps).
+RTOL_MIN_EPS = 4.0
+#: Names accepted by the implicit solvers' ``linear_solver`` option (``_irk_linalg``).
+LINEAR_SOLVERS = ("auto", "transformed", "full")
+
+
+def check_flag(value, name: str, *, allow: tuple = ()):
+    """``value`` as a bool when it is one (Python or numpy), else the allowed non-bool value
+    it equals (``None``, ``"auto"``); anything else (a string such as ``"no"``, which would
+    count as true, or a number) raises."""
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    for option in allow:
+        if value is option or (
+            isinstance(option, str) and isinstance(value, str) and value == option
+        ):
+            return value
+    accepted = ", ".join(["True", "False", *(repr(a) for a in allow)])
+    raise InputValidationError(
+        f"{name} must be one of {accepted}, got {value!r} of type {type(value).__name__}; "
+        "pass a bool: strings and numbers are not read as one ('no' would count as true)."
+    )
+
+
+def check_int(value, name: str, minimum: int = 1) -> int:
+    """An integer option (Python or numpy int, not a bool or a float) ``>= minimum``."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise InputValidationError(
+            f"{name} must be an integer >= {minimum}, got {value!r} of type {type(value).__name__}."
+        )
+    if value < minimum:
+        raise InputValidationError(f"{name} must be an integer >= {minimum}, got {value}.")
+    return int(value)
+
+
+def check_positive(value, name: str, what: str = "") -> float:
+    """A finite real number ``> 0`` (a Python/numpy number or a one-element tensor)."""
+    if isinstance(value, torch.Tensor) and value.numel() == 1:
+        value = value.detach().item()
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+        value, (bool, np.bool_)
+    )
+    if not ok or not math.isfinite(value) or value <= 0:
+        raise InputValidationError(f"{name} must be a finite number > 0{what}, got {value!r}.")
+    return float(value)
+
+
+def check_state_dtype(dtype, label: str = "x0") -> None:
+    """Refuse state dtypes other than float32 and float64 (half precisions included)."""
+    if dtype not in STATE_DTYPES:
+        raise InputValidationError(
+            f"{label} has dtype {dtype}; the integrators compute in torch.float32 or "
+            "torch.float64 (their step-size control, Newton tolerances and linear algebra "
+            f"need at least single precision): pass {label}.float() or {label}.double() and a "
+            "model in that dtype."
+        )
+
+
+def min_rtol(dtype) -> float:
+    """The smallest ``rtol`` accepted for states of ``dtype``: ``RTOL_MIN_EPS`` epsilons."""
+    return RTOL_MIN_EPS * torch.finfo(dtype).eps
+
+
+def check_tolerances(rtol, atol, dtype) -> None:
+    """``rtol`` (number or tensor, every entry finite and ``>= min_rtol(dtype)``) and ``atol``
+    (number or tensor, every entry finite and ``>= 0``)."""
+    low = {}
+    for name, value in (("rtol", rtol), ("atol", atol)):
+        if isinstance(value, (bool, np.bool_)):
+            values = None
+        elif isinstance(value, torch.Tensor):
+            values = value.detach().to(torch.float64).reshape(-1) if value.numel() else None
+        else:
+            try:
+                values = torch.as_tensor(value, dtype=torch.float64).reshape(-1)
+            except (TypeError, ValueError, RuntimeError):
+                values = None
+        if values is None or values.numel() == 0 or not bool(torch.isfinite(values).all()):
+            raise InputValidationError(
+                f"{name} must be a finite non-negative number or tensor, got {value!r}."
+            )
+        low[name] = float(values.min())
+    if low["atol"] < 0:
+        raise InputValidationError(f"atol must be >= 0, got a value {low['atol']:g}.")
+    floor = min_rtol(dtype)
+    if low["rtol"] < floor:
+        raise InputValidationError(
+            f"rtol = {low['rtol']:g} is below what {dtype} arithmetic can deliver: the "
+            f"smallest sensible value is rtol = {floor:.2g} ({RTOL_MIN_EPS:g} machine epsilons; "
+            "below it the error estimates and Newton tolerances drown in rounding errors). Use "
+            f"rtol >= {floor:.2g}"
+            + (", or float64 states for tighter tolerances." if dtype != torch.float64 else ".")
+        )
+
+
+def refuse_time_gradient(t, method: str) -> None:
+    """Raise when the output times ``t`` require grad (and autograd is on): ``method`` does
+    not differentiate with respect to them, and the gradient would silently be None."""
+    if isinstance(t, torch.Tensor) and t.requires_grad and torch.is_grad_enabled():
+        raise InputValidationError(
+            f"gradients with respect to the output times t are not supported by {method!r} "
+            "(they would silently be None): pass t.detach(). The derivative of the state at an "
+            "output time t_k is f(t_k, x(t_k)); evaluate the model there if it is needed."
+        )
+
+
+def raise_shape_change(out, x: torch.Tensor, t) -> None:
+    """Raise for a model output ``out`` whose shape is not that of the state ``x`` it was
+    evaluated at, at time(s) ``t`` (a number or a tensor of per-sample or stage times). The
+    solvers check this at every evaluation: broadcasting in the step sums would otherwise
+    hide a model whose output changes shape during the run."""
+    tt = torch.as_tensor(t).detach()
+    lo, hi = float(tt.min()), float(tt.max())
+    when = f"t = {lo:.6g}" + (f" .. {hi:.6g}" if hi > lo else "")
+    raise InputValidationError(
+        f"the model returned shape {tuple(getattr(out, 'shape', ()))} for a state of shape "
+        f"{tuple(x.shape)} in an evaluation at {when} (it returned the state's shape at t0): "
+        "f(t, x) must return dx/dt of the shape of x at every call."
+    )
