@@ -10,7 +10,8 @@ Gradients use the implicit function theorem (eq. 3.40): with ``W*`` the converge
 ``W = W* + (D - stop_grad(D))`` with ``D = -J(W*)^{-1} R(W*, x_k, theta)`` has the value ``W*``
 and the derivative ``dW/d(x_k, theta) = -J^{-1} dR/d(x_k, theta)``; ``J^{-1}`` is applied by
 :class:`FrozenLUSolve`, whose backward is one transposed solve with the exact stage Jacobian.
-Nothing of the Newton iterations is stored.
+A second such correction, evaluated at that first-order-exact ``W``, makes second derivatives
+exact as well (:meth:`IRKCore.ift`). Nothing of the Newton iterations is stored.
 """
 
 from __future__ import annotations
@@ -343,25 +344,33 @@ class IRKCore:
     def ift(self, times, inputs, h, xk, W, valid=None):
         """Attach implicit-function-theorem gradients to converged stages (see module doc).
 
+        Two zero-valued Newton corrections with the exact stage Jacobian ``J`` at ``W*``
+        (frozen): ``W1 = W* - J^{-1} R(W*)`` and ``W2 = W1 - J^{-1} R(W1)``. The first carries
+        the first derivative ``-J^{-1} dR/d(x_k, theta)`` (eq. 3.40); since ``W1`` is exact to
+        first order, ``dR(W1) = 0`` and the second correction adds exactly the second-order
+        term ``-J^{-1} d^2 R(W*(x_k, theta), x_k, theta)`` (derivatives of ``J`` multiply
+        ``R = 0`` or ``dR = 0``), so Hessians and Hessian-vector products (``create_graph``)
+        are those of the discrete solution, not only gradients.
+
         Samples outside ``valid`` ((*batch,) numpy bool: unconverged solves, discarded by the
-        caller) get zero derivatives instead of a solve with a possibly singular matrix.
+        caller) get zero derivatives instead of a solve with a possibly singular matrix; their
+        residuals are evaluated at ``W = 0`` (stage states ``x_k``, finite), so their zero
+        cotangents never meet the inf/nan partial derivatives of a diverged iterate.
         """
         Wd = torch.nan_to_num(W.detach())
         if self.needs_grad is False or not torch.is_grad_enabled():
             return Wd
+        if valid is not None:
+            valid = None if valid.all() else to_device(valid, h, shape=h.shape)
+        W0 = Wd if valid is None else torch.where(valid[..., None, None], Wd, 0.0)
         with torch.enable_grad():
-            R = self.residual(times, inputs, h, xk, Wd)
+            R = self.residual(times, inputs, h, xk, W0)
         # whether anything upstream requires grad cannot change during one integration
         self.needs_grad = R.requires_grad
         if not R.requires_grad:
             return Wd
         n, s, p = self.system.n, self.s, self.system.p
-        if valid is not None:
-            if valid.all():
-                valid = None
-            else:
-                valid = to_device(valid, h, shape=h.shape)
-        K, Z = Wd[..., :n], Wd[..., n:]
+        K, Z = W0[..., :n], W0[..., n:]
         X = self.stage_states(xk.detach(), h, K)
         with torch.no_grad():
             if self.stack_stages:
@@ -383,11 +392,19 @@ class IRKCore:
                 eye = torch.eye(s * p, dtype=J.dtype, device=J.device)
                 J = torch.where(valid[..., None, None], J, eye)
             lu, piv = torch.linalg.lu_factor(J)
-        R = R.reshape(*h.shape, s * p, 1)
-        if valid is not None:
-            R = torch.where(valid[..., None, None], R, torch.zeros_like(R))
-        D = -FrozenLUSolve.apply(lu, piv, R).reshape(Wd.shape)
-        return Wd + (D - D.detach())
+
+        def correction(R):
+            """``-J^{-1} R`` minus its value: (*batch, s, p) zeros carrying the derivative."""
+            R = R.reshape(*h.shape, s * p, 1)
+            if valid is not None:
+                R = torch.where(valid[..., None, None], R, 0.0)
+            D = -FrozenLUSolve.apply(lu, piv, R).reshape(W0.shape)
+            return D - D.detach()
+
+        W1 = W0 + correction(R)
+        with torch.enable_grad():
+            W2 = W1 + correction(self.residual(times, inputs, h, xk, W1))
+        return Wd + (W2 - W2.detach())
 
 
 def host_shape(batch) -> tuple:
