@@ -21,7 +21,7 @@ import torch
 
 from ._irk_linalg import StageLinearSolver
 from ._irk_system import StageSystem, rank_ratio
-from .newton import newton
+from .newton import newton, root_with_derivatives
 
 EPS = {
     torch.float64: float(np.finfo(np.float64).eps),
@@ -345,32 +345,26 @@ class IRKCore:
         """Attach implicit-function-theorem gradients to converged stages (see module doc).
 
         Two zero-valued Newton corrections with the exact stage Jacobian ``J`` at ``W*``
-        (frozen): ``W1 = W* - J^{-1} R(W*)`` and ``W2 = W1 - J^{-1} R(W1)``. The first carries
-        the first derivative ``-J^{-1} dR/d(x_k, theta)`` (eq. 3.40); since ``W1`` is exact to
-        first order, ``dR(W1) = 0`` and the second correction adds exactly the second-order
-        term ``-J^{-1} d^2 R(W*(x_k, theta), x_k, theta)`` (derivatives of ``J`` multiply
-        ``R = 0`` or ``dR = 0``), so Hessians and Hessian-vector products (``create_graph``)
-        are those of the discrete solution, not only gradients.
+        (frozen, :func:`root_with_derivatives`) carry the first and second derivatives with
+        respect to ``x_k`` and every tensor the model uses, so Hessians and Hessian-vector
+        products (``create_graph``) are those of the discrete solution, not only gradients.
 
         Samples outside ``valid`` ((*batch,) numpy bool: unconverged solves, discarded by the
-        caller) get zero derivatives instead of a solve with a possibly singular matrix; their
-        residuals are evaluated at ``W = 0`` (stage states ``x_k``, finite), so their zero
-        cotangents never meet the inf/nan partial derivatives of a diverged iterate.
+        caller) get zero derivatives instead of a solve with a possibly singular matrix.
         """
         Wd = torch.nan_to_num(W.detach())
         if self.needs_grad is False or not torch.is_grad_enabled():
             return Wd
-        if valid is not None:
-            valid = None if valid.all() else to_device(valid, h, shape=h.shape)
-        W0 = Wd if valid is None else torch.where(valid[..., None, None], Wd, 0.0)
         with torch.enable_grad():
-            R = self.residual(times, inputs, h, xk, W0)
+            R = self.residual(times, inputs, h, xk, Wd)
         # whether anything upstream requires grad cannot change during one integration
         self.needs_grad = R.requires_grad
         if not R.requires_grad:
             return Wd
         n, s, p = self.system.n, self.s, self.system.p
-        K, Z = W0[..., :n], W0[..., n:]
+        if valid is not None:
+            valid = None if valid.all() else to_device(valid, h, shape=h.shape)
+        K, Z = Wd[..., :n], Wd[..., n:]
         X = self.stage_states(xk.detach(), h, K)
         with torch.no_grad():
             if self.stack_stages:
@@ -393,18 +387,18 @@ class IRKCore:
                 J = torch.where(valid[..., None, None], J, eye)
             lu, piv = torch.linalg.lu_factor(J)
 
-        def correction(R):
-            """``-J^{-1} R`` minus its value: (*batch, s, p) zeros carrying the derivative."""
-            R = R.reshape(*h.shape, s * p, 1)
-            if valid is not None:
-                R = torch.where(valid[..., None, None], R, 0.0)
-            D = -FrozenLUSolve.apply(lu, piv, R).reshape(W0.shape)
-            return D - D.detach()
+        def flat(R):
+            R = R.reshape(*h.shape, s * p)
+            return R if valid is None else torch.where(valid[..., None], R, 0.0)
 
-        W1 = W0 + correction(R)
-        with torch.enable_grad():
-            W2 = W1 + correction(self.residual(times, inputs, h, xk, W1))
-        return Wd + (W2 - W2.detach())
+        def residual(Wf):
+            return flat(self.residual(times, inputs, h, xk, Wf.unflatten(-1, (s, p))))
+
+        def solve(r):
+            return FrozenLUSolve.apply(lu, piv, r[..., None])[..., 0]
+
+        W_root = root_with_derivatives(residual, Wd.flatten(-2), solve, r_star=flat(R))
+        return W_root.unflatten(-1, (s, p))
 
 
 def host_shape(batch) -> tuple:

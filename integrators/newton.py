@@ -291,19 +291,12 @@ class _ImplicitSolution(torch.autograd.Function):
 
 
 def _second_order_root(ctx, LU, pivots, grad_x, wanted):
-    """Vector-Jacobian product ``grad_x^T dx*/d(inputs[wanted])`` as a differentiable graph.
-
-    ``x2 = x1 - J^{-1} phi(x1)`` with ``x1 = x* - J^{-1} phi(x*)`` (``J`` the exact Jacobian
-    at ``x*``, frozen; both corrections zero-valued) agrees with the root ``x*(args, params)``
-    to second order: ``x1`` carries ``dx* = -J^{-1} dphi`` (eq. 3.40), so ``dphi(x1) = 0`` and
-    the second correction adds exactly ``-J^{-1} d^2 phi``. The gradient of ``x2`` taken with
-    ``create_graph`` is then the first derivative with a correct derivative of its own. Each
-    argument enters as ``a + delta`` with a zero leaf ``delta``: its gradient is the partial
-    derivative through this solve only, while the graph still reaches ``a``.
-    """
+    """Vector-Jacobian product ``grad_x^T dx*/d(inputs[wanted])`` as a differentiable graph:
+    the gradient, taken with ``create_graph``, of :func:`root_with_derivatives`. Each argument
+    enters as ``a + delta`` with a zero leaf ``delta``: its gradient is the partial derivative
+    through this solve only, while the graph still reaches ``a``."""
     inputs = list(ctx.inputs)
     args = list(inputs[: ctx.n_args])
-    x_star = ctx.x_star.detach()
     with torch.enable_grad():
         targets = []
         for i in wanted:
@@ -313,14 +306,44 @@ def _second_order_root(ctx, LU, pivots, grad_x, wanted):
                 targets.append(delta)
             else:  # closure params are used as they are
                 targets.append(inputs[i])
+        x = root_with_derivatives(
+            lambda x: ctx.phi(x, *args),
+            ctx.x_star,
+            lambda r: torch.linalg.lu_solve(LU, pivots, r.unsqueeze(-1)).squeeze(-1),
+        )
+        return torch.autograd.grad(x, targets, grad_x, create_graph=True, allow_unused=True)
 
-        def correction(x):
-            d = torch.linalg.lu_solve(LU, pivots, ctx.phi(x, *args).unsqueeze(-1)).squeeze(-1)
+
+def root_with_derivatives(residual: Callable, x_star: torch.Tensor, solve: Callable, r_star=None):
+    """The root ``x*`` of ``residual(x) = 0`` with its first and second derivatives attached
+    (implicit function theorem, eq. 3.40, and its derivative).
+
+    ``x1 = x* - J^{-1} residual(x*)`` and ``x2 = x1 - J^{-1} residual(x1)`` with ``J`` the
+    exact Jacobian ``d residual / dx`` at ``x*``, frozen: both corrections are zero-valued;
+    ``x1`` carries ``dx* = -J^{-1} d residual`` (derivatives with respect to whatever the
+    residual's graph reaches: arguments, parameters), so ``d residual(x1) = 0`` and the second
+    correction adds exactly ``-J^{-1} d^2 residual`` (derivatives of ``J`` multiply
+    ``residual = 0`` or ``d residual = 0``). Returned as ``x* + (x2 - stop_grad(x2))``.
+
+    Args:
+        residual: ``x -> (*batch, q)``, built from differentiable operations.
+        x_star: (*batch, q) the converged root (its graph, if any, is ignored).
+        solve: ``r -> J^{-1} r`` for (*batch, q) ``r``, differentiable in ``r`` (``J`` fixed).
+        r_star: ``residual(x_star)`` with its graph when the caller has it already.
+
+    Returns:
+        (*batch, q) tensor with the value of ``x_star``.
+    """
+    x_star = x_star.detach()
+    with torch.enable_grad():
+
+        def correction(r):
+            d = solve(r)
             return d.detach() - d
 
-        x1 = x_star + correction(x_star)
-        x2 = x1 + correction(x1)
-        return torch.autograd.grad(x2, targets, grad_x, create_graph=True, allow_unused=True)
+        x1 = x_star + correction(residual(x_star) if r_star is None else r_star)
+        x2 = x1 + correction(residual(x1))
+    return x_star + (x2 - x2.detach())
 
 
 # ------------------------------------------------------------------------------ newton
