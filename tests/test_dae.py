@@ -368,3 +368,16 @@ def test_implicit_dae_losing_index_one_on_a_fixed_grid_names_sample_and_time():
     torch.testing.assert_close(sol.z[0, :, 0], torch.sin(t), rtol=0, atol=2e-3)
     before = t <= 0.5
     torch.testing.assert_close(sol.x[1, before, 0], 2 * t[before], rtol=0, atol=1e-12)
+
+
+def test_consistent_initial_algebraic_state_gradient_reaches_captured_tensors():
+    """0 = z - p x^2 with p a captured tensor (not a module parameter): the consistent
+    z(t0) = p x0^2 has dz(t0)/dp = x0^2 and dz(t0)/dx0 = 2 p x0 (the whole output z has the
+    same gradients at t0 whatever the integration does later)."""
+    p = torch.tensor(0.8, dtype=torch.float64, requires_grad=True)
+    x0 = torch.tensor([[0.5], [1.5]], dtype=torch.float64, requires_grad=True)
+    problem = SemiExplicitDAE(lambda t, x, z: -z, lambda t, x, z: z - p * x**2)
+    sol = daeint(problem, x0, torch.zeros(2, 1), torch.linspace(0.0, 1.0, 3))
+    g_p, g_x0 = torch.autograd.grad(sol.z[:, 0, 0].sum(), (p, x0))
+    torch.testing.assert_close(g_p, (x0.detach() ** 2).sum())
+    torch.testing.assert_close(g_x0, 2 * 0.8 * x0.detach())
