@@ -10,7 +10,8 @@ Gradients use the implicit function theorem (eq. 3.40): with ``W*`` the converge
 ``W = W* + (D - stop_grad(D))`` with ``D = -J(W*)^{-1} R(W*, x_k, theta)`` has the value ``W*``
 and the derivative ``dW/d(x_k, theta) = -J^{-1} dR/d(x_k, theta)``; ``J^{-1}`` is applied by
 :class:`FrozenLUSolve`, whose backward is one transposed solve with the exact stage Jacobian.
-Nothing of the Newton iterations is stored.
+A second such correction, evaluated at that first-order-exact ``W``, makes second derivatives
+exact as well (:meth:`IRKCore.ift`). Nothing of the Newton iterations is stored.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import torch
 
 from ._irk_linalg import StageLinearSolver
 from ._irk_system import StageSystem, jacobian_scale, rank_ratio
-from .newton import newton
+from .newton import newton, root_with_derivatives
 
 EPS = {
     torch.float64: float(np.finfo(np.float64).eps),
@@ -343,6 +344,11 @@ class IRKCore:
     def ift(self, times, inputs, h, xk, W, valid=None):
         """Attach implicit-function-theorem gradients to converged stages (see module doc).
 
+        Two zero-valued Newton corrections with the exact stage Jacobian ``J`` at ``W*``
+        (frozen, :func:`root_with_derivatives`) carry the first and second derivatives with
+        respect to ``x_k`` and every tensor the model uses, so Hessians and Hessian-vector
+        products (``create_graph``) are those of the discrete solution, not only gradients.
+
         Samples outside ``valid`` ((*batch,) numpy bool: unconverged solves, discarded by the
         caller) get zero derivatives instead of a solve with a possibly singular matrix.
         """
@@ -357,10 +363,7 @@ class IRKCore:
             return Wd
         n, s, p = self.system.n, self.s, self.system.p
         if valid is not None:
-            if valid.all():
-                valid = None
-            else:
-                valid = to_device(valid, h, shape=h.shape)
+            valid = None if valid.all() else to_device(valid, h, shape=h.shape)
         K, Z = Wd[..., :n], Wd[..., n:]
         X = self.stage_states(xk.detach(), h, K)
         with torch.no_grad():
@@ -383,11 +386,19 @@ class IRKCore:
                 eye = torch.eye(s * p, dtype=J.dtype, device=J.device)
                 J = torch.where(valid[..., None, None], J, eye)
             lu, piv = torch.linalg.lu_factor(J)
-        R = R.reshape(*h.shape, s * p, 1)
-        if valid is not None:
-            R = torch.where(valid[..., None, None], R, torch.zeros_like(R))
-        D = -FrozenLUSolve.apply(lu, piv, R).reshape(Wd.shape)
-        return Wd + (D - D.detach())
+
+        def flat(R):
+            R = R.reshape(*h.shape, s * p)
+            return R if valid is None else torch.where(valid[..., None], R, 0.0)
+
+        def residual(Wf):
+            return flat(self.residual(times, inputs, h, xk, Wf.unflatten(-1, (s, p))))
+
+        def solve(r):
+            return FrozenLUSolve.apply(lu, piv, r[..., None])[..., 0]
+
+        W_root = root_with_derivatives(residual, Wd.flatten(-2), solve, r_star=flat(R))
+        return W_root.unflatten(-1, (s, p))
 
 
 def host_shape(batch) -> tuple:

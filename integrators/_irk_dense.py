@@ -67,12 +67,15 @@ class StepRecords:
 
     A sample that did not advance in an iteration has start time ``+inf`` in that record;
     the other start times of a sample increase, so the last record starting at or before a
-    query time is the step containing it.
+    query time is the step containing it. ``stop`` ((*batch,) host array or None) holds the
+    time each sample stopped at, ``+inf`` for the ones that finished: states at later times
+    are NaN (:func:`nan_beyond`).
     """
 
     def __init__(self, tab, n: int):
         self.tab, self.n = tab, n
         self.t0, self.h, self.x, self.W, self.z = [], [], [], [], []
+        self.stop = None
 
     def append(self, t0, h, x, W, z):
         """Add a record: t0, h (*batch,) (tensors or host arrays), x (*batch, n),
@@ -117,10 +120,29 @@ class StepRecords:
         else:
             z = z0
         M = tq.shape[0]
-        return (
-            x.permute(1, 0, 2).reshape(*batch, M, n),
-            z.permute(1, 0, 2).reshape(*batch, M, z.shape[-1]),
-        )
+        x = x.permute(1, 0, 2).reshape(*batch, M, n)
+        z = z.permute(1, 0, 2).reshape(*batch, M, z.shape[-1])
+        if self.stop is None:
+            return x, z
+        return nan_beyond(x, tq, self.stop), nan_beyond(z, tq, self.stop)
+
+
+def stop_times(status: np.ndarray, reached) -> np.ndarray:
+    """(*batch,) float64 host array: the time ``reached`` (host array or float) where
+    ``status`` (host int codes) is not SUCCESS, ``+inf`` elsewhere."""
+    return np.where(status != 0, np.asarray(reached, dtype=np.float64), np.inf)
+
+
+def nan_beyond(values: torch.Tensor, tq: torch.Tensor, stop: np.ndarray) -> torch.Tensor:
+    """``values`` (*batch, M, k) at times ``tq`` (M,) with NaN at the times after each sample's
+    stop time (``stop`` (*batch,) or (1,) host array, ``+inf`` for a finished sample): the
+    outputs of a failed sample end where its integration ended. A selection, so the gradient
+    of the remaining outputs stays finite."""
+    if values.shape[-1] == 0 or not np.isfinite(stop).any():
+        return values
+    stop_t = torch.as_tensor(stop, dtype=tq.dtype, device=tq.device).reshape(values.shape[:-2])
+    beyond = tq > stop_t[..., None]  # (*batch, M)
+    return torch.where(beyond[..., None], torch.full_like(values, float("nan")), values)
 
 
 def _stack(seq, like: torch.Tensor) -> torch.Tensor:

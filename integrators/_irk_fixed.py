@@ -8,8 +8,9 @@ in a two-iteration solve is round-off over round-off when the stage guess was al
 e.g. on a linear problem) and the step size is unchanged (steps equal to rounding, as on a
 uniform grid, count as equal); a slow or failed solve re-evaluates the Jacobian at the current
 state and a failed solve with a fresh Jacobian marks the sample NEWTON_FAILED (its state is
-then held). Per-sample flags and counters are host (numpy) arrays, so the only device-to-host
-transfers are one per Newton iteration (the increment norms).
+then held and its outputs after the start of the failed step are NaN). Per-sample flags and
+counters are host (numpy) arrays, so the only device-to-host transfers are one per Newton
+iteration (the increment norms).
 """
 
 from __future__ import annotations
@@ -20,7 +21,14 @@ import numpy as np
 import torch
 
 from ._irk_core import IRKCore, IterationMatrix, host_shape, masked_update, to_host
-from ._irk_dense import StepRecords, extrapolation_matrix, is_collocation, lagrange_basis
+from ._irk_dense import (
+    StepRecords,
+    extrapolation_matrix,
+    is_collocation,
+    lagrange_basis,
+    nan_beyond,
+    stop_times,
+)
 from .errors import HighIndexWarning
 from .solution import Status
 
@@ -59,6 +67,7 @@ def integrate_fixed(
     hshape = host_shape(batch)
     status = np.zeros(hshape, dtype=np.int8)
     active = np.ones(hshape, dtype=bool)
+    t_stop = np.zeros(hshape)  # start of the step where a sample stopped
     n_newton = np.zeros(hshape, dtype=np.int64)
     n_steps = np.zeros(hshape, dtype=np.int64)
     messages: list[str] = []
@@ -85,6 +94,7 @@ def integrate_fixed(
         hb = h.expand(batch)
         for j in range(substeps):
             tk = starts[k, j]
+            t_stop = np.where(active, t_host[k] + j * h_val, t_stop)
             times = core.stage_times(tk, h, len(batch), stacked=stage_grid[k, j])
             inputs = core.stage_inputs(times, tk, fixed=True)
             xd, zd = x.detach(), z.detach()
@@ -148,7 +158,8 @@ def integrate_fixed(
                     messages.append(
                         f"sample {tuple(idx)}: the implicit stage equations did not converge at "
                         f"t = {float(tk):.6g} (step {k}, substep {j}, dt = {h_val:.3g}); try "
-                        "more substeps, an adaptive method or a better-scaled model."
+                        "more substeps, an adaptive method or a better-scaled model; its "
+                        f"outputs after t = {float(tk):.6g} are NaN."
                     )
                 status[failed] = int(Status.NEWTON_FAILED)
                 active &= ~failed
@@ -175,9 +186,12 @@ def integrate_fixed(
     def dev(a):
         return torch.from_numpy(a).to(x0.device).reshape(batch)
 
+    stop = stop_times(status, t_stop)
+    if records is not None:
+        records.stop = stop
     return dict(
-        x=torch.stack(xs, dim=-2),
-        z=torch.stack(zs, dim=-2),
+        x=nan_beyond(torch.stack(xs, dim=-2), t, stop),
+        z=nan_beyond(torch.stack(zs, dim=-2), t, stop),
         status=dev(status),
         messages=messages,
         n_steps=dev(n_steps),
@@ -240,7 +254,7 @@ def _flag_high_index(high, status, active, messages, t):
             f"the DAE's algebraic Jacobian (dg/dz, or [dF/dx' dF/dz]) became rank deficient at "
             f"t = {when:.6g} for samples {idx[:10]}: the DAE is of index > 1 "
             "there (Theorem 9, Corollary 1) and implicit RK results would be meaningless; "
-            "index-reduce the model (notes §5.4, §7.6.1)."
+            "index-reduce the model (notes §5.4, §7.6.1). Their outputs after this time are NaN."
         )
         warnings.warn(msg, HighIndexWarning, stacklevel=4)
         messages.append(msg)

@@ -28,7 +28,7 @@ import torch
 from scipy.linalg import get_lapack_funcs
 
 from ._irk_core import IRKCore, host_shape, masked_update
-from ._irk_dense import StepRecords
+from ._irk_dense import StepRecords, stop_times
 from .errors import InputValidationError
 from .radau import embedded_weights, initial_step, next_step_sizes, stop_samples
 from .solution import Status
@@ -441,6 +441,7 @@ def integrate_adaptive_host(
             active &= ~(accept & (tcur >= t_end))
 
     records = _records(core, model, x0, z0, t_host[0], accepted)
+    records.stop = stop_times(status, tcur).reshape(hshape)
     x_out, z_out = records.evaluate(t)
 
     def dev(a):

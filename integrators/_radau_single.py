@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from ._irk_core import IRKCore, host_shape
+from ._irk_dense import stop_times
 from ._radau_host import _factorize, _HostModel, _method_constants, _records, _run_constants
 from .radau import initial_step, next_step_size, stop_samples
 from .solution import Status
@@ -204,6 +205,7 @@ def integrate_single_host(
             active = tcur < t_end
 
     records = _records(core, model, x0, z0, t_host[0], accepted)
+    records.stop = stop_times(np.full(hshape, int(status)), tcur)
     x_out, z_out = records.evaluate(t)
 
     def dev(value, dtype):

@@ -464,7 +464,9 @@ def daeint(
         problem: :class:`ImplicitODE`, :class:`SemiExplicitDAE` or :class:`ImplicitDAE`.
         x0: (*batch, n) initial differential states.
         z0: (*batch, m) guess of the initial algebraic states (None for ImplicitODE); only a
-            starting point of the consistency Newton solve, so it receives no gradient.
+            starting point of the consistency Newton solve, so it receives no gradient (the
+            consistent ``z(t0)`` carries the derivatives of that root with respect to ``x0``
+            and every tensor the model uses, first and second order).
         t: (T,) strictly increasing output times.
         method, stages, adaptive, rtol, atol, substeps, max_steps, **newton_options: as in
             :func:`solve_implicit_ode`; ``index_tol`` (default 1e-10) is the relative
@@ -566,27 +568,28 @@ def consistent_start(system: StageSystem, signal: InputSignal, t0, x0, z0, index
 
     n, m = system.n, system.m
     u0 = signal.at(t0)
-    params = [p for fn in system.fns if isinstance(fn, torch.nn.Module) for p in fn.parameters()]
-    guess_xdot = torch.zeros_like(x0)
+    x0d = x0.detach()
+    guess_xdot = torch.zeros_like(x0d)
     _check_index(system, t0, guess_xdot, x0, z0.detach(), u0, index_tol)
     if system.kind == "semi":
 
         def phi(z, x):
             return system._call(system.fns[1], t0, x, z, u=u0)
 
-        res = newton(phi, z0.detach(), x0, method="damped", params=params, max_iter=50)
-        z_new = res.x
+        res = newton(phi, z0.detach(), x0d, method="damped", max_iter=50)
         _raise_unconverged(res, "g(t0, x0, z) = 0 for z")
+        z_new = _root_derivatives(lambda z: phi(z, x0), res.x)
         xdot0 = system.rhs_f(t0, x0, z_new, u0)
     else:
 
         def phi(v, x):
             return system.residual(t0, v[..., :n], x, v[..., n:], u0)
 
-        guess = torch.cat([guess_xdot, z0], dim=-1).detach()
-        res = newton(phi, guess, x0, method="damped", params=params, max_iter=50)
+        guess = torch.cat([guess_xdot, z0.detach()], dim=-1)
+        res = newton(phi, guess, x0d, method="damped", max_iter=50)
         _raise_unconverged(res, "F(t0, x0', x0, z) = 0 for (x0', z)")
-        xdot0, z_new = res.x[..., :n], res.x[..., n:]
+        v = _root_derivatives(lambda v: phi(v, x0), res.x)
+        xdot0, z_new = v[..., :n], v[..., n:]
     _check_index(system, t0, xdot0, x0, z_new, u0, index_tol)
     correction = (z_new - z0).detach().abs().amax(-1) if m else x0.new_zeros(x0.shape[:-1])
     msgs = []
@@ -600,6 +603,25 @@ def consistent_start(system: StageSystem, signal: InputSignal, t0, x0, z0, index
             "stats.extra['z0_correction'])."
         )
     return z_new, xdot0.detach(), correction, msgs
+
+
+def _root_derivatives(phi, v_star):
+    """The converged root ``v_star`` of ``phi(v) = 0`` with its first and second derivatives
+    with respect to everything ``phi`` uses (``x0``, module parameters, captured tensors;
+    :func:`~integrators.newton.root_with_derivatives`, exact Jacobian at the root)."""
+    from .newton import batch_jacobian, root_with_derivatives
+
+    if not torch.is_grad_enabled():
+        return v_star
+    with torch.enable_grad():
+        r = phi(v_star)
+    if not r.requires_grad:
+        return v_star
+    _, J = batch_jacobian(phi, v_star)
+    lu, piv = torch.linalg.lu_factor(J)
+    return root_with_derivatives(
+        phi, v_star, lambda b: torch.linalg.lu_solve(lu, piv, b[..., None])[..., 0], r_star=r
+    )
 
 
 def _check_index(system, t0, xdot, x, z, u, index_tol):

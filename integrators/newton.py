@@ -14,8 +14,9 @@
 The solution is differentiable with respect to the tensors in ``args`` (and optional closure
 ``params``) by the implicit function theorem (eq. 3.40): the backward pass solves one linear
 system with the transposed Jacobian at the converged point, so no Newton iteration is stored
-and memory does not grow with the number of iterations. ``x0`` receives no gradient. The
-IFT backward is first order (``once_differentiable``): no Hessians through a solve.
+and memory does not grow with the number of iterations. ``x0`` receives no gradient. Under
+``create_graph=True`` the backward pass is itself differentiable and exact to second order
+(Hessians and Hessian-vector products through a solve).
 
 ``minimize`` applies the same machinery to ``min_theta Phi(theta)`` with the exact Hessian
 (eq. 3.49-3.52) or to least-squares residuals with the regularised Gauss-Newton Hessian
@@ -246,6 +247,8 @@ class _ImplicitSolution(torch.autograd.Function):
 
     Backward: solve ``J(x*)^T lam = grad_x`` once with the exact Jacobian at ``x*``, then
     ``grad_{args, params} = -(dphi/d(args, params))^T lam`` by one vector-Jacobian product.
+    Under ``create_graph=True`` the gradient is instead built from differentiable operations
+    (:func:`_second_order_root`), so second derivatives through the solve are exact too.
     """
 
     @staticmethod
@@ -254,7 +257,6 @@ class _ImplicitSolution(torch.autograd.Function):
         return x_star.clone()
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
     def backward(ctx, grad_x):
         frozen = _detach(ctx.inputs[: ctx.n_args])
         _, J = batch_jacobian(lambda x: ctx.phi(x, *frozen), ctx.x_star)
@@ -266,22 +268,82 @@ class _ImplicitSolution(torch.autograd.Function):
                 f"for sample(s) {bad}; the root is not regular (eq. 3.38), so x(args) is not "
                 "differentiable there."
             )
-        lam = torch.linalg.lu_solve(LU, pivots, grad_x.unsqueeze(-1), adjoint=True).squeeze(-1)
         inputs = list(ctx.inputs)
         wanted = [
             i for i, t in enumerate(inputs) if isinstance(t, torch.Tensor) and t.requires_grad
         ]
-        with torch.enable_grad():
-            for i, t in enumerate(inputs[: ctx.n_args]):  # args become fresh graph leaves
-                if isinstance(t, torch.Tensor):
-                    inputs[i] = t.detach().requires_grad_(i in wanted)
-            y = ctx.phi(ctx.x_star, *inputs[: ctx.n_args])
-            targets = [inputs[i] for i in wanted]  # closure params are used as they are
-            grads = torch.autograd.grad(y, targets, -lam, allow_unused=True) if targets else ()
+        if torch.is_grad_enabled():  # create_graph: a differentiable backward
+            grads = _second_order_root(ctx, LU, pivots, grad_x, wanted)
+        else:
+            lam = torch.linalg.lu_solve(LU, pivots, grad_x.unsqueeze(-1), adjoint=True)
+            lam = lam.squeeze(-1)
+            with torch.enable_grad():
+                for i, t in enumerate(inputs[: ctx.n_args]):  # args become fresh graph leaves
+                    if isinstance(t, torch.Tensor):
+                        inputs[i] = t.detach().requires_grad_(i in wanted)
+                y = ctx.phi(ctx.x_star, *inputs[: ctx.n_args])
+                targets = [inputs[i] for i in wanted]  # closure params are used as they are
+                grads = torch.autograd.grad(y, targets, -lam, allow_unused=True) if targets else ()
         out = [None] * len(inputs)
         for i, g in zip(wanted, grads, strict=True):
             out[i] = torch.zeros_like(inputs[i]) if g is None else g
         return (None, None, None, *out)
+
+
+def _second_order_root(ctx, LU, pivots, grad_x, wanted):
+    """Vector-Jacobian product ``grad_x^T dx*/d(inputs[wanted])`` as a differentiable graph:
+    the gradient, taken with ``create_graph``, of :func:`root_with_derivatives`. Each argument
+    enters as ``a + delta`` with a zero leaf ``delta``: its gradient is the partial derivative
+    through this solve only, while the graph still reaches ``a``."""
+    inputs = list(ctx.inputs)
+    args = list(inputs[: ctx.n_args])
+    with torch.enable_grad():
+        targets = []
+        for i in wanted:
+            if i < ctx.n_args:
+                delta = torch.zeros_like(args[i], requires_grad=True)
+                args[i] = args[i] + delta
+                targets.append(delta)
+            else:  # closure params are used as they are
+                targets.append(inputs[i])
+        x = root_with_derivatives(
+            lambda x: ctx.phi(x, *args),
+            ctx.x_star,
+            lambda r: torch.linalg.lu_solve(LU, pivots, r.unsqueeze(-1)).squeeze(-1),
+        )
+        return torch.autograd.grad(x, targets, grad_x, create_graph=True, allow_unused=True)
+
+
+def root_with_derivatives(residual: Callable, x_star: torch.Tensor, solve: Callable, r_star=None):
+    """The root ``x*`` of ``residual(x) = 0`` with its first and second derivatives attached
+    (implicit function theorem, eq. 3.40, and its derivative).
+
+    ``x1 = x* - J^{-1} residual(x*)`` and ``x2 = x1 - J^{-1} residual(x1)`` with ``J`` the
+    exact Jacobian ``d residual / dx`` at ``x*``, frozen: both corrections are zero-valued;
+    ``x1`` carries ``dx* = -J^{-1} d residual`` (derivatives with respect to whatever the
+    residual's graph reaches: arguments, parameters), so ``d residual(x1) = 0`` and the second
+    correction adds exactly ``-J^{-1} d^2 residual`` (derivatives of ``J`` multiply
+    ``residual = 0`` or ``d residual = 0``). Returned as ``x* + (x2 - stop_grad(x2))``.
+
+    Args:
+        residual: ``x -> (*batch, q)``, built from differentiable operations.
+        x_star: (*batch, q) the converged root (its graph, if any, is ignored).
+        solve: ``r -> J^{-1} r`` for (*batch, q) ``r``, differentiable in ``r`` (``J`` fixed).
+        r_star: ``residual(x_star)`` with its graph when the caller has it already.
+
+    Returns:
+        (*batch, q) tensor with the value of ``x_star``.
+    """
+    x_star = x_star.detach()
+    with torch.enable_grad():
+
+        def correction(r):
+            d = solve(r)
+            return d.detach() - d
+
+        x1 = x_star + correction(residual(x_star) if r_star is None else r_star)
+        x2 = x1 + correction(residual(x1))
+    return x_star + (x2 - x2.detach())
 
 
 # ------------------------------------------------------------------------------ newton

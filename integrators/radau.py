@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from ._irk_core import IRKCore, IterationMatrix, host_shape, masked_update, to_device, to_host
-from ._irk_dense import StepRecords, extrapolation_matrix
+from ._irk_dense import StepRecords, extrapolation_matrix, stop_times
 from ._irk_fixed import _flag_high_index
 from .solution import Status
 
@@ -271,6 +271,7 @@ def integrate_adaptive(
         h = np.where(accept, h_acc, np.where(reject, h_rej, h)).astype(hdt)
         active &= ~(accept & (tcur >= t_end))
 
+    records.stop = stop_times(status, tcur)
     x_out, z_out = records.evaluate(t)
 
     def dev(a):
@@ -450,5 +451,9 @@ def stop_samples(mask, code, status, active, messages, tcur, why):
     for idx in np.argwhere(mask).tolist():
         idx = tuple(idx)
         name = Status(int(status[idx])).name
-        messages.append(f"sample {idx}: {name} at t = {float(tcur[idx]):.6g}: {why}.")
+        when = float(tcur[idx])
+        messages.append(
+            f"sample {idx}: {name} at t = {when:.6g}: {why}; its outputs after t = {when:.6g} "
+            "are NaN."
+        )
     active[mask] = False

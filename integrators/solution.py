@@ -46,6 +46,14 @@ class SolverStats:
 class Solution:
     """The result of ``odeint`` / ``daeint``.
 
+    Failures are per sample and never raise: a sample whose integration stops (a step or
+    Newton failure, a step below the time resolution, a non-finite state, the step budget, a
+    DAE losing index 1) gets a non-SUCCESS ``status`` and a message naming its index and the
+    time ``t_f`` where it stopped, and all its outputs (``x``, ``z`` and dense output) at times
+    after ``t_f`` are NaN; every solver (explicit, adaptive, implicit, ``daeint``) follows this
+    rule. Its outputs up to ``t_f`` and the other samples are unaffected, and so are their
+    gradients: a loss over the finite outputs has finite, correct gradients.
+
     Attributes:
         t: (T,) output times.
         x: (*batch, T, nx) differential states at ``t``.
