@@ -6,6 +6,7 @@ from .controllers import IController, PIController
 from .dae_layer import DAELayer
 from .errors import (
     ConvergenceError,
+    GraphMemoryError,
     HighIndexError,
     HighIndexWarning,
     InputValidationError,
@@ -46,6 +47,7 @@ __all__ = [
     "TABLEAU_NAMES",
     "ButcherTableau",
     "ConvergenceError",
+    "GraphMemoryError",
     "HighIndexError",
     "HighIndexWarning",
     "InputValidationError",
