@@ -402,8 +402,9 @@ def _check_graph_memory(data, nodes, n_left, seg_steps, state_bytes, T, device) 
         f"the autograd graph of this fixed-step run would need about {need / gib:.3g} GiB "
         f"({data:.4g} bytes of saved tensors and {nodes:.3g} graph nodes per step for {n_left} "
         f"more steps, plus the outputs: {T} times x {state_bytes} bytes), but only "
-        f"{avail / gib:.3g} GiB are available on {device}. Remedies: run under torch.no_grad() if no gradient is "
-        f"needed; request fewer output times, a shorter horizon or a smaller batch; {hint}."
+        f"{avail / gib:.3g} GiB are available on {device}. Remedies: run under "
+        "torch.no_grad() if no gradient is needed; request fewer output times, a shorter "
+        f"horizon or a smaller batch; {hint}."
     )
 
 
