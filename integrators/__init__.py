@@ -7,6 +7,7 @@ from .dae_layer import DAELayer
 from .errors import (
     ConvergenceError,
     ConvergenceWarning,
+    GraphMemoryError,
     HighIndexError,
     HighIndexWarning,
     InputValidationError,
@@ -49,6 +50,7 @@ __all__ = [
     "ButcherTableau",
     "ConvergenceError",
     "ConvergenceWarning",
+    "GraphMemoryError",
     "HighIndexError",
     "HighIndexWarning",
     "InputValidationError",

@@ -26,6 +26,11 @@ class IntegrationError(RKIdentError, RuntimeError):
     """A simulation could not be completed (raised only where no per-sample status fits)."""
 
 
+class GraphMemoryError(RKIdentError, MemoryError):
+    """The autograd graph a simulation would keep for its gradient does not fit in the
+    available memory (estimated before the run)."""
+
+
 class HighIndexError(RKIdentError, ValueError):
     """A DAE is of differential index > 1 and must be index-reduced before integration."""
 

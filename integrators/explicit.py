@@ -38,11 +38,23 @@ synchronisation) finds the failed samples, and only then are their outputs searc
 Failure handling: a sample whose state becomes inf/nan gets ``Status.NON_FINITE`` and its
 outputs from the first non-finite output time on are NaN (the other samples are unaffected:
 batch members are independent). ``Solution.messages`` names
-the sample index and the time interval where it happened.
+the sample index and the time interval where it happened. With autograd, the inf/nan of a
+failed sample would still reach the gradient of shared parameters through ``f``'s own
+backward (``0 * inf = nan``), even where the loss reads only finite outputs; so the steps
+from the interval of the first failure on are run again with each failed sample frozen from
+its failing interval on: its stages evaluate ``f`` at its (finite) initial state, and its
+outputs there are NaN through a ``torch.where`` that passes no gradient to them.
+
+Memory with autograd: the graph of every step is kept for the backward pass. Its size is
+measured on the run's second chunk of steps (saved-tensor bytes and graph nodes) and
+extrapolated before the remaining steps run; a run that would not fit raises
+``GraphMemoryError``. ``checkpoint=`` runs the steps in segments under
+``torch.utils.checkpoint`` whose saved tensors are recomputed in the backward pass.
 """
 
 from __future__ import annotations
 
+import math
 import time
 import types
 import weakref
@@ -51,9 +63,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ._buffers import empty_buffer
+from ._buffers import available_bytes, empty_buffer
 from ._options import check_flag, check_int, raise_shape_change
-from .errors import TableauError
+from .errors import GraphMemoryError, InputValidationError, TableauError
 from .inputs import BoundRHS
 from .solution import Solution, SolverStats, Status
 
@@ -75,6 +87,14 @@ CHUNK_STATE_BYTES = 2**20
 #: (``_make_chunk``): a (nx, *batch) tensor whose rows the cat-forwarding graph pass lets
 #: inductor read straight from the model's own expressions.
 COMPONENT_MAJOR_MAX_STATES = 8
+#: A run with autograd may plan to keep at most this fraction of the available memory
+#: (``_buffers.available_bytes``) for its graph and outputs (``_check_graph_memory``).
+GRAPH_MEMORY_FRACTION = 0.9
+#: Bytes of autograd bookkeeping per graph node (the node, its saved-variable and tensor
+#: objects), besides the saved tensors' data. Fitted to the memory of eager RK4 steps of two
+#: models (Van der Pol: 40 nodes and 20 saved tensors per step, 38 kB; a linear model
+#: x @ A.T: 24 nodes and 8 saved tensors, 23 kB): about 1 kB per node.
+GRAPH_NODE_OVERHEAD = 1024
 
 
 @dataclass(frozen=True)
@@ -151,10 +171,12 @@ def _stage_state(x, hn, terms, component_major: bool):
     )
 
 
-def _make_chunk(f, kind, u_fn, scheme: _Scheme, substeps: int, n_out: int, component_major=False):
+def _make_chunk(
+    f, kind, u_fn, scheme: _Scheme, substeps: int, n_out: int, component_major=False, steps=None
+):
     """A function advancing ``n_out`` output intervals of ``substeps`` steps each.
 
-    chunk(x, t_stage, h, h_float, u0, du, out=None) -> (x_last, outputs)
+    chunk(x, t_stage, h, h_float, u0, du, out=None, frozen=None) -> (x_last, outputs)
         x: (*batch, nx) state at the chunk start, or (nx, *batch) with ``component_major``.
         t_stage: (n_out * substeps, n_stages) stage times.
         h: (n_out * substeps,) step sizes (tensor, used when h_float is None).
@@ -165,8 +187,15 @@ def _make_chunk(f, kind, u_fn, scheme: _Scheme, substeps: int, n_out: int, compo
             ``component_major``, no autograd) that receives the states at the output times in
             place; a compiled chunk then writes them straight from its fused kernel instead of
             allocating (and page-faulting) a fresh tensor per call.
+        frozen: None, or ``(mask, x_safe)``: a (*batch, 1) bool mask of frozen samples and a
+            finite (*batch, nx) state; every stage of a frozen sample evaluates ``f`` at
+            ``x_safe`` instead of its own state (see ``solve_explicit``, failed samples).
     Returns the state at the chunk end and the states at the output times, time-major
     ((n_out, *batch, nx) or (n_out, nx, *batch); ``out`` when given).
+
+    ``steps = (j0, j1)`` (with ``n_out == 1``) takes only the substeps ``j0 .. j1 - 1`` of the
+    interval (checkpointed segments that end inside an interval); the returned "outputs" are
+    then the state after substep ``j1 - 1``, an output only when ``j1 == substeps``.
 
     ``component_major`` keeps the state as its nx components (rows of a (nx, *batch) tensor)
     and forms every stage state component by component (:func:`_stage_state`). ``f`` still
@@ -177,8 +206,9 @@ def _make_chunk(f, kind, u_fn, scheme: _Scheme, substeps: int, n_out: int, compo
     stages = scheme.stages
     a, b, c = scheme.a, scheme.b, scheme.c
     m = substeps
+    j0, j1 = (0, m) if steps is None else steps
 
-    def chunk(x, t_stage, h, h_float, u0, du, out=None):
+    def chunk(x, t_stage, h, h_float, u0, du, out=None, frozen=None):
         if component_major:
             x = list(x.unbind(0))
         outputs = []
@@ -187,13 +217,15 @@ def _make_chunk(f, kind, u_fn, scheme: _Scheme, substeps: int, n_out: int, compo
                 uq = u0[..., q, :]
             elif kind == "linear":
                 uq, dq = u0[..., q, :], du[..., q, :]
-            for j in range(m):
-                n = q * m + j
+            for j in range(j0, j1):
+                n = q * (j1 - j0) + j - j0
                 hn = h[n] if h_float is None else h_float[n]
                 tn = t_stage[n]
                 K = []
                 for p in range(len(stages)):
                     xs = _stage_state(x, hn, [(coef, K[r]) for r, coef in a[p]], component_major)
+                    if frozen is not None:
+                        xs = torch.where(frozen[0], frozen[1], xs)
                     ts = tn[p]
                     if kind == "none":
                         K.append(f(ts, xs))
@@ -287,6 +319,98 @@ def _cache_entry(f, config) -> _Entry:
     return per_model.setdefault(key, _Entry())
 
 
+def _count_saved(storages: dict):
+    """A ``saved_tensors_hooks`` pack hook recording ``storages[address] = bytes`` of every
+    tensor autograd saves."""
+
+    def pack(tensor):
+        storage = tensor.untyped_storage()
+        storages[storage.data_ptr()] = storage.nbytes()
+        return tensor
+
+    return pack
+
+
+def _graph_nodes(tensor: torch.Tensor) -> set:
+    """The autograd nodes ``tensor`` depends on (its graph, walked from ``grad_fn``)."""
+    seen: set = set()
+    stack = [tensor.grad_fn]
+    while stack:
+        node = stack.pop()
+        if node is not None and node not in seen:
+            seen.add(node)
+            stack.extend(fn for fn, _ in node.next_functions)
+    return seen
+
+
+def _unpack(tensor):
+    return tensor
+
+
+def _segment_steps(checkpoint, n_steps: int, chunk_steps: int) -> int | None:
+    """Steps per checkpointed segment: None (no checkpointing) for ``False``, the integer
+    itself, or for ``True`` about ``sqrt(n_steps)`` (rounded up to whole chunks of
+    ``chunk_steps`` steps where a chunk is shorter)."""
+    if checkpoint is False:
+        return None
+    if checkpoint is not True:
+        return int(checkpoint)
+    steps = math.isqrt(max(n_steps - 1, 0)) + 1
+    return -(-steps // chunk_steps) * chunk_steps if chunk_steps <= steps else steps
+
+
+def _graph_bytes(data: float, nodes: float, n_left: int, seg_steps, state_bytes: int, T: int):
+    """Estimated bytes a run with autograd still allocates for its gradient.
+
+    Per step, autograd saves ``data`` bytes of tensors and creates ``nodes`` graph nodes of
+    about :data:`GRAPH_NODE_OVERHEAD` bytes each. Checkpointed segments of ``seg_steps``
+    steps keep the data of one segment (recomputed in the backward pass) and the segments'
+    start states, but the nodes of every step (non-reentrant checkpointing drops the saved
+    data only). Three copies of the (T, *batch, nx) outputs are added: the pieces, their
+    concatenation and its gradient.
+    """
+    outputs = 3 * T * state_bytes
+    bookkeeping = nodes * GRAPH_NODE_OVERHEAD * n_left
+    if seg_steps is None:
+        return data * n_left + bookkeeping + outputs
+    starts = -(-n_left // seg_steps) * state_bytes
+    return data * min(seg_steps, n_left) + starts + bookkeeping + outputs
+
+
+def _check_graph_memory(data, nodes, n_left, seg_steps, state_bytes, T, device) -> None:
+    """Raise GraphMemoryError when the graph of the remaining ``n_left`` steps
+    (:func:`_graph_bytes`) exceeds :data:`GRAPH_MEMORY_FRACTION` of the available memory."""
+    avail = available_bytes(device)
+    if avail is None:
+        return
+    if torch.device(device).type != "cpu":
+        nodes = 0.0  # the graph's nodes live in host memory, not on the device
+    need = _graph_bytes(data, nodes, n_left, seg_steps, state_bytes, T)
+    budget = GRAPH_MEMORY_FRACTION * avail
+    if need <= budget:
+        return
+    gib = 2.0**30
+    seg_auto = _segment_steps(True, n_left, 1)
+    need_ck = _graph_bytes(data, nodes, n_left, seg_auto, state_bytes, T)
+    if seg_steps is None and need_ck <= budget:
+        hint = (
+            f"odeint(..., checkpoint=True) would need about {need_ck / gib:.3g} GiB (segments "
+            f"of {seg_auto} steps recomputed in the backward pass, about twice the compute)"
+        )
+    elif seg_steps is None:
+        hint = f"even checkpoint=True would need about {need_ck / gib:.3g} GiB"
+    else:
+        hint = f"with checkpoint=True (segments of {seg_auto} steps): {need_ck / gib:.3g} GiB"
+    raise GraphMemoryError(
+        f"the autograd graph of this fixed-step run would need about {need / gib:.3g} GiB "
+        f"({data:.4g} bytes of saved tensors and {nodes:.3g} graph nodes per step for {n_left} "
+        f"more steps, plus the outputs: {T} times x {state_bytes} bytes), but only "
+        f"{avail / gib:.3g} GiB are available on {device}. Remedies: run under "
+        "torch.no_grad() if no gradient is needed; request fewer output times, a shorter "
+        f"horizon or a smaller batch; {hint}."
+    )
+
+
 def clear_compile_cache() -> None:
     """Forget all compiled chunks (the next compiled run compiles again)."""
     _CACHE.clear()
@@ -300,6 +424,7 @@ def solve_explicit(
     *,
     substeps: int = 1,
     compile="auto",
+    checkpoint=False,
 ) -> Solution:
     """Fixed-step explicit Runge-Kutta on the grid ``t`` (notes eq. 6.26).
 
@@ -313,6 +438,15 @@ def solve_explicit(
         compile: True (``torch.compile`` the chunked step, eager fallback if compilation
             fails), False, or ``"auto"`` (compile once :data:`AUTO_COMPILE_MIN_STEPS` steps
             were taken with this model over all calls).
+        checkpoint: with autograd, ``False`` keeps every step's graph; ``True`` runs the
+            steps in segments of about ``sqrt(n_steps)`` steps under
+            ``torch.utils.checkpoint`` (non-reentrant), whose saved tensors the backward pass
+            recomputes one segment at a time: the memory of the saved tensors then grows with
+            about the square root of the number of steps, for about twice the compute; an
+            integer ``k >= 1`` sets the steps per segment. Segments run eager (not compiled)
+            chunks. The graph's nodes (about 1 kB each, some 40 per RK4 step of a small model)
+            and the outputs are still kept for every step, so checkpointing pays off once the
+            state holds more than a few hundred numbers. Ignored without autograd.
 
     Returns:
         Solution with ``x`` (*batch, T, nx) (a view of a time-major (T, *batch, nx) buffer,
@@ -322,13 +456,25 @@ def solve_explicit(
         ``extra["compile_s"]`` the wall time of calls that triggered a compilation, else 0;
         ``extra["layout"]``: ``"component-major"`` for compiled runs without autograd of a
         component-wise model with at most :data:`COMPONENT_MAJOR_MAX_STATES` states, else
-        ``"interleaved"``).
+        ``"interleaved"``; ``extra["checkpoint_steps"]``: steps per checkpointed segment or
+        None).
+
+    A sample whose state becomes non-finite does not poison the gradient of the others: with
+    autograd the steps from the interval of the first failure on are run again with every
+    failed sample frozen at its (finite) initial state from its failing interval on, so no
+    inf/nan enters the graph (the outputs are the same; see the module docstring).
 
     Raises:
         TableauError: for an implicit tableau.
         InputValidationError: for ``substeps`` that is not an integer >= 1, ``compile`` that
             is not True, False or "auto", or a model whose output shape differs from the
-            state's at some stage evaluation.
+            state's at some stage evaluation; ``checkpoint`` that is neither a bool nor an
+            integer >= 1.
+        GraphMemoryError: with autograd, when the graph of the run (measured on its second
+            chunk of steps: the bytes autograd saves and the graph nodes it creates,
+            extrapolated, see ``_graph_bytes``) would exceed
+            :data:`GRAPH_MEMORY_FRACTION` of the available memory; raised after at most
+            2 * :data:`CHUNK_STEPS` steps.
     """
     if not tab.is_explicit:
         raise TableauError(
@@ -338,6 +484,14 @@ def solve_explicit(
         )
     substeps = check_int(substeps, "substeps")
     compile = check_flag(compile, "compile", allow=("auto",))
+    if not (
+        isinstance(checkpoint, bool)
+        or (isinstance(checkpoint, (int, np.integer)) and checkpoint >= 1)
+    ):
+        raise InputValidationError(
+            f"checkpoint must be True, False or an integer >= 1 (steps per segment), got "
+            f"{checkpoint!r}."
+        )
     scheme = _Scheme.from_tableau(tab)
     if isinstance(rhs, BoundRHS):
         f, kind, u_fn = rhs.f, rhs.kind, rhs.u
@@ -395,6 +549,7 @@ def solve_explicit(
         )
         compile_s += time.perf_counter() - tic
     compiled_chunk = entry.compiled.get(key)
+    seg_steps = _segment_steps(checkpoint, n_steps, n_out_chunk * m) if grad_mode else None
 
     # Component-major runs keep the state as a contiguous (nx, *batch) tensor and the outputs
     # in a (T, nx, *batch) buffer; ``to_state`` views either as the (*batch, nx) the eager
@@ -405,61 +560,155 @@ def solve_explicit(
     x = x0.movedim(-1, 0).contiguous() if component_major else x0  # layout of the compiled chunk
     # With autograd the per-chunk outputs are kept and concatenated at the end; without it
     # the chunks write into one preallocated time-major buffer (half the memory, no big cat).
-    outputs: list[torch.Tensor] = [x0.unsqueeze(0)]
     buffer = None
     if not grad_mode:
         shape = (T, x0.shape[-1], *batch) if component_major else (T, *x0.shape)
         buffer = empty_buffer(shape, x0.dtype, x0.device)
         to_state(buffer, 1)[0] = x0
-    k = 0
-    while k < n_int:
-        n_c = n_out_chunk if k + n_out_chunk <= n_int else 1
-        s0, s1 = k * m, (k + n_c) * m
-        us = None if u0 is None else u0[..., k : k + n_c, :]
-        ds = None if du is None else du[..., k : k + n_c, :]
-        out = None if buffer is None else buffer[k + 1 : k + 1 + n_c]
-        if n_c == n_out_chunk and use_compiled and not entry.failed:
-            args = (x, t_stage[s0:s1], h[s0:s1], None, us, ds, out)
+    partial_chunks: dict = {}
+    x_safe = x0.detach()  # where frozen samples evaluate f (finite: validated by odeint)
+
+    def step_chunk(x, s, s_end, fail_interval=None, compiled_ok=True):
+        """One chunk from step ``s`` (at most to step ``s_end``) from the state ``x`` (chunk
+        layout): ``n_out_chunk`` output intervals (compiled where enabled), one interval, or
+        part of one. ``fail_interval`` (*batch,) freezes the samples with
+        ``fail_interval <= k`` in interval ``k`` (eager single intervals only).
+        ``compiled_ok=False`` runs eager chunks only: a checkpointed segment is recomputed
+        with dynamo disabled, and the recomputation must save the same tensors as the forward.
+
+        Returns (x, step reached, outputs (n, *batch, nx) or None when no output time was
+        reached or a buffer receives them).
+        """
+        nonlocal compile_s
+        k, j = divmod(s, m)
+        full = fail_interval is None and j == 0 and k + n_out_chunk <= n_int
+        full = full and s + n_out_chunk * m <= s_end
+        if full or (j == 0 and s + m <= s_end):
+            n_c = n_out_chunk if full else 1
+            s_new, n_y = s + n_c * m, n_c
+            fn = chunk_eager if full else tail_eager
+        else:  # a checkpointed segment or the probe ends inside the interval
+            j_end = min(m, j + s_end - s)
+            s_new, n_y = s + j_end - j, int(j_end == m)
+            if (j, j_end) not in partial_chunks:
+                part = _make_chunk(f, kind, u_fn, scheme, m, 1, steps=(j, j_end))
+                partial_chunks[j, j_end] = part
+            fn = partial_chunks[j, j_end]
+        k_end = k + max(n_y, 1)
+        us = None if u0 is None else u0[..., k:k_end, :]
+        ds = None if du is None else du[..., k:k_end, :]
+        out = None if buffer is None or n_y == 0 else buffer[k + 1 : k + 1 + n_y]
+        if full and compiled_ok and use_compiled and not entry.failed:
             signature = (key, grad_mode, x.requires_grad)
             fresh = signature not in entry.signatures
             tic = time.perf_counter()
             try:
-                x, ys = compiled_chunk(*args)
+                x, ys = compiled_chunk(x, t_stage[s:s_new], h[s:s_new], None, us, ds, out)
             except Exception:  # compilation unavailable: fall back to eager, remember it
                 entry.failed = True
-                continue
-            if fresh:
-                compile_s += time.perf_counter() - tic
-                entry.signatures.add(signature)
-            if buffer is None:
-                outputs.append(to_state(ys, 1))
-        else:
-            fn = chunk_eager if n_c == n_out_chunk else tail_eager
-            hf = None if h_list is None else h_list[s0:s1]
-            out_state = None if out is None else to_state(out, 1)
-            x_state, ys = fn(to_state(x), t_stage[s0:s1], h[s0:s1], hf, us, ds, out_state)
-            x = x_state.movedim(-1, 0) if component_major else x_state
-            if buffer is None:
-                outputs.append(ys)
-        k += n_c
-    if buffer is None:
-        x_time_major = torch.cat(outputs, dim=0)  # (T, *batch, nx)
-    else:
-        x_time_major = to_state(buffer, 1)
-    x_out = x_time_major.movedim(0, -2)  # (*batch, T, nx) view
-    x = to_state(x)
+            else:
+                if fresh:
+                    compile_s += time.perf_counter() - tic
+                    entry.signatures.add(signature)
+                return x, s_new, to_state(ys, 1)
+        hf = None if h_list is None else h_list[s:s_new]
+        out_state = None if out is None else to_state(out, 1)
+        frozen = None
+        if fail_interval is not None:
+            frozen = ((fail_interval <= k).unsqueeze(-1), x_safe)
+        x_state, ys = fn(to_state(x), t_stage[s:s_new], h[s:s_new], hf, us, ds, out_state, frozen)
+        x = x_state.movedim(-1, 0) if component_major else x_state
+        return x, s_new, ys if n_y else None
 
+    def segment(x, s, s_end, fail_interval):
+        """Steps ``s .. s_end - 1``: the final state and the outputs reached (or None)."""
+        ys = []
+        while s < s_end:
+            x, s, y = step_chunk(x, s, s_end, fail_interval, compiled_ok=False)
+            if y is not None:
+                ys.append(y)
+        return x, (torch.cat(ys) if ys else None)
+
+    def run(x, s, fail_interval=None):
+        """Steps ``s .. n_steps - 1`` from ``x``. Returns the final state and, with autograd,
+        the pieces ``(step reached, state there, outputs or None)``.
+
+        With autograd the first two chunks (at most ``CHUNK_STEPS`` steps each) run under a
+        hook that counts the bytes autograd saves; the second chunk's new saved bytes and
+        graph nodes per step, extrapolated, must fit in the available memory
+        (:func:`_check_graph_memory`). Later steps run in checkpointed segments of
+        ``seg_steps`` steps when asked for (eager chunks: see ``step_chunk``).
+        """
+        pieces: list = []
+        probes: list = []
+        while s < n_steps:
+            probing = fail_interval is None and grad_mode and len(probes) < 2
+            if probing:
+                saved: dict = {}
+                s_end = min(n_steps, s + min(n_out_chunk * m, CHUNK_STEPS))
+                s0 = s
+                with torch.autograd.graph.saved_tensors_hooks(_count_saved(saved), _unpack):
+                    x, s, ys = step_chunk(x, s, s_end)
+                nodes = _graph_nodes(x) if x.requires_grad else set()
+                probes.append((saved, nodes))
+                if len(probes) == 2 and s < n_steps and x.requires_grad:
+                    data = sum(b for ptr, b in saved.items() if ptr not in probes[0][0])
+                    _check_graph_memory(
+                        data / (s - s0),
+                        len(nodes - probes[0][1]) / (s - s0),
+                        n_steps - s,
+                        seg_steps,
+                        x.numel() * x.element_size(),
+                        T,
+                        x.device,
+                    )
+            elif seg_steps is not None and x.requires_grad:
+                s_end = min(n_steps, s + seg_steps)
+                x, ys = torch.utils.checkpoint.checkpoint(
+                    segment, x, s, s_end, fail_interval, use_reentrant=False
+                )
+                s = s_end
+            else:
+                x, s, ys = step_chunk(x, s, n_steps, fail_interval)
+            if buffer is None:
+                pieces.append((s, x, ys))
+        return x, pieces
+
+    def time_major(pieces):
+        """The (T, *batch, nx) outputs: x0 and those of the pieces."""
+        if buffer is not None:
+            return to_state(buffer, 1)
+        return torch.cat([x0.unsqueeze(0)] + [ys for _, _, ys in pieces if ys is not None])
+
+    x, pieces = run(x, 0)
+    x_time_major = time_major(pieces)
     status = torch.zeros(batch, dtype=torch.int8, device=x0.device)
     messages: list[str] = []
-    failed = ~torch.isfinite(x).all(-1)  # non-finite states are absorbing (module docstring)
+    failed = ~torch.isfinite(to_state(x)).all(-1)  # non-finite states are absorbing
+    del x
     if bool(failed.any()):  # the single host synchronisation of the run
-        bad = ~torch.isfinite(x_time_major).all(-1)  # (T, *batch)
+        bad = ~torch.isfinite(x_time_major.detach()).all(-1)  # (T, *batch)
         first = bad.to(torch.int8).argmax(0)  # output index of the first bad state
         first = torch.where(failed, first, torch.full_like(first, T))
+        if x_time_major.requires_grad:
+            # A failed sample's inf/nan would reach the gradient of shared parameters
+            # through f's own backward (0 * inf = nan) even where the loss ignores it:
+            # rerun from the last piece before the first failure with the failed samples
+            # frozen at a finite state from their failing interval on.
+            fail_interval = first - 1
+            s_fail = int(fail_interval.min()) * m
+            pieces = [piece for piece in pieces if piece[0] <= s_fail]
+            s_r, x_r = pieces[-1][:2] if pieces else (0, x0)
+            x_time_major = None  # release the first run's graph
+            pieces += run(x_r, s_r, fail_interval)[1]
+            x_time_major = time_major(pieces)
+        x_out = x_time_major.movedim(0, -2)  # (*batch, T, nx) view
         late = torch.arange(T, device=x0.device) >= first.unsqueeze(-1)  # (*batch, T)
         x_out = torch.where(late.unsqueeze(-1), torch.full_like(x_out, float("nan")), x_out)
         status = torch.where(failed, Status.NON_FINITE.value, status).to(torch.int8)
         messages = _failure_messages(failed, first, t)
+    else:
+        x_out = x_time_major.movedim(0, -2)  # (*batch, T, nx) view
     stats = SolverStats(
         n_f_evals=n_steps * len(scheme.stages),
         n_steps=n_steps,
@@ -468,6 +717,7 @@ def solve_explicit(
             "compile_s": compile_s,
             "substeps": m,
             "layout": "component-major" if component_major else "interleaved",
+            "checkpoint_steps": seg_steps,
         },
     )
     return Solution(t=t, x=x_out, status=status, stats=stats, messages=messages, method=tab.name)

@@ -52,6 +52,7 @@ def odeint(
     max_steps=100_000,
     stages=None,
     compile="auto",
+    checkpoint=False,
     **kwargs,
 ) -> Solution:
     """Simulate ``x' = f(t, x[, u])`` from ``x0`` and report the states at the times ``t``.
@@ -79,6 +80,11 @@ def odeint(
         stages: number of stages of ``"gauss_legendre"`` / ``"radau_iia"`` (those only).
         compile: fixed-step explicit methods: ``True``, ``False`` or ``"auto"`` (see
             :func:`integrators.explicit.solve_explicit`).
+        checkpoint: fixed-step explicit methods with autograd: ``True`` recomputes the graph
+            in segments of about ``sqrt(n_steps)`` steps during the backward pass (memory
+            about the square root of the run's length, about twice the compute), an integer
+            sets the steps per segment, ``False`` keeps every step's graph (see
+            :func:`integrators.explicit.solve_explicit`).
         **kwargs: ``adaptive`` (``True``, ``False`` or ``None``: the method's default);
             ``adaptive=False`` runs an embedded pair (e.g. dopri5) at fixed step; other
             keywords go to the implicit solver (Newton options, see
@@ -104,6 +110,8 @@ def odeint(
             ``host_loop``); options the chosen method does not use; unexpected keywords;
             ``t`` requiring grad with a method that does not differentiate with respect to it.
         TableauError: unknown method name; ``adaptive=True`` without an embedded pair.
+        GraphMemoryError: a fixed-step explicit run with autograd whose graph would not fit
+            in the available memory (the message names the remedies, e.g. ``checkpoint=True``).
     """
     x0 = _validate_x0(x0)
     t = _validate_t(t, x0)
@@ -135,6 +143,7 @@ def odeint(
         max_steps=max_steps,
         stages=stages,
         compile=compile,
+        checkpoint=checkpoint,
         adaptive=adaptive,
     )
     if isinstance(method, str) and method == "auto":
@@ -149,6 +158,12 @@ def odeint(
 
 def _dispatch(rhs, x0, t, method, options, kwargs) -> Solution:
     """Run the solver that ``method`` names (see the module docstring)."""
+    if options["checkpoint"] is not False and not _is_fixed_step_explicit(method, options):
+        raise InputValidationError(
+            f"checkpoint={options['checkpoint']!r} applies to fixed-step explicit methods only, "
+            f"not to {getattr(method, 'name', method)!r}; adaptive and implicit solvers keep "
+            "their own graphs (use sensitivities() or a fixed-step method such as 'rk4')."
+        )
     if isinstance(method, str) and method in COLLOCATION_METHODS:
         return _implicit(rhs, x0, t, method, options, kwargs)
     tab = _resolve_tableau(method)
@@ -192,7 +207,24 @@ def _dispatch(rhs, x0, t, method, options, kwargs) -> Solution:
                 f"{name} applies to adaptive methods only; {tab.name!r} runs at fixed steps "
                 "(set their number per output interval with substeps)."
             )
-    return solve_explicit(rhs, x0, t, tab, substeps=options["substeps"], compile=options["compile"])
+    return solve_explicit(
+        rhs,
+        x0,
+        t,
+        tab,
+        substeps=options["substeps"],
+        compile=options["compile"],
+        checkpoint=options["checkpoint"],
+    )
+
+
+def _is_fixed_step_explicit(method, options) -> bool:
+    """Whether ``method`` (a name or tableau, not ``"auto"``) runs in ``solve_explicit``."""
+    if isinstance(method, str) and method not in TABLEAU_NAMES:
+        return False
+    tab = _resolve_tableau(method)
+    adaptive = options["adaptive"]
+    return tab.is_explicit and not (tab.b_err is not None if adaptive is None else adaptive)
 
 
 def _implicit(rhs, x0, t, method, options, kwargs) -> Solution:
