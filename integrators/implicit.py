@@ -374,7 +374,7 @@ def solve_implicit_ode(
     with torch.no_grad():
         xdot0 = fn(t0, x0, signal.at(t0)) if has_input else fn(t0, x0)
     _check_derivative_shape(xdot0, x0)
-    if x0.numel() == 0:
+    if x0.shape[:-1].numel() == 0:
         return _empty_solution(x0, z0, t, tab.name, with_z=False)
     return _run(
         core,
@@ -523,7 +523,7 @@ def daeint(
             "the error of the differential states, so there is nothing to control; pass "
             "adaptive=False (z is then solved from g = 0 at every step)."
         )
-    if x0.numel() == 0:
+    if x0.shape[:-1].numel() == 0:
         return _empty_solution(x0, z0, t, tab.name, with_z=not isinstance(problem, ImplicitODE))
     from .inputs import bind_rhs
 
