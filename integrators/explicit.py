@@ -268,6 +268,26 @@ def _with_own_code(fn):
     return types.FunctionType(code, fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
 
 
+def _backward_works(ys: torch.Tensor, x: torch.Tensor, f) -> bool:
+    """Whether the graph of a compiled chunk's outputs ``ys`` can be differentiated with respect
+    to the state ``x`` and ``f``'s parameters (one backward, graph kept, no ``.grad`` touched).
+
+    A model that calls autograd inside ``f`` (Lagrangian systems, energy-based networks) builds
+    a double-backward graph through the compiled region, which aot_autograd cannot
+    differentiate: the error would only surface in the caller's backward. Such a model runs
+    eagerly with autograd on (the probe counts as compile time, once per chunk signature).
+    """
+    params = f.parameters() if isinstance(f, torch.nn.Module) else ()
+    inputs = [v for v in (x, *params) if v.requires_grad]
+    if not ys.requires_grad or not inputs:
+        return True
+    try:
+        torch.autograd.grad(ys.sum(), inputs, retain_graph=True, allow_unused=True)
+    except RuntimeError:
+        return False
+    return True
+
+
 class _Entry:
     """Compiled chunk functions for one model/configuration, and their usage counters."""
 
@@ -275,6 +295,7 @@ class _Entry:
         self.steps_seen = 0
         self.compiled: dict = {}  # (outputs per chunk, component-major, shape...) -> chunk
         self.failed = False
+        self.backward_failed = False  # the compiled chunk's graph cannot be differentiated
         self.signatures: set = set()
         self.componentwise: bool | None = None  # see _is_componentwise
 
@@ -523,8 +544,9 @@ def solve_explicit(
     entry = _cache_entry(f, config)
     entry.steps_seen += n_steps
     want = compile is True or (compile == "auto" and entry.steps_seen >= AUTO_COMPILE_MIN_STEPS)
-    use_compiled = want and not entry.failed and not torch.compiler.is_compiling()
     grad_mode = torch.is_grad_enabled()
+    use_compiled = want and not entry.failed and not torch.compiler.is_compiling()
+    use_compiled = use_compiled and not (grad_mode and entry.backward_failed)
     compile_s = 0.0
     component_major = False
     if use_compiled and not grad_mode and x0.shape[-1] <= COMPONENT_MAJOR_MAX_STATES:
@@ -603,14 +625,17 @@ def solve_explicit(
             fresh = signature not in entry.signatures
             tic = time.perf_counter()
             try:
-                x, ys = compiled_chunk(x, t_stage[s:s_new], h[s:s_new], None, us, ds, out)
+                x_new, ys = compiled_chunk(x, t_stage[s:s_new], h[s:s_new], None, us, ds, out)
             except Exception:  # compilation unavailable: fall back to eager, remember it
                 entry.failed = True
             else:
-                if fresh:
-                    compile_s += time.perf_counter() - tic
-                    entry.signatures.add(signature)
-                return x, s_new, to_state(ys, 1)
+                if fresh and grad_mode and not _backward_works(ys, x, f):
+                    entry.backward_failed = True
+                else:
+                    if fresh:
+                        compile_s += time.perf_counter() - tic
+                        entry.signatures.add(signature)
+                    return x_new, s_new, to_state(ys, 1)
         hf = None if h_list is None else h_list[s:s_new]
         out_state = None if out is None else to_state(out, 1)
         frozen = None
@@ -713,7 +738,8 @@ def solve_explicit(
         n_f_evals=n_steps * len(scheme.stages),
         n_steps=n_steps,
         extra={
-            "compiled": bool(use_compiled and not entry.failed),
+            "compiled": bool(use_compiled and not entry.failed)
+            and not (grad_mode and entry.backward_failed),
             "compile_s": compile_s,
             "substeps": m,
             "layout": "component-major" if component_major else "interleaved",

@@ -20,6 +20,7 @@ import torch
 from scipy.integrate import solve_ivp
 
 from integrators import Status, odeint
+from integrators._irk_linalg import _DENSE_MAX as HOST_MAX_ROWS
 from sysid.zoo import scenarios as zoo_scenarios
 
 DT = torch.float64
@@ -46,50 +47,39 @@ class Driver:
     grad_rtol: float
     explicit: bool = False
     extra: dict = field(default_factory=dict)
+    max_newton_rows: int | None = None
+
+    def applies(self, sc) -> bool:
+        """Whether the dispatch can run this driver on the scenario's plant: explicit methods
+        skip stiff plants, the host loops take Newton matrices of at most
+        ``max_newton_rows`` rows (3 stages x nx)."""
+        if sc.stiff and self.explicit:
+            return False
+        return self.max_newton_rows is None or 3 * len(sc.x0) <= self.max_newton_rows
 
 
 _FIXED = dict(substeps=SUBSTEPS, rtol=1e-12)
 _ADAPTIVE = dict(rtol=RTOL, atol=ATOL)
+#: errors against the reference: fixed steps (h = t_end / 50) reach 1e-8 .. 5e-5 on the zoo
+#: (the springy cranes least), the adaptive drivers at RTOL reach about 10 RTOL
+FIXED_TOL, ADAPTIVE_TOL = 1e-4, 1e-6
 DRIVERS = [
-    Driver(
-        "rk4 eager",
-        dict(method="rk4", substeps=SUBSTEPS, compile=False),
-        1e-6,
-        1e-6,
-        True,
-        {"compiled": False},
-    ),  # fmt: skip
-    Driver("rk4 compiled", dict(method="rk4", substeps=SUBSTEPS, compile=True), 1e-6, 1e-6, True),
-    Driver("dopri5", dict(method="dopri5", **_ADAPTIVE), 1e-6, 1e-4, True),
-    Driver(
-        "gauss fixed",
-        dict(method="gauss_legendre", stages=2, **_FIXED),
-        1e-6,
-        1e-6,
-        extra={"driver": "torch"},
-    ),  # fmt: skip
-    Driver(
-        "radau fixed",
-        dict(method="radau_iia", adaptive=False, **_FIXED),
-        1e-6,
-        1e-6,
-        extra={"driver": "torch"},
-    ),  # fmt: skip
-    Driver(
-        "radau adaptive torch",
-        dict(method="radau_iia", host_loop=False, **_ADAPTIVE),
-        1e-6,
-        1e-4,
-        extra={"driver": "torch"},
-    ),  # fmt: skip
-    Driver(
-        "radau adaptive host",
-        dict(method="radau_iia", host_loop=True, **_ADAPTIVE),
-        1e-6,
-        1e-4,
-        extra={"driver": {(): "host, one trajectory", (1,): "host, one trajectory", (3,): "host"}},
-    ),  # fmt: skip
-]
+    Driver("rk4 eager", dict(method="rk4", substeps=SUBSTEPS, compile=False), FIXED_TOL, 1e-6,
+           explicit=True, extra={"compiled": False}),
+    Driver("rk4 compiled", dict(method="rk4", substeps=SUBSTEPS, compile=True), FIXED_TOL, 1e-6,
+           explicit=True),
+    Driver("dopri5", dict(method="dopri5", **_ADAPTIVE), ADAPTIVE_TOL, 1e-4, explicit=True),
+    Driver("gauss fixed", dict(method="gauss_legendre", stages=2, **_FIXED), FIXED_TOL, 1e-6,
+           extra={"driver": "torch"}),
+    Driver("radau fixed", dict(method="radau_iia", adaptive=False, **_FIXED), FIXED_TOL, 1e-6,
+           extra={"driver": "torch"}),
+    Driver("radau adaptive torch", dict(method="radau_iia", host_loop=False, **_ADAPTIVE),
+           ADAPTIVE_TOL, 1e-4, extra={"driver": "torch"}),
+    Driver("radau adaptive host", dict(method="radau_iia", host_loop=True, **_ADAPTIVE),
+           ADAPTIVE_TOL, 1e-4, max_newton_rows=HOST_MAX_ROWS,
+           extra={"driver": {(): "host, one trajectory", (1,): "host, one trajectory",
+                             (3,): "host"}}),
+]  # fmt: skip
 DRIVER = {d.name: d for d in DRIVERS}
 SCENARIOS = {s.name: s for s in zoo_scenarios.scenarios()}
 
@@ -99,7 +89,7 @@ def _cases(shapes=None):
     compiled driver (seconds of compilation per plant) runs at the largest batch shape only."""
     for sc in SCENARIOS.values():
         for drv in DRIVERS:
-            if sc.stiff and drv.explicit:
+            if not drv.applies(sc):
                 continue
             if shapes is None:
                 yield pytest.param(sc.name, drv.name, id=f"{sc.name}-{drv.name}")
@@ -214,7 +204,9 @@ def test_compiled_rk4_equals_eager(name):
 
 
 @pytest.mark.parametrize("shape", BATCH_SHAPES, ids=lambda s: f"batch{s}")
-@pytest.mark.parametrize("name", list(SCENARIOS))
+@pytest.mark.parametrize(
+    "name", [n for n, sc in SCENARIOS.items() if DRIVER["radau adaptive host"].applies(sc)]
+)
 def test_host_radau_equals_torch_radau(name, shape):
     """The numpy host loops (batched and one trajectory) take the torch driver's steps."""
     host, ref = (_solution(name, d, shape) for d in ("radau adaptive host", "radau adaptive torch"))

@@ -214,3 +214,22 @@ def test_checkpoint_argument_is_validated():
     with pytest.raises(InputValidationError, match="fixed-step explicit"):
         odeint(f, x0, t, method="radau_iia", stages=2, checkpoint=True)
     assert odeint(f, x0, t, method="dopri5", adaptive=False, checkpoint=2).success
+
+
+def test_compiled_gradient_of_a_model_calling_autograd_inside_f_runs_eagerly():
+    """A Lagrangian plant calls autograd inside f; aot_autograd cannot differentiate the
+    double-backward graph of a compiled chunk, so with autograd on the run falls back to eager
+    (reported), and its gradient equals the eager one (without the fallback: RuntimeError in
+    the caller's backward)."""
+    from sysid.zoo import SpringMass
+
+    plant = SpringMass()
+    x0 = torch.tensor([[1.5, 0.0], [1.0, 0.2]], dtype=torch.float64)
+    t = torch.linspace(0.0, 1.0, 6, dtype=torch.float64)
+    grads, flags = [], []
+    for compile in (False, True):
+        sol = odeint(plant, x0, t, substeps=4, compile=compile)
+        grads.append(torch.autograd.grad(sol.x[..., -1, :].sum(), plant.k)[0])
+        flags.append(sol.stats.extra["compiled"])
+    assert flags == [False, False]
+    torch.testing.assert_close(grads[1], grads[0], rtol=1e-13, atol=0)
