@@ -7,7 +7,8 @@ one for every plant class exported by :mod:`sysid.zoo`; the correctness tests ru
 scenario through every integrator and driver, so a new plant is covered once it has a scenario
 here. Index-1 DAE forms of the plants (semi-explicit, notes eq. 5.16; the index-1 KKT form of
 constrained mechanics, eq. 2.168 with Baumgarte stabilisation, eq. 2.186) are listed by
-:func:`dae_scenarios`.
+:func:`dae_scenarios`, and the DAEs whose given form has index > 1 (which ``daeint`` must
+refuse) by :func:`refused_scenarios`.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from integrators.problems import ImplicitDAE, SemiExplicitDAE
+from integrators.problems import ImplicitDAE, ImplicitODE, SemiExplicitDAE
 
 from . import dae, mechanical, ode
 
@@ -44,6 +45,8 @@ class Scenario:
             gradient is taken with respect to ``x0``).
         u: the input ``u(t)`` (:func:`smooth_input`) for plants that take one, else None.
         stiff: explicit methods need impractically small steps (only implicit methods run).
+        substeps: fixed steps per output interval (of ``t_end / 10``) that resolve the
+            plant's fastest motion to about 1e-5 with a fourth-order method.
     """
 
     name: str
@@ -54,6 +57,7 @@ class Scenario:
     param: str | None
     u: Callable[[torch.Tensor], torch.Tensor] | None = None
     stiff: bool = False
+    substeps: int = 5
 
 
 @dataclass(frozen=True)
@@ -66,6 +70,7 @@ class DAEScenario:
         problem: ``problem(plant)`` -> a :class:`SemiExplicitDAE` or :class:`ImplicitDAE`.
         x0: (nx,) initial differential states.
         z0: (nz,) guess of the initial algebraic states (``daeint`` makes it consistent).
+        substeps: as in :class:`Scenario`.
     """
 
     name: str
@@ -77,6 +82,7 @@ class DAEScenario:
     t_end: float
     param: str | None
     u: Callable[[torch.Tensor], torch.Tensor] | None = None
+    substeps: int = 5
 
 
 def _chain_rest(n_masses: int) -> tuple[float, ...]:
@@ -110,6 +116,7 @@ def scenarios() -> list[Scenario]:
             0.5,
             "eps",
             stiff=True,
+            substeps=20,
         ),
         Scenario("Lorenz", ode.Lorenz, ode.Lorenz, (1.0, 1.0, 1.0), 0.5, "rho"),
         Scenario(
@@ -117,9 +124,10 @@ def scenarios() -> list[Scenario]:
             ode.StiffLinear,
             lambda: ode.StiffLinear(eps=1e-2),
             (1.0, 0.0, 0.5, -0.5),
-            1.0,
+            0.5,
             "eps",
             stiff=True,
+            substeps=25,
         ),
         Scenario(
             "LinearTestEquation",
@@ -145,7 +153,7 @@ def scenarios() -> list[Scenario]:
             dae.TwoMassSystem,
             lambda: dae.TwoMassSystem(m1=0.1, K=20.0),
             (0.1, 0.0, 0.0, 0.0),
-            1.0,
+            0.5,
             "rho",
             smooth_input,
         ),
@@ -164,7 +172,7 @@ def scenarios() -> list[Scenario]:
             mechanical.SpringMass,
             mechanical.SpringMass,
             (1.5, 0.0),
-            1.0,
+            0.5,
             "k",
             smooth_input,
         ),
@@ -182,7 +190,7 @@ def scenarios() -> list[Scenario]:
             mechanical.Crane,
             mechanical.Crane,
             (0.0, 0.5, 0.2, 0.0),
-            1.0,
+            0.5,
             "m",
             smooth_input,
         ),
@@ -191,7 +199,7 @@ def scenarios() -> list[Scenario]:
             mechanical.ElasticCranePolar,
             mechanical.ElasticCranePolar,
             (0.0, 0.5, 1.1, 0.0, 0.0, 0.0),
-            1.0,
+            0.5,
             "K",
             smooth_input,
         ),
@@ -200,7 +208,7 @@ def scenarios() -> list[Scenario]:
             mechanical.ElasticCraneCartesian,
             mechanical.ElasticCraneCartesian,
             (0.0, 1.1 * sin_half, 1.1 * cos_half, 0.0, 0.0, 0.0),
-            1.0,
+            0.5,
             "K",
             smooth_input,
         ),
@@ -209,7 +217,7 @@ def scenarios() -> list[Scenario]:
             mechanical.RigidCraneCartesian,
             lambda: mechanical.RigidCraneCartesian(baumgarte=5.0),
             (0.0, sin_half, cos_half, 0.3, 0.3, 0.0),
-            1.0,
+            0.5,
             "m",
             smooth_input,
         ),
@@ -218,7 +226,7 @@ def scenarios() -> list[Scenario]:
             mechanical.TwoPendulumCranePolar,
             mechanical.TwoPendulumCranePolar,
             (0.0, 0.4, -0.3, 0.0, 0.0, 0.0),
-            1.0,
+            0.5,
             "L",
             smooth_input,
         ),
@@ -227,7 +235,7 @@ def scenarios() -> list[Scenario]:
             mechanical.TwoPendulumCraneCartesian,
             lambda: mechanical.TwoPendulumCraneCartesian(baumgarte=5.0),
             _two_pendulum_cartesian(0.4, -0.3),
-            1.0,
+            0.5,
             "g",
             smooth_input,
         ),
@@ -236,7 +244,7 @@ def scenarios() -> list[Scenario]:
             mechanical.HangingChain,
             lambda: mechanical.HangingChain(n_masses=3, m=0.2, K=5.0),
             _chain_rest(3),
-            1.0,
+            0.5,
             "K",
         ),
         Scenario(
@@ -244,7 +252,7 @@ def scenarios() -> list[Scenario]:
             mechanical.Bowl,
             lambda: mechanical.Bowl(baumgarte=5.0),
             (1.0, 0.0, 0.25, 0.0, 1.0, 0.0),
-            1.0,
+            0.5,
             "g",
         ),
         Scenario(
@@ -252,7 +260,7 @@ def scenarios() -> list[Scenario]:
             mechanical.DistributedRod,
             mechanical.DistributedRod,
             (0.3, 0.0),
-            1.0,
+            0.5,
             "L",
             smooth_input,
         ),
@@ -314,6 +322,7 @@ def dae_scenarios() -> list[DAEScenario]:
             1.0,
             "K",
             smooth_input,
+            substeps=20,
         ),
         DAEScenario(
             "Example546",
@@ -366,5 +375,66 @@ def dae_scenarios() -> list[DAEScenario]:
             (0.0,),
             1.0,
             "g",
+        ),
+    ]
+
+
+@dataclass(frozen=True)
+class RefusedScenario:
+    """A DAE of the zoo in a form of index > 1, which ``daeint`` must refuse.
+
+    Attributes:
+        name: a label; plant_class: the zoo class.
+        setup: ``setup() -> (problem, x0, z0)`` handed to ``daeint``.
+    """
+
+    name: str
+    plant_class: type
+    setup: Callable[[], tuple]
+
+
+def _index3_example_548():
+    plant = dae.Example548()
+    x0 = torch.tensor([1.0, 0.0], dtype=torch.float64)
+    return ImplicitDAE(plant.residual), x0, torch.zeros(1, dtype=torch.float64)
+
+
+def _no_algebraic_states(plant_class):
+    """Eq. (5.2) / (5.3) as F(t, x', x) = 0: dF/dx' is singular (eq. 5.9, 5.11)."""
+
+    def setup():
+        plant = plant_class()
+
+        def residual(t, xdot, x, u=None):
+            return plant.residual(t, xdot, x, x[..., :0], u)
+
+        return ImplicitODE(residual), torch.tensor([1.0, 3.0], dtype=torch.float64), None
+
+    return setup
+
+
+def _index2_semi_explicit(plant_class, x0, z0):
+    def setup():
+        plant = plant_class()
+        problem = SemiExplicitDAE(plant.f, plant.g)
+        return problem, torch.tensor(x0, dtype=torch.float64), torch.tensor(z0, dtype=torch.float64)
+
+    return setup
+
+
+def refused_scenarios() -> list[RefusedScenario]:
+    """The zoo's DAEs whose given form has index > 1 (eq. 5.2, 5.3, 5.48, 5.81, 5.88): the
+    index check (Theorem 9) must refuse them with ``HighIndexError``."""
+    return [
+        RefusedScenario("Example52", dae.Example52, _no_algebraic_states(dae.Example52)),
+        RefusedScenario("Example53", dae.Example53, _no_algebraic_states(dae.Example53)),
+        RefusedScenario("Example548", dae.Example548, _index3_example_548),
+        RefusedScenario(
+            "Example581",
+            dae.Example581,
+            _index2_semi_explicit(dae.Example581, (1.0, 1.0), (0.0, 1.0)),
+        ),
+        RefusedScenario(
+            "Example588", dae.Example588, _index2_semi_explicit(dae.Example588, (0.6, 0.8), (0.0,))
         ),
     ]
