@@ -155,10 +155,14 @@ def _reference(name: str) -> np.ndarray:
     return sol.y.T.reshape(len(t), -1, nx).transpose(1, 0, 2)
 
 
-def _run(sc, plant, drv, x0):
+def _options(drv, sc) -> dict:
+    """The driver's options, with the scenario's ``substeps`` for fixed-step methods."""
     fixed = drv.options.get("adaptive") is False or drv.options["method"] in FIXED_METHODS
-    substeps = {"substeps": sc.substeps} if fixed else {}
-    return odeint(plant, x0, _grid(sc.t_end), u=sc.u, **drv.options, **substeps)
+    return {**drv.options, "substeps": sc.substeps} if fixed else dict(drv.options)
+
+
+def _run(sc, plant, drv, x0):
+    return odeint(plant, x0, _grid(sc.t_end), u=sc.u, **_options(drv, sc))
 
 
 @functools.cache
@@ -329,9 +333,7 @@ def _dae_reference(name: str) -> np.ndarray:
 
 def _dae_run(sc, plant, drv, shape):
     x0, z0 = _dae_members(sc, plant, shape)
-    fixed = drv.options.get("adaptive") is False or drv.options["method"] in FIXED_METHODS
-    substeps = {"substeps": sc.substeps} if fixed else {}
-    return daeint(sc.problem(plant), x0, z0, _grid(sc.t_end), u=sc.u, **drv.options, **substeps)
+    return daeint(sc.problem(plant), x0, z0, _grid(sc.t_end), u=sc.u, **_options(drv, sc))
 
 
 @pytest.mark.parametrize("name,driver,shape", DAE_CASES)
