@@ -647,20 +647,18 @@ def _check_broadcast(name: str, x: torch.Tensor, shape: tuple, expected: str) ->
 
 
 # ---------------------------------------------------------------------------- initial values
-def _aux_arx(model: PolynomialModel, na: int, nb, nk, batch) -> PolynomialModel:
-    """An ARX-structured auxiliary model (``nb = 0`` allowed: an AR model of a residual)."""
-    aux = PolynomialModel(
+def _aux_arx(model: PolynomialModel, na: int, nb, nk, batch) -> ARX:
+    """An auxiliary ARX model (``nb = 0`` allowed: an AR model of a residual)."""
+    return ARX(
         na,
         nb,
-        nk=nk,
+        nk,
         n_inputs=model.n_inputs,
         batch_shape=batch,
         dtype=model.a.dtype,
         device=model.a.device,
         Ts=model.Ts,
     )
-    aux.__class__ = ARX  # linear in its parameters: ARX's regression form
-    return aux
 
 
 def _stable_denominator(b_parts: list[torch.Tensor], a: torch.Tensor, model, batch) -> torch.Tensor:

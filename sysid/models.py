@@ -577,13 +577,20 @@ class ARX(PolynomialModel):
     """``A(q) y_t = B(q) u(t - nk) + e_t`` (eq. 4.117-4.120, MATLAB signs).
 
     ``na`` = number of a-coefficients, ``nb`` = number of b-coefficients, ``nk`` = delay.
+    Either may be zero (``nb = 0``: an AR model of a time series; ``na = 0``: FIR), not both.
     """
 
     is_linear_in_parameters = True
 
     def __init__(self, na, nb, nk=1, **kwargs):
         super().__init__(na=na, nb=nb, nk=nk, **{**_COMMON, **kwargs})
-        _require_polynomials(self, "na nb")
+        if self.na + sum(self.nb if isinstance(self.nb, list) else [self.nb]) < 1:
+            raise InputValidationError(
+                f"ARX: na = {self.na} and nb = {self.nb} leave no coefficient to estimate "
+                f"(na is {_ORDER_MEANING['na']}, nb {_ORDER_MEANING['nb']}; nk is the input "
+                "delay in samples, the number of coefficients as in MATLAB): give na >= 1 "
+                "or nb >= 1."
+            )
 
 
 class OE(PolynomialModel):

@@ -316,8 +316,6 @@ def test_input_noise_example_after_eq_4_134():
     "build, order",
     [
         (lambda: FIR(0), "nb"),
-        (lambda: ARX(0, 2), "na"),
-        (lambda: ARX(2, 0), "nb"),
         (lambda: OE(2, 0), "nf"),
         (lambda: OE(0, 2), "nb"),
         (lambda: OE([2, 0], [1, 1], n_inputs=2), "nb"),
@@ -330,3 +328,17 @@ def test_structures_reject_a_missing_polynomial(build, order):
     standard errors, FIR(0) a bare IndexError): raise, saying what the orders mean."""
     with pytest.raises(InputValidationError, match=rf"{order} >= 1.*number of coefficients"):
         build()
+
+
+def test_arx_without_one_polynomial_is_ar_or_fir_and_without_both_is_refused():
+    """ARX(na, 0) is an AR model, ARX(0, nb) the FIR model (same regression, eq. 4.111);
+    ARX(0, 0) has nothing to estimate."""
+    u, e = signals(200, seed=3)
+    data = IOData(u, e)
+    fir_phi, fir_y = FIR(3).regression(data)
+    arx_phi, arx_y = ARX(0, 3).regression(data)
+    torch.testing.assert_close(arx_phi, fir_phi)
+    torch.testing.assert_close(arx_y, fir_y)
+    assert ARX(2, 0).parameter_vector().shape == (2,)
+    with pytest.raises(InputValidationError, match="no coefficient"):
+        ARX(0, 0)
