@@ -226,14 +226,14 @@ class FitResult:
             f"{'Stable:':<16}{str(self.stable is None or bool(self.stable[index])):<23}",
             f"{'Batch index:':<16}{str(index):<23}{'Batch shape:':<16}{tuple(self.batch_shape)}",
             "-" * width,
-            f"{'':<10}{'coef':>11}{'std err':>11}{'z':>9}{'P>|z|':>9}"
-            f"{f'[{(1 - level) / 2:.3f}':>13}{f'{(1 + level) / 2:.3f}]':>13}",
+            f"{'':<10} {'coef':>10} {'std err':>10} {'z':>8} {'P>|z|':>8}"
+            f" {f'[{(1 - level) / 2:.3f}':>12} {f'{(1 + level) / 2:.3f}]':>12}",
             "-" * width,
         ]
         for j, name in enumerate(self.parameter_names):
             lines.append(
-                f"{name:<10}{th[j].item():>11.4g}{se[j].item():>11.4g}{z[j].item():>9.3f}"
-                f"{p[j]:>9.3f}{lo[j].item():>13.4g}{hi[j].item():>13.4g}"
+                f"{name:<10} {th[j].item():>10.4g} {se[j].item():>10.4g} {z[j].item():>8.4g}"
+                f" {p[j]:>8.3f} {lo[j].item():>12.4g} {hi[j].item():>12.4g}"
             )
         lines.append("=" * width)
         return "\n".join(lines)

@@ -75,6 +75,14 @@ def test_fir_lls_matches_statsmodels_ols():
     np.testing.assert_allclose(res.sigma2.item(), ref.scale, rtol=1e-10)
     text = res.summary()
     assert "b1" in text and f"{ref.params[0]:.4g}" in text and f"{ref.bse[0]:.4g}" in text
+    # every coefficient row splits into its seven columns (they used to run together)
+    rows = [line.split() for line in text.splitlines() if line.split()[:1] == ["b1"]]
+    assert len(rows) == 1 and len(rows[0]) == 7
+    coef, se, z, p, lo, hi = (float(v) for v in rows[0][1:])
+    np.testing.assert_allclose(
+        [coef, se, z], [ref.params[0], ref.bse[0], ref.tvalues[0]], rtol=1e-3
+    )
+    assert abs(z) > 10 and lo < coef < hi
 
 
 def test_oe_gauss_newton_monte_carlo_coverage():
