@@ -1,32 +1,43 @@
-"""Shared plumbing for experiment scripts: command line, output folder, tables, figures.
+"""Shared plumbing for experiment scripts: command line, output folder, progress, tables,
+figures.
 
-Every experiment is a script ``experiments/<name>.py`` with ``main(argv=None)``. The four
-helpers below keep them uniform::
+Every experiment is a script ``experiments/<name>.py`` with ``main(argv=None)``. The helpers
+below keep them uniform::
 
-    from experiments._common import experiment_parser, output_dir, save_figure, write_table
+    from experiments._common import (
+        experiment_parser, finish, output_dir, plt, progress, save_figure, write_table,
+    )
 
     def main(argv=None):
         parser = experiment_parser("my_study", "What the study shows (notes Fig. 6.10).")
-        parser.add_argument("--tol", type=float, default=1e-6)   # extra options are fine
+        parser.add_argument("--tol", type=float, default=1e-6, help="solver tolerance")
         args = parser.parse_args(argv)
         out = output_dir(args, "my_study")                      # pathlib.Path, created
-        rows = [{"method": "rk4", "slope": 4.01}]
+        rows = [{"method": m, "slope": study(m)} for m in progress(METHODS, "methods")]
         markdown = write_table(rows, out / "slopes")            # slopes.csv + slopes.md
         fig, ax = plt.subplots()
         ...
         save_figure(fig, out / "slopes.png")
+        finish(out, markdown)                  # summary table(s), then the folder, last
         return rows
 
-* ``--quick``: a run of a few seconds, used by the tests.
-* ``--out DIR``: where results go; default ``experiments/out/<name>``.
+Console convention: progress bars (:func:`progress`) or progress lines (:func:`note`), both on
+stderr, for anything longer than a few seconds; the summary tables as Markdown on stdout; the
+results folder on the last line (``results: <folder>``), the last two by :func:`finish`.
+
+* ``--quick``: a run of a few seconds, used by the tests; its results go to
+  ``experiments/out/<name>/quick`` so that a quick run never overwrites a full run's.
+* ``--out DIR``: where results go; default ``experiments/out/<name>``
+  (see :func:`default_output_dir`).
+* ``--help`` lists every option with its meaning and default.
 
 Files that a rerun reads back (partial results of a resumable study) are written with
 :func:`atomic_write_text`: a run killed mid-write leaves the previous complete file, never a
 half-written one. :func:`write_table` writes that way too.
 
-Import pyplot through this module (``from experiments._common import plt``), or call
-``matplotlib.use("Agg")`` yourself before importing ``pyplot``, so that figures are written
-without a display.
+Import pyplot through this module (``from experiments._common import plt``, imported on first
+use), or call ``matplotlib.use("Agg")`` yourself before importing ``pyplot``, so that figures
+are written without a display.
 """
 
 from __future__ import annotations
@@ -37,25 +48,76 @@ import io
 import math
 import os
 import pathlib
+import sys
 import tempfile
-
-import matplotlib
-
-matplotlib.use("Agg")
-
-import matplotlib.pyplot as plt  # noqa: E402
 
 __all__ = [
     "DEFAULT_OUT_ROOT",
     "atomic_write_text",
+    "default_output_dir",
     "experiment_parser",
+    "finish",
+    "markdown_table",
+    "note",
     "output_dir",
-    "plt",
+    "progress",
     "save_figure",
     "write_table",
 ]
 
 DEFAULT_OUT_ROOT = pathlib.Path(__file__).resolve().parent / "out"
+QUICK_SUBDIR = "quick"
+
+
+def _pyplot():
+    """``matplotlib.pyplot`` with the Agg backend (figures are written without a display)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot
+
+    return matplotlib.pyplot
+
+
+def __getattr__(name: str):
+    """``plt`` is imported on first use, so that ``--help`` and argument errors do not pay
+    for importing matplotlib."""
+    if name == "plt":
+        globals()["plt"] = _pyplot()
+        return globals()["plt"]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """``--help`` with each option's default appended, the description's line breaks kept;
+    options whose default is ``None`` (a value that depends on ``--quick``) state their
+    defaults in their own help text."""
+
+    def _get_help_string(self, action):
+        if action.default is None or action.default is False:
+            return action.help
+        return super()._get_help_string(action)
+
+
+def default_output_dir(
+    name: str, quick: bool, default_out: pathlib.Path | None = None
+) -> pathlib.Path:
+    """The results folder of a run without ``--out``.
+
+    Args:
+        name: the experiment's name.
+        quick: whether the run is a ``--quick`` one.
+        default_out: the full run's folder when it is not ``experiments/out/<name>``
+            (``make_datasets`` writes ``datasets/``).
+
+    Returns:
+        ``experiments/out/<name>/quick`` for a quick run (whatever ``default_out``), so that a
+        quick run never overwrites a full run's results or tracked files; otherwise
+        ``default_out`` or ``experiments/out/<name>``.
+    """
+    if quick:
+        return DEFAULT_OUT_ROOT / name / QUICK_SUBDIR
+    return pathlib.Path(default_out) if default_out is not None else DEFAULT_OUT_ROOT / name
 
 
 def experiment_parser(
@@ -63,35 +125,92 @@ def experiment_parser(
 ) -> argparse.ArgumentParser:
     """An argument parser with the options every experiment shares.
 
+    Every option added to it should have a ``help`` text: ``--help`` appends its default.
+
     Args:
         name: the experiment's name (used as program name and default output folder).
-        description: one paragraph shown by ``--help``.
-        default_out: output folder when ``--out`` is not given, for a script whose results
-            belong somewhere else than ``experiments/out/<name>`` (e.g. ``datasets/``).
+        description: shown by ``--help`` (line breaks kept).
+        default_out: output folder of a full run when ``--out`` is not given, for a script
+            whose results belong somewhere else than ``experiments/out/<name>``.
 
     Returns:
-        A parser with ``--quick`` (flag) and ``--out DIR`` (default ``default_out`` or
-        ``experiments/out/<name>``); add experiment-specific options to it.
+        A parser with ``--quick`` (flag) and ``--out DIR`` (default: see
+        :func:`default_output_dir`); add experiment-specific options to it.
     """
-    parser = argparse.ArgumentParser(prog=name, description=description)
-    parser.add_argument(
-        "--quick", action="store_true", help="small, fast run (seconds); used by the tests"
+    parser = argparse.ArgumentParser(
+        prog=f"python -m experiments.{name}",
+        description=description,
+        formatter_class=_HelpFormatter,
     )
-    shown = default_out if default_out is not None else f"experiments/out/{name}"
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="small, fast run (seconds), the one the tests use; "
+        f"results go to experiments/out/{name}/{QUICK_SUBDIR} unless --out is given",
+    )
+    full = default_output_dir(name, False, default_out)
+    try:
+        shown = full.relative_to(DEFAULT_OUT_ROOT.parent.parent)
+    except ValueError:
+        shown = full
     parser.add_argument(
         "--out",
         type=pathlib.Path,
-        default=default_out,
-        help=f"output folder (default: {shown})",
+        default=None,
+        metavar="DIR",
+        help=f"results folder (default: {shown}, or experiments/out/{name}/{QUICK_SUBDIR} "
+        "with --quick)",
     )
     return parser
 
 
-def output_dir(args: argparse.Namespace, name: str) -> pathlib.Path:
-    """The output folder of a run (``args.out`` or ``experiments/out/<name>``), created."""
-    path = pathlib.Path(args.out) if getattr(args, "out", None) else DEFAULT_OUT_ROOT / name
+def output_dir(
+    args: argparse.Namespace, name: str, default_out: pathlib.Path | None = None
+) -> pathlib.Path:
+    """The results folder of a run, created: ``args.out`` if given, else
+    :func:`default_output_dir` (``default_out`` as passed to :func:`experiment_parser`)."""
+    if getattr(args, "out", None):
+        path = pathlib.Path(args.out)
+    else:
+        path = default_output_dir(name, bool(getattr(args, "quick", False)), default_out)
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+def progress(iterable, desc: str, total: int | None = None, **options):
+    """A progress bar (tqdm, on stderr) over ``iterable``, labelled ``desc``.
+
+    Args:
+        iterable: what the loop runs over.
+        desc: what one item is, e.g. ``"noise laws"``.
+        total: number of items when ``len(iterable)`` is not defined.
+        **options: further ``tqdm`` options.
+
+    Returns:
+        The wrapped iterable (yields the same items).
+    """
+    from tqdm.auto import tqdm
+
+    return tqdm(iterable, desc=desc, total=total, dynamic_ncols=True, **options)
+
+
+def note(message: str) -> None:
+    """One progress line on stderr, for a stage that is a single batched call (no loop to
+    put a progress bar on)."""
+    print(message, file=sys.stderr, flush=True)
+
+
+def finish(out: pathlib.Path, *tables: str) -> pathlib.Path:
+    """End a run: print the summary tables (Markdown strings, e.g. from :func:`write_table`),
+    then the results folder as the last line, ``results: <absolute folder>``.
+
+    Returns:
+        ``out``.
+    """
+    for table in tables:
+        print(table.rstrip("\n") + "\n")
+    print(f"results: {pathlib.Path(out).resolve()}")
+    return out
 
 
 def atomic_write_text(path, text: str) -> pathlib.Path:
@@ -131,6 +250,31 @@ def _format_cell(value) -> str:
         return str(value)
 
 
+def _columns(rows: list[dict]) -> list[str]:
+    columns: list[str] = []
+    for row in rows:
+        columns.extend(key for key in row if key not in columns)
+    return columns
+
+
+def markdown_table(rows: list[dict]) -> str:
+    """``rows`` as a Markdown table (numbers to 4 significant digits).
+
+    Args:
+        rows: one dict per row; the columns are the union of the keys in first-seen order
+            (a missing key gives an empty cell).
+    """
+    columns = _columns(rows)
+    lines = [
+        "| " + " | ".join(columns) + " |",
+        "|" + "|".join("---" for _ in columns) + "|",
+    ]
+    for row in rows:
+        cells = [_format_cell(row[key]) if key in row else "" for key in columns]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def write_table(rows: list[dict], path_stem: pathlib.Path) -> str:
     """Write ``rows`` to ``<stem>.csv`` (full precision) and ``<stem>.md`` (4 digits).
 
@@ -144,9 +288,7 @@ def write_table(rows: list[dict], path_stem: pathlib.Path) -> str:
     """
     path_stem = pathlib.Path(path_stem)
     path_stem.parent.mkdir(parents=True, exist_ok=True)
-    columns: list[str] = []
-    for row in rows:
-        columns.extend(key for key in row if key not in columns)
+    columns = _columns(rows)
 
     def plain(value):
         try:
@@ -160,14 +302,7 @@ def write_table(rows: list[dict], path_stem: pathlib.Path) -> str:
     for row in rows:
         writer.writerow({key: plain(row.get(key, "")) for key in columns})
     atomic_write_text(path_stem.with_suffix(".csv"), buffer.getvalue())
-    lines = [
-        "| " + " | ".join(columns) + " |",
-        "|" + "|".join("---" for _ in columns) + "|",
-    ]
-    for row in rows:
-        cells = [_format_cell(row[key]) if key in row else "" for key in columns]
-        lines.append("| " + " | ".join(cells) + " |")
-    markdown = "\n".join(lines) + "\n"
+    markdown = markdown_table(rows)
     atomic_write_text(path_stem.with_suffix(".md"), markdown)
     return markdown
 
@@ -177,5 +312,5 @@ def save_figure(fig, path) -> pathlib.Path:
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=150, bbox_inches="tight")
-    plt.close(fig)
+    _pyplot().close(fig)
     return path

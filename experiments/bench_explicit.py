@@ -38,7 +38,7 @@ import numpy as np
 import scipy.integrate
 import torch
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from integrators import odeint
 
 try:  # contract C6; a local copy keeps the benchmark usable without sysid
@@ -504,7 +504,7 @@ def main(argv=None):
         "Fixed-step RK4 and adaptive dopri5 against torchdiffeq and torchode (Van der Pol).",
     )
     parser.add_argument("--no-compile", action="store_true", help="skip torch.compile runs")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the random initial states")
     args = parser.parse_args(argv)
     out = output_dir(args, "bench_explicit")
     previous_threads = torch.get_num_threads()
@@ -569,7 +569,7 @@ def main(argv=None):
         ax.set_ylabel("wall time [s]")
         ax.legend(fontsize=7)
         save_figure(fig, out / "fixed_step_rk4.png")
-        print(report)
+        finish(out, report)
         return {"fixed": fixed, "adaptive": adaptive, "matched": matched, "sweep": sweep}
     finally:
         torch.set_num_threads(previous_threads)

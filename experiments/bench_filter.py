@@ -35,7 +35,7 @@ import numpy as np
 import scipy.signal
 import torch
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from sysid import OE, IOData
 from sysid.filters import cpu_backend
 
@@ -167,10 +167,17 @@ def _time(fn, repeats: int, device: torch.device) -> tuple[float, float, object]
 
 def main(argv=None):
     parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--N", type=int, default=None, help="signal length (default 100000)")
-    parser.add_argument("--repeats", type=int, default=None)
     parser.add_argument(
-        "--threads", type=int, default=1, help="torch CPU threads (scipy runs on one; default 1)"
+        "--N", type=int, default=None, help="signal length (default 100000, 2000 with --quick)"
+    )
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=None,
+        help="best of this many runs (default 5, 3 with --quick)",
+    )
+    parser.add_argument(
+        "--threads", type=int, default=1, help="torch CPU threads (scipy runs on one)"
     )
     args = parser.parse_args(argv)
     previous_threads = torch.get_num_threads()
@@ -246,7 +253,7 @@ def _run(args):
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     save_figure(fig, out / f"{NAME}.png")
-    print(markdown)
+    finish(out, markdown)
     return rows
 
 

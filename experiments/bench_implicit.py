@@ -59,7 +59,7 @@ import numpy as np
 import torch
 from scipy.integrate import solve_ivp
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from integrators import gauss_legendre, newton, radau_iia, solve_implicit_ode
 
 NAME = "bench_implicit"
@@ -610,7 +610,9 @@ def _memory_figure(newton_rows, path):
 
 def main(argv=None):
     parser = experiment_parser(NAME, __doc__.split("\n\n")[0])
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument(
+        "--repeats", type=int, default=3, help="timings are the best of this many runs"
+    )
     parser.add_argument("--batch", type=int, default=256, help="trajectories in the batch case")
     parser.add_argument(
         "--batch-rtols",
@@ -619,8 +621,15 @@ def main(argv=None):
         default=[1e-6, 1e-9],
         help="tolerances of the batch case (scipy's loop at 1e-9 takes long)",
     )
-    parser.add_argument("--sections", type=int, nargs="+", choices=(1, 2, 3), default=[1, 2, 3])
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    parser.add_argument(
+        "--sections",
+        type=int,
+        nargs="+",
+        choices=(1, 2, 3),
+        default=[1, 2, 3],
+        help="sections of the study to run (see above)",
+    )
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument(
         "--device",
         default="cuda" if torch.cuda.is_available() else "cpu",
@@ -666,10 +675,11 @@ def main(argv=None):
                     (0, 5, 10, 20, 40), n=8, batch=256, repeats=args.repeats, device=device
                 )
         rows += newton_rows
-        write_table(rows, out / NAME)
+        markdown = write_table(rows, out / NAME)
         _time_figure(rows, out / f"{NAME}.png")
         if newton_rows:
             _memory_figure(newton_rows, out / f"{NAME}_ift_memory.png")
+        finish(out, markdown)
         return rows
     finally:
         torch.set_default_dtype(previous_dtype)

@@ -20,7 +20,7 @@ import time
 
 import torch
 
-from experiments._common import experiment_parser, output_dir, write_table
+from experiments._common import experiment_parser, finish, output_dir, write_table
 from sysid.zoo import HangingChain, TwoPendulumCranePolar
 
 NAME = "bench_mechanics"
@@ -83,10 +83,12 @@ def _case(name, plant, closed, x, repeats):
 
 def main(argv=None):
     parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--masses", type=int, default=50)
-    parser.add_argument("--batch", type=int, default=1024)
-    parser.add_argument("--repeats", type=int, default=50)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--masses", type=int, default=50, help="masses of the hanging chain")
+    parser.add_argument("--batch", type=int, default=1024, help="states evaluated in one batch")
+    parser.add_argument(
+        "--repeats", type=int, default=50, help="timings are the best of this many runs"
+    )
+    parser.add_argument("--seed", type=int, default=0, help="seed of the random states")
     args = parser.parse_args(argv)
     if args.quick:
         args.masses, args.batch, args.repeats = 10, 64, 5
@@ -98,10 +100,9 @@ def main(argv=None):
     crane = TwoPendulumCranePolar()
     x = torch.randn(args.batch, 6, dtype=torch.float64, generator=gen)
     rows += _case("two-pendulum crane (polar)", crane, crane_closed_form, x, args.repeats)
-    write_table(rows, out / NAME)
+    finish(out, write_table(rows, out / NAME))
     return rows
 
 
 if __name__ == "__main__":
-    for row in main():
-        print(row)
+    main()

@@ -34,7 +34,7 @@ import scipy.optimize
 import scipy.signal
 import torch
 
-from experiments._common import experiment_parser, output_dir, write_table
+from experiments._common import experiment_parser, finish, output_dir, write_table
 from sysid import OE, IOData, fir_lls, fit, lls
 from sysid.filters import cpu_backend
 from sysid.montecarlo import fir_regressor
@@ -191,7 +191,12 @@ def bench_filter_gradient(N: int) -> list[dict]:
 
 def main(argv=None):
     parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--fir-sets", type=int, default=10_000)
+    parser.add_argument(
+        "--fir-sets",
+        type=int,
+        default=10_000,
+        help="FIR data sets in the batched least-squares case",
+    )
     parser.add_argument("--repeats", type=int, default=3, help="best of this many runs")
     args = parser.parse_args(argv)
     out = output_dir(args, NAME)
@@ -215,7 +220,7 @@ def main(argv=None):
             r["cpu_speedup_vs_baseline"] = base["cpu_seconds"] / r["cpu_seconds"]
     markdown = write_table(rows, out / NAME)
     (out / "README.md").write_text(f"# {NAME}\n\n{__doc__}\n\n{markdown}")
-    print(markdown)
+    finish(out, markdown)
     return rows
 
 

@@ -31,7 +31,7 @@ import math
 import numpy as np
 import torch
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from integrators import TABLEAU_NAMES, ButcherTableau, odeint, tableau
 from sysid.zoo import LinearTestEquation, Quadratic
 
@@ -138,7 +138,7 @@ def main(argv=None) -> list[dict]:
         ax.set_ylabel("|x_N - x(T)|")
         ax.legend(fontsize=8)
     save_figure(fig, out / "convergence.png")
-    print(markdown)
+    finish(out, markdown)
     return rows
 
 

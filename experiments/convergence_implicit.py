@@ -31,7 +31,7 @@ import math
 import numpy as np
 import torch
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from integrators import gauss_legendre, odeint, radau_iia, tableau
 
 NAME = "convergence_implicit"
@@ -163,7 +163,7 @@ def main(argv=None) -> list[dict]:
     ax_ord.set_xlabel("dt")
     ax_ord.legend(fontsize=7)
     save_figure(fig, out / "convergence.png")
-    print(markdown)
+    finish(out, markdown)
     return rows
 
 

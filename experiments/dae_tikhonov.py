@@ -55,7 +55,15 @@ import torch
 from scipy.linalg import expm
 from torch import nn
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    plt,
+    progress,
+    save_figure,
+    write_table,
+)
 from integrators import SemiExplicitDAE, Status, daeint, odeint
 from sysid.zoo import SingularlyPerturbedLinear, TwoMassSystem
 
@@ -379,7 +387,7 @@ def saturation_row(n_pieces, n_per_piece, piece) -> dict:
 def run_all(args, rtol, atol, n_pieces, n_per_piece):
     """All families and the Fig. 5.3 saturation row: (rows, slope rows, plot data)."""
     rows, slopes, plots = [], [], []
-    for fam in FAMILIES:
+    for fam in progress(FAMILIES, "families"):
         eps_values = fam.eps_quick if args.quick else FULL_EPS
         piece = fam.piece_quick if args.quick else fam.piece
         fam_rows, t, curves, limit = run_family(
@@ -413,7 +421,12 @@ def run_all(args, rtol, atol, n_pieces, n_per_piece):
 
 def main(argv=None) -> list[dict]:
     parser = experiment_parser(NAME, "Tikhonov convergence eps -> 0 (notes Theorem 8).")
-    parser.add_argument("--rtol", type=float, default=None, help="solver rtol (atol = rtol/100)")
+    parser.add_argument(
+        "--rtol",
+        type=float,
+        default=None,
+        help="solver rtol, atol = rtol/100 (default 1e-10, 1e-7 with --quick)",
+    )
     args = parser.parse_args(argv)
     out = output_dir(args, NAME)
     rtol = args.rtol or (1e-7 if args.quick else 1e-10)
@@ -449,7 +462,7 @@ def main(argv=None) -> list[dict]:
         row_axes[2].set_title("max |x_eps - x_0| over slow states")
         row_axes[2].legend(fontsize=7)
     save_figure(fig, out / "tikhonov.png")
-    print(markdown)
+    finish(out, markdown)
     return rows
 
 

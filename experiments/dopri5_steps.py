@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from integrators import odeint, tableau
 from sysid.zoo import VanDerPol
 
@@ -145,7 +145,7 @@ def main(argv=None) -> list[dict]:
         axes[1, col].set_xlabel("t [s]")
     fig.tight_layout()
     save_figure(fig, out / "dopri5_steps.png")
-    print(markdown)
+    finish(out, markdown)
     return rows
 
 

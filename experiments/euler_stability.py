@@ -14,7 +14,7 @@ import math
 
 import torch
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from integrators import odeint
 from sysid.zoo import LinearTestEquation
 
@@ -72,7 +72,7 @@ def main(argv=None) -> list[dict]:
         ax.legend(fontsize=8)
     axes[0].set_ylabel("x")
     save_figure(fig, out / "euler_stability.png")
-    print(markdown)
+    finish(out, markdown)
     return rows
 
 

@@ -26,7 +26,15 @@ import numpy as np
 import torch
 from torch.func import functional_call
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import (
+    experiment_parser,
+    finish,
+    note,
+    output_dir,
+    plt,
+    save_figure,
+    write_table,
+)
 from integrators import odeint, sensitivities
 from integrators.newton import minimize
 from sysid import ARX, OE, IOData, fit, fit_percent, residual_test, zoh_discretize
@@ -120,10 +128,20 @@ def grey_box_fit(u: torch.Tensor, y: torch.Tensor, Ts: float, substeps: int):
 
 def main(argv=None):
     parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--trials", type=int, default=None, help="number of data sets")
-    parser.add_argument("--samples", type=int, default=None, help="samples per data set")
+    parser.add_argument(
+        "--trials",
+        type=int,
+        default=None,
+        help="number of data sets (default 500, 24 with --quick)",
+    )
+    parser.add_argument(
+        "--samples",
+        type=int,
+        default=None,
+        help="samples per data set (default 1000, 200 with --quick)",
+    )
     parser.add_argument("--noise", type=float, default=0.02, help="output noise std")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of inputs and noise")
     args = parser.parse_args(argv)
     out = output_dir(args, NAME)
     trials = args.trials or (24 if args.quick else 500)
@@ -132,6 +150,7 @@ def main(argv=None):
     Ts, substeps = 0.1, 2  # RK4 at h = 0.05 s: relative error ~1e-6, far below the noise
     gen = torch.Generator().manual_seed(args.seed)
 
+    note(f"simulating {trials} data sets of {N} samples")
     u = input_signal("prbs", N, (trials,), hold=3, generator=gen)
     p_true = torch.tensor([TRUE_PHYSICAL[k] for k in PHYSICAL_NAMES], dtype=torch.float64)
     y_clean = simulate_plant(p_true, u, Ts, substeps)
@@ -139,12 +158,14 @@ def main(argv=None):
     data = IOData(u, y, Ts=Ts)
     truth = true_oe_parameters(Ts)
 
+    note("fitting ARX(2, 2, 1) and OE(2, 2, 1) to every data set")
     arx = fit(ARX(2, 2, 1, Ts=Ts), data)
     oe = fit(OE(2, 2, 1, Ts=Ts), data, method="gauss_newton")
     rows = _summarise("ARX least squares", _arx_as_oe(arx), arx.standard_errors, _OE, truth)
     rows += _summarise("OE Gauss-Newton", oe.theta, oe.standard_errors, oe.parameter_names, truth)
 
     n_grey = min(N, 100 if args.quick else 400)
+    note(f"grey-box Gauss-Newton on {grey_trials} data sets of {n_grey} samples")
     grey, grey_cov = grey_box_fit(u[:grey_trials, :n_grey], y[:grey_trials, :n_grey], Ts, substeps)
     grey_se = torch.diagonal(grey_cov, dim1=-2, dim2=-1).sqrt()
     rows += _summarise(
@@ -152,6 +173,7 @@ def main(argv=None):
     )
     markdown = write_table(rows, out / "estimates")
 
+    note("validating on fresh data")
     u_val = input_signal("prbs", N, (1,), hold=3, generator=gen)
     y_val = simulate_plant(p_true, u_val, Ts, substeps)
     val = IOData(u_val, y_val + args.noise * torch.randn(y_val.shape, generator=gen), Ts=Ts)
@@ -172,6 +194,7 @@ def main(argv=None):
     markdown += "\n\n" + write_table(summary, out / "summary")
     _bode(model, truth, Ts, out)
     (out / f"{NAME}.md").write_text(markdown + "\n")
+    finish(out, markdown)
     return rows, summary
 
 

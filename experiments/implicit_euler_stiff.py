@@ -29,7 +29,7 @@ import math
 import numpy as np
 import torch
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from integrators import odeint, tableau
 from sysid.zoo import StiffLinear
 
@@ -122,7 +122,7 @@ def main(argv=None) -> list[dict]:
     ax.set_title(f"implicit Euler global error (slope {slope:.2f}, eq. 7.7)")
     ax.legend()
     save_figure(fig, out / "error.png")
-    print(markdown)
+    finish(out, markdown)
     return rows
 
 

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from scipy.integrate import solve_ivp
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from integrators import odeint
 from sysid.zoo import Lorenz
 
@@ -128,7 +128,7 @@ def main(argv=None) -> dict[str, list[dict]]:
     axes[-1].legend()
     fig.tight_layout()
     save_figure(fig, out / "lorenz_euler.png")
-    print(markdown)
+    finish(out, markdown)
     return {"departure": departure_rows, "global_error": error_rows}
 
 

@@ -23,9 +23,10 @@ script writes):
 ``--check`` compares column by column: ``t`` and ``u`` must be bit-for-bit equal; every other
 column may differ by at most ``CHECK_RTOL`` = 1e-10 times its largest magnitude, which absorbs
 round-off of another CPU or library build (vectorised ``log``/``sin`` in torch's Gaussian
-sampler, a different BLAS) but not a changed seed, parameter or tolerance. ``--quick`` leaves
-out the stiff Van der Pol reference (scipy Radau at 1e-12: about 4 s on one core; the other
-four sets take about 3 s together, nearly all of it the two eager RK4 simulations).
+sampler, a different BLAS) but not a changed seed, parameter or tolerance. ``--quick`` writes
+to ``experiments/out/make_datasets/quick`` (never to ``datasets/``) and leaves out the stiff
+Van der Pol reference (scipy Radau at 1e-12: about 4 s on one core; the other four sets take
+about 3 s together, nearly all of it the two eager RK4 simulations).
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ import torch
 from scipy.integrate import solve_ivp
 
 from experiments import identify_mass_spring_damper as job
-from experiments._common import experiment_parser, output_dir
+from experiments._common import experiment_parser, finish, markdown_table, output_dir, progress
 from experiments._datasets import DATASETS_DIR, load_csv
 from integrators.errors import InputValidationError
 from sysid.montecarlo import input_signal, noise_signal
@@ -397,7 +398,10 @@ def main(argv=None) -> list[dict]:
         selected = [d for d in selected if d.cheap]
     if not selected:
         parser.error("--quick leaves out every selected data set; drop --quick or --only.")
-    folder = pathlib.Path(args.out) if args.check else output_dir(args, NAME)
+    if args.check:
+        folder = pathlib.Path(args.out) if args.out else DATASETS_DIR
+    else:
+        folder = output_dir(args, NAME, DATASETS_DIR)
 
     rows, failures = [], []
     if args.check:
@@ -415,22 +419,20 @@ def main(argv=None) -> list[dict]:
             rows.append(row)
             if not row["ok"]:
                 failures.append(_failure_message(row, folder))
-        for row in rows:
-            print(
-                f"{row['file']}: {'ok' if row['ok'] else 'MISMATCH'} (largest difference "
-                f"{row['max_difference']:.3g} in {row['column']!r}, tolerance {row['tolerance']:g})"
-            )
+        if rows:
+            print(markdown_table(rows))
         if failures:
             raise SystemExit("\n".join(failures))
+        finish(folder)
         return rows
 
     (folder / "README.md").write_text(readme_text())
-    for d in selected:
+    for d in progress(selected, "data sets"):
         text = csv_text(d.generate())
         path = folder / f"{d.name}.csv"
         path.write_text(text)
         rows.append({"file": path.name, "rows": text.count("\n") - 1, "bytes": len(text)})
-        print(f"wrote {path} ({rows[-1]['rows']} rows, {rows[-1]['bytes']} bytes)")
+    finish(folder, markdown_table(rows))
     return rows
 
 

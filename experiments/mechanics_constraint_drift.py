@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from integrators import odeint
 from sysid.zoo import Bowl, RigidCraneCartesian
 
@@ -59,8 +59,8 @@ def run(plant_name, alphas, dt, t_end):
 
 def main(argv=None):
     parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--dt", type=float, default=0.05)
-    parser.add_argument("--t-end", type=float, default=40.0)
+    parser.add_argument("--dt", type=float, default=0.05, help="RK4 step [s]")
+    parser.add_argument("--t-end", type=float, default=40.0, help="simulated horizon [s]")
     args = parser.parse_args(argv)
     if args.quick:
         args.dt, args.t_end = 0.1, 8.0
@@ -78,10 +78,9 @@ def main(argv=None):
         ax.set_xlabel("t [s]")
         ax.legend(fontsize=8)
     save_figure(fig, out / "constraint_drift.png")
-    write_table(rows, out / "constraint_drift")
+    finish(out, write_table(rows, out / "constraint_drift"))
     return rows
 
 
 if __name__ == "__main__":
-    for row in main():
-        print(row)
+    main()

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from integrators import odeint
 from sysid.zoo import Crane, HangingChain
 
@@ -57,9 +57,9 @@ def run(plant, x0, dt, t_end, name):
 
 def main(argv=None):
     parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--masses", type=int, default=10)
-    parser.add_argument("--t-end", type=float, default=40.0)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--masses", type=int, default=10, help="masses of the hanging chain")
+    parser.add_argument("--t-end", type=float, default=40.0, help="simulated horizon [s]")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the chain initial state")
     args = parser.parse_args(argv)
     cases = ["chain", "crane"]
     if args.quick:
@@ -83,10 +83,9 @@ def main(argv=None):
         ax.set_xlabel("t [s]")
         ax.legend(fontsize=8)
     save_figure(fig, out / "energy_drift.png")
-    write_table(rows, out / "energy_drift")
+    finish(out, write_table(rows, out / "energy_drift"))
     return rows
 
 
 if __name__ == "__main__":
-    for row in main():
-        print(row)
+    main()

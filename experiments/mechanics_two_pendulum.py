@@ -16,7 +16,7 @@ import time
 
 import torch
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from integrators import odeint
 from sysid.zoo import TwoPendulumCraneCartesian, TwoPendulumCranePolar
 
@@ -56,9 +56,16 @@ def _simulate(model, x0, t_end, dt):
 
 def main(argv=None):
     parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--t-end", type=float, default=3.0)
-    parser.add_argument("--batch", type=int, default=256)
-    parser.add_argument("--alpha", type=float, default=5.0)
+    parser.add_argument("--t-end", type=float, default=3.0, help="simulated horizon [s]")
+    parser.add_argument(
+        "--batch", type=int, default=256, help="states in the right-hand-side timing batch"
+    )
+    parser.add_argument(
+        "--alpha",
+        type=float,
+        default=5.0,
+        help="Baumgarte stabilisation gain of the Cartesian model",
+    )
     args = parser.parse_args(argv)
     steps = [0.04, 0.02, 0.01]
     if args.quick:
@@ -105,10 +112,9 @@ def main(argv=None):
     ax.set_ylabel(f"max position error at t={args.t_end:g}")
     ax.legend()
     save_figure(fig, out / "two_pendulum.png")
-    write_table(rows, out / "two_pendulum")
+    finish(out, write_table(rows, out / "two_pendulum"))
     return rows
 
 
 if __name__ == "__main__":
-    for row in main():
-        print(row)
+    main()

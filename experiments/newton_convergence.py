@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from scipy.optimize import fsolve
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from integrators import batch_jacobian, newton
 
 NAME = "newton_convergence"
@@ -173,7 +173,7 @@ def main(argv=None) -> list[dict]:
         )
         rows.append(row)
         curves[(problem, label)] = errors
-    write_table(rows, out / "newton_convergence")
+    markdown = write_table(rows, out / "newton_convergence")
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
     for ax, problem in zip(axes[:2], ("scalar", "vector"), strict=True):
@@ -192,6 +192,7 @@ def main(argv=None) -> list[dict]:
     ax.set_ylabel("|x_k - x*|")
     ax.legend()
     save_figure(fig, out / "newton_convergence.png")
+    finish(out, markdown)
     return rows
 
 

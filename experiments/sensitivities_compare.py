@@ -39,7 +39,7 @@ from functools import partial
 
 import torch
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from integrators import odeint, sensitivities, variational_sensitivities
 
 NAME = "sensitivities_compare"
@@ -137,7 +137,12 @@ def rel_diff(a: torch.Tensor, ref: torch.Tensor) -> float:
 
 def main(argv=None) -> list[dict]:
     parser = experiment_parser(NAME, "Forward, variational, reverse-mode and FD sensitivities.")
-    parser.add_argument("--repeats", type=int, default=None, help="timing repeats (best of)")
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=None,
+        help="timings are the best of this many runs (default 3, 1 with --quick)",
+    )
     args = parser.parse_args(argv)
     out = output_dir(args, NAME)
     repeats = args.repeats or (1 if args.quick else 3)
@@ -196,7 +201,7 @@ def main(argv=None) -> list[dict]:
     ax.set_title("Sensitivities of x(T) of Van der Pol (eq. 6.43) w.r.t. x0 and (mu, k)")
     ax.legend()
     save_figure(fig, out / "sensitivities.png")
-    print(markdown)
+    finish(out, markdown)
     return rows
 
 

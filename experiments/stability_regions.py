@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import brentq
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from integrators import TABLEAU_NAMES, ButcherTableau, tableau
 
 NAME = "stability_regions"
@@ -109,7 +109,7 @@ def main(argv=None) -> list[dict]:
     rows = stability_table()
     markdown = write_table(rows, out / "stability_intervals")
     save_figure(plot_regions(EXPLICIT_METHODS, 151 if args.quick else 601), out / "regions.png")
-    print(markdown)
+    finish(out, markdown)
     return rows
 
 

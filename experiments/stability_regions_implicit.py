@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from integrators import ButcherTableau, gauss_legendre, radau_iia, tableau
 
 NAME = "stability_regions_implicit"
@@ -110,7 +110,7 @@ def main(argv=None) -> list[dict]:
     rows = stability_table(methods, 400 if args.quick else 2000)
     markdown = write_table(rows, out / "stability")
     save_figure(plot_regions(methods, 151 if args.quick else 501), out / "regions.png")
-    print(markdown)
+    finish(out, markdown)
     return rows
 
 

@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from experiments.stability_regions import stability_radius
 from integrators import odeint, tableau
 from sysid.zoo import StiffLinear
@@ -127,7 +127,7 @@ def main(argv=None) -> list[dict]:
     axes[2].set_xlabel("t [s]")
     axes[2].legend(fontsize=8)
     save_figure(fig, out / "stiff_rk4.png")
-    print(markdown)
+    finish(out, markdown)
     return rows
 
 

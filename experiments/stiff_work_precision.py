@@ -28,7 +28,15 @@ import numpy as np
 import torch
 from scipy.integrate import solve_ivp
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    plt,
+    progress,
+    save_figure,
+    write_table,
+)
 from integrators import ButcherTableau, gauss_legendre, odeint, radau_iia, tableau
 from sysid.zoo import StiffVanDerPol, VanDerPol
 
@@ -85,7 +93,7 @@ def nonstiff_study(quick: bool, repeats: int) -> list[dict]:
     ref = scipy_reference(plant, x0, t_end, "DOP853", 1e-13)
     dts = [0.1, 0.02] if quick else [0.2, 0.1, 0.05, 0.02, 1e-2]
     rows = []
-    for label, options in fixed_step_methods().items():
+    for label, options in progress(fixed_step_methods().items(), "fixed-step methods"):
         for dt in dts:
             t = torch.linspace(0.0, t_end, round(t_end / dt) + 1, dtype=torch.float64)
             sol, seconds = timed_odeint(plant, x0, t, repeats, **options)
@@ -139,7 +147,12 @@ def stiff_study(quick: bool, repeats: int) -> tuple[list[dict], float]:
 
 def main(argv=None) -> list[dict]:
     parser = experiment_parser(NAME, "Work-precision of implicit vs explicit RK (Fig. 7.3).")
-    parser.add_argument("--repeats", type=int, default=None, help="timing repeats (best of)")
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=None,
+        help="timings are the best of this many runs (default 3, 1 with --quick)",
+    )
     args = parser.parse_args(argv)
     out = output_dir(args, NAME)
     repeats = args.repeats or (1 if args.quick else 3)
@@ -168,7 +181,7 @@ def main(argv=None) -> list[dict]:
         ax.set_title(f"stiff Van der Pol, eps = {eps:g}")
         ax.legend()
     save_figure(fig, out / "work_precision.png")
-    print(markdown)
+    finish(out, markdown)
     return stiff
 
 

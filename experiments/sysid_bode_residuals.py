@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from sysid import ARX, BJ, OE, fit, fit_percent, residual_test
 from sysid.montecarlo import input_signal, simulate_data
 
@@ -29,8 +29,8 @@ TH_BJ = [0.5, 0.3, 0.4, -0.6, -1.2, 0.5]
 
 def main(argv=None):
     parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, default=2000)
-    parser.add_argument("--sigma", type=float, default=0.3)
+    parser.add_argument("--n", type=int, default=2000, help="samples of the data set")
+    parser.add_argument("--sigma", type=float, default=0.3, help="noise standard deviation")
     args = parser.parse_args(argv)
     out = output_dir(args, NAME)
     N = 600 if args.quick else args.n
@@ -97,6 +97,7 @@ def main(argv=None):
     save_figure(fig, out / "residuals.png")
     markdown = write_table(rows, out / "bode_residuals")
     (out / "README.md").write_text(f"# {NAME}\n\n{__doc__}\n\n{markdown}")
+    finish(out, markdown)
     return rows
 
 

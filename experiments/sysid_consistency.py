@@ -34,6 +34,7 @@ from experiments._common import (
     experiment_parser,
     output_dir,
     plt,
+    progress,
     save_figure,
     write_table,
 )
@@ -151,9 +152,15 @@ def loglog_slope(ns, values) -> float:
 
 def main(argv=None):
     parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--trials", type=int, default=200)
-    parser.add_argument("--sigma", type=float, default=0.5)
-    parser.add_argument("--ns", type=int, nargs="+", default=[250, 500, 1000, 2000, 4000, 8000])
+    parser.add_argument("--trials", type=int, default=200, help="Monte-Carlo data sets per N")
+    parser.add_argument("--sigma", type=float, default=0.5, help="noise standard deviation")
+    parser.add_argument(
+        "--ns",
+        type=int,
+        nargs="+",
+        default=[250, 500, 1000, 2000, 4000, 8000],
+        help="data lengths N",
+    )
     args = parser.parse_args(argv)
     out = output_dir(args, NAME)
     trials = 60 if args.quick else args.trials
@@ -161,7 +168,9 @@ def main(argv=None):
     partial = out / "consistency.csv"
     done = _load(partial)
     have = {int(r["N"]) for r in done if int(r["trials"]) == trials and r["sigma"] == args.sigma}
-    for N in ns:  # resumable: the file holds every finished N, rewritten atomically
+    for N in progress(
+        ns, "data lengths N"
+    ):  # resumable: the file holds every finished N, rewritten atomically
         if N in have:
             continue
         done += run_n(N, trials, args.sigma, seed=N)

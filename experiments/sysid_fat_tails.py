@@ -15,7 +15,15 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    plt,
+    progress,
+    save_figure,
+    write_table,
+)
 from sysid import ARX, fit
 from sysid.montecarlo import input_signal, simulate_data
 
@@ -32,9 +40,11 @@ NOISES = [
 
 def main(argv=None):
     parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--trials", type=int, default=500)
-    parser.add_argument("--n", type=int, default=500)
-    parser.add_argument("--sigma", type=float, default=0.2)
+    parser.add_argument(
+        "--trials", type=int, default=500, help="Monte-Carlo data sets per noise law"
+    )
+    parser.add_argument("--n", type=int, default=500, help="samples per data set")
+    parser.add_argument("--sigma", type=float, default=0.2, help="noise scale")
     args = parser.parse_args(argv)
     out = output_dir(args, NAME)
     trials = 40 if args.quick else args.trials
@@ -43,7 +53,7 @@ def main(argv=None):
     model = ARX(2, 2, 1)
     g = torch.Generator().manual_seed(3)
     rows = []
-    for kind, options in NOISES:
+    for kind, options in progress(NOISES, "noise laws"):
         u = input_signal("white", N, (trials,), generator=g)
         data = simulate_data(
             model,
@@ -86,6 +96,7 @@ def main(argv=None):
     fig.tight_layout()
     save_figure(fig, out / "fat_tails.png")
     (out / "README.md").write_text(f"# {NAME}\n\n{__doc__}\n\n{markdown}")
+    finish(out, markdown)
     return rows
 
 

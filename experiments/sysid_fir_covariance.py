@@ -12,7 +12,15 @@ from __future__ import annotations
 
 import torch
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    plt,
+    progress,
+    save_figure,
+    write_table,
+)
 from experiments.sysid_fir_inputs import true_fir
 from sysid import lls
 from sysid.montecarlo import fir_regressor, input_signal, noise_signal, summarize_estimates
@@ -22,9 +30,9 @@ NAME = "sysid_fir_covariance"
 
 def main(argv=None):
     parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--trials", type=int, default=20_000)
+    parser.add_argument("--trials", type=int, default=20_000, help="Monte-Carlo data sets")
     parser.add_argument("--n", type=int, default=1000, help="samples per data set")
-    parser.add_argument("--sigma", type=float, default=0.5)
+    parser.add_argument("--sigma", type=float, default=0.5, help="noise standard deviation")
     args = parser.parse_args(argv)
     out = output_dir(args, NAME)
     trials = 2000 if args.quick else args.trials
@@ -33,7 +41,7 @@ def main(argv=None):
     b = true_fir(n_taps)
     g = torch.Generator().manual_seed(1)
     rows, mats = [], {}
-    for kind in ("white", "prbs"):
+    for kind in progress(("white", "prbs"), "input kinds"):
         u = input_signal(kind, N, generator=g)[:, 0]
         U = fir_regressor(u, n_taps)
         e = noise_signal((trials, N), std=args.sigma, generator=g)
@@ -83,6 +91,7 @@ def main(argv=None):
     fig.tight_layout()
     save_figure(fig, out / "fir_covariance.png")
     (out / "README.md").write_text(f"# {NAME}\n\n{__doc__}\n\n{markdown}")
+    finish(out, markdown)
     return rows
 
 

@@ -18,7 +18,7 @@ import warnings
 
 import torch
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from integrators.errors import PoorExcitationWarning
 from sysid import FIR, fit_percent, lls
 from sysid.montecarlo import INPUT_KINDS, fir_regressor, input_signal, simulate_data
@@ -86,12 +86,9 @@ def main(argv=None):
     fig.tight_layout()
     save_figure(fig, out / "fir_inputs.png")
     (out / "README.md").write_text(f"# {NAME}\n\n{__doc__}\n\n{markdown}")
+    finish(out, markdown)
     return rows
 
 
 if __name__ == "__main__":
-    print(
-        write_table(
-            main(), output_dir(experiment_parser(NAME, "").parse_args([]), NAME) / "fir_inputs"
-        )
-    )
+    main()

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from scipy.integrate import solve_ivp
 
-from experiments._common import experiment_parser, output_dir, plt, save_figure, write_table
+from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from experiments.convergence_explicit import explicit_methods, fixed_step_tableau
 from integrators import odeint
 from sysid.zoo import LinearTestEquation, VanDerPol
@@ -186,7 +186,7 @@ def main(argv=None) -> dict[str, list[dict]]:
             ax.legend(fontsize=7)
     fig.tight_layout()
     save_figure(fig, out / "work_precision.png")
-    print(markdown)
+    finish(out, markdown)
     return {"summary": summary, "points": points}
 
 

@@ -1,0 +1,101 @@
+"""Console and file conventions shared by every experiment (``experiments/_common.py``):
+``--quick`` writes to its own folder, ``make_datasets --quick`` leaves ``datasets/`` alone,
+the results folder is the last printed line, and ``--help`` states every option's default."""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import importlib
+import pathlib
+
+import pytest
+
+from experiments import _common
+from experiments._datasets import DATASETS_DIR
+
+EXPERIMENTS = sorted(
+    p.stem for p in pathlib.Path(_common.__file__).parent.glob("*.py") if not p.stem.startswith("_")
+)
+
+
+def _digests(folder: pathlib.Path) -> dict[str, str]:
+    return {
+        p.name: hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.iterdir())
+        if p.is_file()
+    }
+
+
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_quick_folder_is_not_the_full_run_folder(name):
+    default_out = DATASETS_DIR if name == "make_datasets" else None
+    full = _common.default_output_dir(name, False, default_out)
+    quick = _common.default_output_dir(name, True, default_out)
+    assert quick != full
+    assert quick == _common.DEFAULT_OUT_ROOT / name / "quick"
+    assert DATASETS_DIR not in quick.parents
+
+
+def test_quick_run_writes_its_own_folder_and_prints_it_last(tmp_path, monkeypatch, capsys):
+    """A quick run without --out leaves a full run's results alone and ends by printing its
+    results folder."""
+    from experiments import euler_stability
+
+    monkeypatch.setattr(_common, "DEFAULT_OUT_ROOT", tmp_path)
+    full = tmp_path / "euler_stability"
+    full.mkdir()
+    (full / "euler_stability.csv").write_text("full run\n")
+    euler_stability.main(["--quick"])
+    lines = capsys.readouterr().out.splitlines()
+    quick = full / "quick"
+    assert lines[-1] == f"results: {quick.resolve()}"
+    assert (quick / "euler_stability.csv").read_text() != "full run\n"
+    assert (full / "euler_stability.csv").read_text() == "full run\n"
+    assert any(line.startswith("| ") for line in lines)  # the Markdown summary
+
+
+def test_make_datasets_quick_leaves_datasets_untouched(tmp_path, monkeypatch, capsys):
+    from experiments import make_datasets
+
+    monkeypatch.setattr(_common, "DEFAULT_OUT_ROOT", tmp_path)
+    before = _digests(DATASETS_DIR)
+    make_datasets.main(["--quick", "--only", "vdp_reference", "lorenz_reference"])
+    assert _digests(DATASETS_DIR) == before
+    quick = tmp_path / "make_datasets" / "quick"
+    assert sorted(p.name for p in quick.iterdir()) == [
+        "README.md",
+        "lorenz_reference.csv",
+        "vdp_reference.csv",
+    ]
+    # the regenerated files are the stored ones (the quick folder is a faithful copy)
+    assert _digests(quick)["vdp_reference.csv"] == before["vdp_reference.csv"]
+    assert capsys.readouterr().out.splitlines()[-1] == f"results: {quick.resolve()}"
+
+
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_help_exits_zero_and_states_every_default(name, monkeypatch, capsys):
+    parsers = []
+    parse_args = argparse.ArgumentParser.parse_args
+
+    def recording(self, *args, **kwargs):
+        parsers.append(self)
+        return parse_args(self, *args, **kwargs)
+
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", recording)
+    module = importlib.import_module(f"experiments.{name}")
+    with pytest.raises(SystemExit) as done:
+        module.main(["--help"])
+    assert done.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    (parser,) = parsers
+    for action in parser._actions:
+        if action.option_strings == ["-h", "--help"]:
+            continue
+        assert action.help, (name, action.option_strings)
+        if action.default is not None and action.default is not False:
+            shown = " ".join(f"(default: {action.default})".split())
+            assert shown in text, (name, action.option_strings, shown)
+        elif action.default is None:
+            assert "default" in action.help, (name, action.option_strings)
+    assert "--quick" in text and f"experiments/out/{name}/quick" in text
