@@ -78,14 +78,14 @@ def main(argv=None):
     markdown = write_table(rows, out / "fir_covariance")
     fig, axes = plt.subplots(2, 3, figsize=(12, 7))
     for r, kind in enumerate(mats):
-        emp, pred = mats[kind]
-        vmax = pred.abs().max().item()
+        emp, pred = (m.detach().cpu().numpy() for m in mats[kind])  # matplotlib takes arrays
+        vmax = abs(pred).max()
         axes[r, 0].imshow(emp, cmap="RdBu_r", vmin=-vmax, vmax=vmax)
         axes[r, 0].set_title(f"{kind}: empirical covariance")
         axes[r, 1].imshow(pred, cmap="RdBu_r", vmin=-vmax, vmax=vmax)
         axes[r, 1].set_title("sigma^2 (U'U)^-1 (eq. 4.101)")
-        axes[r, 2].plot(emp.diagonal().sqrt(), "ko", label="empirical std")
-        axes[r, 2].plot(pred.diagonal().sqrt(), "-", color="0.5", label="predicted std")
+        axes[r, 2].plot(emp.diagonal() ** 0.5, "ko", label="empirical std")
+        axes[r, 2].plot(pred.diagonal() ** 0.5, "-", color="0.5", label="predicted std")
         axes[r, 2].set_xlabel("tap")
         axes[r, 2].legend(fontsize=7)
     fig.tight_layout()

@@ -40,7 +40,7 @@ arbitrary leading batch dimensions, and samples must not interact.
 import contextlib
 import threading
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
@@ -289,6 +289,10 @@ class LagrangianSystem(nn.Module):
     ``forward(t, x, u=None)`` is the explicit first-order ODE xdot = [qdot, qddot] (the KKT
     index-1 form for a constrained system), usable directly as ``f`` in ``odeint``.
 
+    The state is x = [q, qdot], ``nx = 2 nq`` entries named by ``state_names``: the
+    ``coordinate_names`` (nq strings, default ``q1..qn``) followed by the same names with
+    ``dot`` appended (``q1dot..qndot``).
+
     Masses given as numbers or tensors must be finite and > 0 (InputValidationError at
     construction). Masses from callables or overridden hooks (parameters that change during a
     fit) are not checked per call: where W(q) or the KKT matrix is singular for a batch member,
@@ -319,10 +323,14 @@ class LagrangianSystem(nn.Module):
         point_forces: Callable | None = None,
         constraints: Callable | None = None,
         baumgarte: float | None = None,
+        coordinate_names: Sequence[str] | None = None,
     ):
         super().__init__()
         self.nq = int(nq)
         self.nu = int(nu)
+        if coordinate_names is None:
+            coordinate_names = [f"q{i + 1}" for i in range(self.nq)]
+        self.coordinate_names = tuple(str(n) for n in coordinate_names)
         self._diagonal_mass = diagonal_mass
         self._point_masses = point_masses
         self._positions = positions
@@ -338,10 +346,24 @@ class LagrangianSystem(nn.Module):
             raise InputValidationError("give both force_points and point_forces, or neither")
         if self.nq < 1 or self.nu < 0:
             raise InputValidationError(f"need nq >= 1 and nu >= 0, got nq={nq}, nu={nu}")
+        if len(self.coordinate_names) != self.nq:
+            raise InputValidationError(
+                f"coordinate_names has {len(self.coordinate_names)} entries; need nq = {self.nq}"
+            )
         _check_masses(diagonal_mass, "diagonal_mass", self.nq)
         _check_masses(point_masses, "point_masses")
         if point_masses is not None and positions is None and kinetic_energy is None:
             raise InputValidationError("point_masses need positions(q) -> (*batch, n_p, D)")
+
+    @property
+    def nx(self) -> int:
+        """Width of the state x = [q, qdot], ``2 nq``."""
+        return 2 * self.nq
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        """Names of the entries of x = [q, qdot]: the coordinates, then their rates ``...dot``."""
+        return self.coordinate_names + tuple(f"{n}dot" for n in self.coordinate_names)
 
     # ------------------------------------------------------------------ hooks (overridable)
     def diagonal_mass(self):

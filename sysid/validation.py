@@ -2,7 +2,13 @@
 
 All functions take sequences in the project convention ``(*batch, N, channels)`` (a 1-D
 tensor is one single-channel sequence) and reduce over the time axis, so a Monte-Carlo
-batch of data sets is validated in one call.
+batch of data sets is validated in one call. ``fit_percent``, ``aic``, ``fpe`` and
+``residual_test`` also take a fitted model and its data, ``f(model, data)`` (``model`` a
+:class:`sysid.PolynomialModel` or the :class:`sysid.FitResult` of :func:`sysid.fit`, ``data``
+an :class:`sysid.IOData`), and then evaluate the model on the data themselves (without
+gradient): the simulated output for ``fit_percent`` (MATLAB's ``compare``), the one-step
+prediction errors for the others. Any other argument types raise
+:class:`~integrators.errors.InputValidationError` naming the expected signature.
 
 Formulas (``N`` samples, ``d`` estimated parameters, residuals ``e_k``,
 ``V = (1/N) sum_k e_k^2`` the mean squared residual, i.e. the maximum-likelihood estimate of
@@ -28,10 +34,16 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
 import scipy.stats
 import torch
 
 from integrators.errors import InputValidationError
+
+from . import models
+from .data import IOData
+from .estimation import FitResult, fit
+from .models import PolynomialModel
 
 __all__ = [
     "OrderSelection",
@@ -44,14 +56,51 @@ __all__ = [
 ]
 
 
-def _as_sequences(x, name: str) -> torch.Tensor:
+_USAGE = {
+    "fit_percent": "fit_percent(y, yhat) with tensors/arrays (*batch, N, ny), or "
+    "fit_percent(model, data) with a fitted model (or FitResult) and IOData",
+    "aic": "aic(residuals, n_params) with residuals (*batch, N, ny) and an int, or "
+    "aic(model, data) with a fitted model (or FitResult) and IOData",
+    "fpe": "fpe(residuals, n_params) with residuals (*batch, N, ny) and an int, or "
+    "fpe(model, data) with a fitted model (or FitResult) and IOData",
+    "residual_test": "residual_test(residuals, u=None, ...) with tensors/arrays (*batch, N, 1) "
+    "and (*batch, N, nu), or residual_test(model, data, ...) with a fitted model (or "
+    "FitResult) and IOData",
+}
+
+
+def _model_and_data(first, second, func: str) -> tuple[PolynomialModel, IOData] | None:
+    """``(model, data)`` when ``func`` was called in its model form, None for the array form.
+
+    Raises :class:`InputValidationError` with the expected signature when a model, a
+    :class:`FitResult` or an :class:`IOData` appears anywhere else.
+    """
+    model = first.model if isinstance(first, FitResult) else first
+    if isinstance(model, PolynomialModel) and isinstance(second, IOData):
+        return model, second
+    model_like = (PolynomialModel, FitResult, IOData, torch.nn.Module)
+    if isinstance(first, model_like) or isinstance(second, model_like):
+        raise InputValidationError(
+            f"{func}: got ({type(first).__name__}, {type(second).__name__}); expected "
+            f"{_USAGE[func]}."
+        )
+    return None
+
+
+def _as_sequences(x, name: str, func: str) -> torch.Tensor:
     """Canonical ``(*batch, N, channels)`` view (1-D input becomes ``(N, 1)``)."""
-    x = torch.as_tensor(x)
+    try:
+        x = torch.as_tensor(x)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise InputValidationError(
+            f"{func}: {name} is a {type(x).__name__}, not an array of numbers; expected "
+            f"{_USAGE[func]}."
+        ) from exc
     if not x.is_floating_point():
         x = x.to(torch.get_default_dtype())
     if x.dim() == 0:
         raise InputValidationError(
-            f"{name} must be a sequence (*batch, N, channels), got a scalar."
+            f"{func}: {name} must be a sequence (*batch, N, channels), got a scalar."
         )
     if x.dim() == 1:
         x = x.unsqueeze(-1)
@@ -59,7 +108,7 @@ def _as_sequences(x, name: str) -> torch.Tensor:
     if bool(bad.any()):
         idx = tuple(int(i) for i in torch.nonzero(bad)[0])
         raise InputValidationError(
-            f"{name} contains a non-finite value at index {idx} (time index {idx[-2]})."
+            f"{func}: {name} contains a non-finite value at index {idx} (time index {idx[-2]})."
         )
     return x
 
@@ -67,19 +116,31 @@ def _as_sequences(x, name: str) -> torch.Tensor:
 def fit_percent(y, yhat) -> torch.Tensor:
     """MATLAB's fit: ``100 (1 - ||y - yhat|| / ||y - mean(y)||)`` per output channel.
 
+    Call as ``fit_percent(y, yhat)`` or ``fit_percent(model, data)``.
+
     Args:
-        y: measured outputs ``(*batch, N, ny)`` (or ``(N,)``).
-        yhat: model outputs (simulated or predicted), same shape as ``y`` (broadcastable).
+        y: measured outputs ``(*batch, N, ny)`` (or ``(N,)``); or a fitted
+            :class:`sysid.PolynomialModel` / :class:`sysid.FitResult`.
+        yhat: model outputs (simulated or predicted), same shape as ``y`` (broadcastable);
+            or, with a model as first argument, the :class:`sysid.IOData` to compare on: the
+            fit is then that of the model's noise-free simulated output ``model.simulate(data)``
+            to ``data.y`` (MATLAB's ``compare``), computed without gradient.
 
     Returns:
         Fit in percent, shape ``(*batch, ny)``.
 
     Raises:
-        InputValidationError: shapes do not match, non-finite values, or a constant ``y``
-            (the normalisation ``||y - mean(y)||`` is zero).
+        InputValidationError: other argument types (the message states the signature),
+            shapes do not match, non-finite values, or a constant ``y`` (the normalisation
+            ``||y - mean(y)||`` is zero).
     """
-    y = _as_sequences(y, "y")
-    yhat = _as_sequences(yhat, "yhat").to(dtype=y.dtype, device=y.device)
+    pair = _model_and_data(y, yhat, "fit_percent")
+    if pair is not None:
+        model, data = pair
+        with torch.no_grad():
+            y, yhat = data.y, model.predict(data, horizon=math.inf)
+    y = _as_sequences(y, "y", "fit_percent")
+    yhat = _as_sequences(yhat, "yhat", "fit_percent").to(dtype=y.dtype, device=y.device)
     try:
         torch.broadcast_shapes(y.shape, yhat.shape)
     except RuntimeError as exc:
@@ -96,46 +157,69 @@ def fit_percent(y, yhat) -> torch.Tensor:
     return 100.0 * (1.0 - num / den)
 
 
-def _loss_function(residuals) -> tuple[torch.Tensor, int]:
-    """``V = det(E'E / N)`` (the mean squared residual for one output) and ``N``."""
-    e = _as_sequences(residuals, "residuals")
-    N = e.shape[-2]
+def _residuals_and_size(residuals, n_params, func: str) -> tuple[torch.Tensor, int]:
+    """Residuals ``(*batch, N, ny)`` and ``d`` of ``func(residuals, n_params)`` or of
+    ``func(model, data)`` (one-step prediction errors on ``data``, ``d = model.n_params``)."""
+    pair = _model_and_data(residuals, n_params, func)
+    if pair is not None:
+        model, data = pair
+        with torch.no_grad():
+            return model.prediction_errors(data), model.n_params
+    if isinstance(n_params, bool) or not isinstance(n_params, (int, np.integer)):
+        raise InputValidationError(
+            f"{func}: n_params must be an int, got {type(n_params).__name__}; expected "
+            f"{_USAGE[func]}."
+        )
+    return _as_sequences(residuals, "residuals", func), int(n_params)
+
+
+def _loss_function(e: torch.Tensor) -> torch.Tensor:
+    """``V = det(E'E / N)`` (the mean squared residual for one output), ``(*batch,)``."""
     if e.shape[-1] == 1:
-        V = (e * e).mean(dim=(-2, -1))
-    else:
-        V = torch.linalg.det(e.transpose(-1, -2) @ e / N)
-    return V, N
+        return (e * e).mean(dim=(-2, -1))
+    return torch.linalg.det(e.transpose(-1, -2) @ e / e.shape[-2])
 
 
-def aic(residuals, n_params: int) -> torch.Tensor:
+def aic(residuals, n_params) -> torch.Tensor:
     """Akaike's information criterion ``N log V + 2 d + N ny (log 2 pi + 1)`` (Gaussian).
 
+    Call as ``aic(residuals, n_params)`` or ``aic(model, data)``.
+
     Args:
-        residuals: prediction errors ``(*batch, N, ny)`` of the model on the estimation data.
-        n_params: number ``d`` of estimated parameters.
+        residuals: prediction errors ``(*batch, N, ny)`` of the model on the estimation data;
+            or a fitted :class:`sysid.PolynomialModel` / :class:`sysid.FitResult`.
+        n_params: number ``d`` of estimated parameters; or, with a model as first argument,
+            the :class:`sysid.IOData` on which its one-step prediction errors are taken
+            (all ``N`` samples, without gradient), with ``d = model.n_params``.
 
     Returns:
         AIC, shape ``(*batch,)``; smaller is better.
     """
-    V, N = _loss_function(residuals)
-    ny = _as_sequences(residuals, "residuals").shape[-1]
-    return N * torch.log(V) + 2 * n_params + N * ny * (math.log(2 * math.pi) + 1)
+    e, d = _residuals_and_size(residuals, n_params, "aic")
+    N, ny = e.shape[-2:]
+    return N * torch.log(_loss_function(e)) + 2 * d + N * ny * (math.log(2 * math.pi) + 1)
 
 
-def fpe(residuals, n_params: int) -> torch.Tensor:
+def fpe(residuals, n_params) -> torch.Tensor:
     """Akaike's final prediction error ``V (1 + d/N) / (1 - d/N)``.
 
+    Call as ``fpe(residuals, n_params)`` or ``fpe(model, data)``.
+
     Args:
-        residuals: prediction errors ``(*batch, N, ny)`` on the estimation data.
-        n_params: number ``d`` of estimated parameters (``d < N``).
+        residuals: prediction errors ``(*batch, N, ny)`` on the estimation data; or a fitted
+            :class:`sysid.PolynomialModel` / :class:`sysid.FitResult`.
+        n_params: number ``d`` of estimated parameters (``d < N``); or, with a model as
+            first argument, the :class:`sysid.IOData` on which its one-step prediction errors
+            are taken (all ``N`` samples, without gradient), with ``d = model.n_params``.
 
     Returns:
         FPE, shape ``(*batch,)``; an estimate of the prediction-error variance on fresh data.
     """
-    V, N = _loss_function(residuals)
-    if n_params >= N:
-        raise InputValidationError(f"fpe: need n_params < N, got d = {n_params}, N = {N}.")
-    return V * (1 + n_params / N) / (1 - n_params / N)
+    e, d = _residuals_and_size(residuals, n_params, "fpe")
+    N = e.shape[-2]
+    if d >= N:
+        raise InputValidationError(f"fpe: need n_params < N, got d = {d}, N = {N}.")
+    return _loss_function(e) * (1 + d / N) / (1 - d / N)
 
 
 def _correlate(a: torch.Tensor, b: torch.Tensor, max_lag: int) -> torch.Tensor:
@@ -197,9 +281,14 @@ def residual_test(
 ) -> ResidualTestResult:
     """Whiteness of residuals and their independence from past inputs (MATLAB ``resid``).
 
+    Call as ``residual_test(residuals, u=None, ...)`` or ``residual_test(model, data, ...)``.
+
     Args:
-        residuals: prediction errors ``(*batch, N, 1)`` (or ``(N,)``); one output.
-        u: inputs ``(*batch, N, nu)`` of the same data set, or None.
+        residuals: prediction errors ``(*batch, N, 1)`` (or ``(N,)``); one output. Or a
+            fitted :class:`sysid.PolynomialModel` / :class:`sysid.FitResult`, whose one-step
+            prediction errors on ``data`` are tested (without gradient), against ``data.u``.
+        u: inputs ``(*batch, N, nu)`` of the same data set, or None; with a model as first
+            argument, the :class:`sysid.IOData` (required).
         max_lag: largest lag ``m`` (``1 <= m < N``).
         alpha: significance level of the bands and tests.
         n_params: number of noise-model parameters fitted to the residuals (reduces the
@@ -207,8 +296,17 @@ def residual_test(
 
     Returns:
         :class:`ResidualTestResult`.
+
+    Raises:
+        InputValidationError: other argument types (the message states the signature),
+            more than one output, bad ``max_lag``/``n_params``, or constant signals.
     """
-    e = _as_sequences(residuals, "residuals")
+    pair = _model_and_data(residuals, u, "residual_test")
+    if pair is not None:
+        model, data = pair
+        with torch.no_grad():
+            residuals, u = model.prediction_errors(data), data.u
+    e = _as_sequences(residuals, "residuals", "residual_test")
     if e.shape[-1] != 1:
         raise InputValidationError(
             f"residual_test: expected one output channel, got {e.shape[-1]}."
@@ -247,7 +345,7 @@ def residual_test(
     )
     if u is None:
         return result
-    uu = _as_sequences(u, "u").to(dtype=x.dtype, device=x.device)
+    uu = _as_sequences(u, "u", "residual_test").to(dtype=x.dtype, device=x.device)
     if uu.shape[-2] != N:
         raise InputValidationError(
             f"residual_test: u has {uu.shape[-2]} samples but the residuals have {N}."
@@ -347,9 +445,6 @@ def select_order(
     Returns:
         :class:`OrderSelection` with the table of criteria.
     """
-    from . import models
-    from .estimation import fit
-
     if structure not in _STRUCTURES:
         raise InputValidationError(f"structure must be one of {tuple(_STRUCTURES)}.")
     if criterion not in ("aic", "fpe", "validation"):

@@ -231,11 +231,12 @@ T_HIT = (math.sqrt(3.4) - 1) / 2
 def test_singular_mass_matrix_in_one_member_leaves_the_others(method, options):
     plant = _lever(torch.tensor([1.0], dtype=DT))
     t = torch.linspace(0.0, 1.0, 11, dtype=DT)
-    with (
-        torch.no_grad(),
-        pytest.warns(RKIdentWarning, match=r"W\(q\) is singular at batch index \[1\]"),
-    ):
+    with torch.no_grad(), pytest.warns(RKIdentWarning, match=r"W\(q\) is singular") as record:
         sol = odeint(plant, X0, t, method=method, **options)
+    # the batch index names the member, or (member, stage) where an implicit method evaluates
+    # the stages together; member 1 is named
+    messages = [str(w.message) for w in record]
+    assert any(re.search(r"batch index \[(1\]|.*\(1, \d+\))", m) for m in messages), messages
     with torch.no_grad():
         alone = [odeint(plant, X0[i : i + 1], t, method=method, **options) for i in (0, 2)]
     for i, ref in zip((0, 2), alone, strict=True):

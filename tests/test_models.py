@@ -166,7 +166,8 @@ def test_regression_rows_reproduce_output_at_truth(name):
         u, e = signals(n, seed=seed)
         y = model.simulate(u).detach()[:, 0]
         if name == "ARX":  # equation-error noise keeps the ARX relation exact
-            y = y + scipy.signal.lfilter([1.0], np.r_[1.0, theta[:2].numpy()], e.numpy())
+            v = scipy.signal.lfilter([1.0], np.r_[1.0, theta[:2].numpy()], e.numpy())
+            y = y + torch.from_numpy(v)
         parts.append(IOData(u, y))
     data = IOData.experiments(parts)
     Phi, target = model.regression(data)

@@ -10,8 +10,10 @@ from statsmodels.stats.diagnostic import acorr_ljungbox
 from statsmodels.tsa.stattools import acf, ccf
 
 from integrators.errors import InputValidationError
+from sysid.data import IOData
+from sysid.estimation import fit
 from sysid.filters import iir_filter
-from sysid.models import ARX
+from sysid.models import ARX, OE
 from sysid.montecarlo import input_signal, simulate_data
 from sysid.validation import aic, fit_percent, fpe, residual_test, select_order
 
@@ -108,3 +110,66 @@ def test_select_order_picks_true_arx_order():
     # table rows carry the criteria; AIC of the true order beats the under-fitted ones
     rows = {(r["na"], r["nb"]): r for r in sel.table}
     assert rows[(2, 2)]["aic"] < rows[(1, 2)]["aic"] and rows[(2, 2)]["aic"] < rows[(2, 1)]["aic"]
+
+
+# ---------------------------------------------------------------- model form f(model, data)
+def _fitted_oe():
+    """An OE(2, 2) fit to noisy data of a known OE system, plus fresh validation data."""
+    truth = OE(2, 2)
+    theta = torch.tensor([0.5, 0.3, -1.2, 0.5], dtype=DT)
+    u = input_signal("white", 300, (), generator=gen(10))
+    data = simulate_data(truth, u, theta=theta, noise_std=0.1, generator=gen(11))
+    u_val = input_signal("white", 300, (), generator=gen(12))
+    val = simulate_data(truth, u_val, theta=theta, noise_std=0.1, generator=gen(13))
+    return fit(OE(2, 2), data), data, val
+
+
+def test_model_forms_equal_array_forms():
+    result, data, val = _fitted_oe()
+    model = result.model
+    with torch.no_grad():
+        y_sim = model.simulate(val.u)
+        e_est = data.y - model.predict(data)
+    for obj in (model, result):
+        # fit % of the free-run simulation (MATLAB's compare), not of the one-step prediction
+        got = fit_percent(obj, val)
+        assert torch.equal(got, fit_percent(val.y, y_sim))
+        assert not got.requires_grad
+        assert torch.equal(aic(obj, data), aic(e_est, model.n_params))
+        assert torch.equal(fpe(obj, data), fpe(e_est, model.n_params))
+        r = residual_test(obj, data, max_lag=15)
+        ref = residual_test(e_est, data.u, max_lag=15)
+        assert torch.equal(r.autocorrelation, ref.autocorrelation)
+        assert torch.equal(r.cross_correlation, ref.cross_correlation)
+        assert torch.equal(r.passed, ref.passed)
+    assert 90.0 < fit_percent(model, val).item() < 100.0  # OE of the true order fits well
+
+
+@pytest.mark.parametrize(
+    ("call", "words"),
+    [
+        (lambda m, d, y: fit_percent(d, m), "fit_percent(model, data)"),  # swapped
+        (lambda m, d, y: fit_percent(m, y), "fit_percent(model, data)"),  # tensor, not IOData
+        (lambda m, d, y: fit_percent(d, y), "fit_percent(y, yhat)"),
+        (lambda m, d, y: fit_percent("y", y), "fit_percent(y, yhat)"),
+        (lambda m, d, y: aic(m, 4), "aic(model, data)"),
+        (lambda m, d, y: aic(y, 4.5), "aic(residuals, n_params)"),
+        (lambda m, d, y: fpe(d, m), "fpe(model, data)"),
+        (lambda m, d, y: residual_test(m, y), "residual_test(model, data, ...)"),
+        (lambda m, d, y: residual_test(y, d), "residual_test(residuals, u=None, ...)"),
+        (lambda m, d, y: residual_test({"e": 1}), "residual_test(residuals, u=None, ...)"),
+    ],
+)
+def test_wrong_argument_types_name_the_signature(call, words):
+    model = OE(1, 1)
+    data = IOData(torch.randn(50, generator=gen(14)), torch.randn(50, generator=gen(15)))
+    with pytest.raises(InputValidationError, match="expected") as info:
+        call(model, data, data.y)
+    assert words in str(info.value)
+
+
+def test_result_without_model_is_refused():
+    result, data, _ = _fitted_oe()
+    result.model = None
+    with pytest.raises(InputValidationError, match=r"got \(FitResult, IOData\)"):
+        fit_percent(result, data)

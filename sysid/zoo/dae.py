@@ -4,6 +4,8 @@ Fully implicit examples expose ``residual(t, xdot, x, z[, u])`` (z of width 0 wh
 algebraic states); semi-explicit ones ``f(t, x, z[, u])`` and ``g(t, x, z[, u])`` (the
 conventions of ``integrators.problems``) and the index the notes give (``index``). Singularly
 perturbed plants are ODE modules (``forward(t, s, u=None)``) with ``dae_limit()``.
+``state_names`` lists the (differential) states in order and ``algebraic_names`` the
+algebraic ones z; the first line of each class docstring gives the same order.
 """
 
 import torch
@@ -17,10 +19,13 @@ def _u(u, x):
 
 
 class Example52(nn.Module):
-    """Eq. (5.2): xdot1 = 2 x1 + x2, 0 = 3 x1 - x2, as F(xdot, x) with x = (x1, x2) (eq. 5.8);
-    dF/dxdot = [[1, 0], [0, 0]] is singular (eq. 5.9): a DAE. Semi-explicit form eq. (5.12)."""
+    """Eq. (5.2) as F(xdot, x) = 0 in the state (x1, x2) (eq. 5.8), no algebraic state z:
+
+    xdot1 = 2 x1 + x2, 0 = 3 x1 - x2; dF/dxdot = [[1, 0], [0, 0]] is singular (eq. 5.9): a DAE.
+    Semi-explicit form eq. (5.12)."""
 
     nx, nz, index = 2, 0, 1
+    state_names, algebraic_names = ("x1", "x2"), ()
 
     def residual(self, t, xdot, x, z, u=None):
         return torch.stack(
@@ -29,10 +34,13 @@ class Example52(nn.Module):
 
 
 class Example53(nn.Module):
-    """Eq. (5.3): both derivatives appear, but dF/dxdot = [[1, 1], [2, 2]] is singular
-    (eq. 5.11): a DAE; the combination -2 (5.3a) + (5.3b) gives -3 x1 = 0 (eq. 5.4b)."""
+    """Eq. (5.3) as F(xdot, x) = 0 in the state (x1, x2), no algebraic state z:
+
+    both derivatives appear, but dF/dxdot = [[1, 1], [2, 2]] is singular (eq. 5.11): a DAE; the
+    combination -2 (5.3a) + (5.3b) gives -3 x1 = 0 (eq. 5.4b)."""
 
     nx, nz, index = 2, 0, 1
+    state_names, algebraic_names = ("x1", "x2"), ()
 
     def residual(self, t, xdot, x, z, u=None):
         x1, x2, v1, v2 = x[..., 0], x[..., 1], xdot[..., 0], xdot[..., 1]
@@ -40,9 +48,12 @@ class Example53(nn.Module):
 
 
 class Example546(nn.Module):
-    """Eq. (5.46): F = [xdot1 - z, xdot2 - x1, xdot1 + x2 - u], index 1 (solved in eq. 5.47)."""
+    """Eq. (5.46), state (x1, x2), algebraic z: F = [xdot1 - z, xdot2 - x1, xdot1 + x2 - u].
+
+    Index 1 (solved in eq. 5.47)."""
 
     nx, nz, nu, index = 2, 1, 1, 1
+    state_names, algebraic_names = ("x1", "x2"), ("z",)
 
     def residual(self, t, xdot, x, z, u=None):
         u = _u(u, x)[..., 0]
@@ -52,9 +63,12 @@ class Example546(nn.Module):
 
 
 class Example548(nn.Module):
-    """Eq. (5.48): F = [xdot1 - z, xdot2 - x1, x2 - u], index 3 (eq. 5.62-5.67)."""
+    """Eq. (5.48), state (x1, x2), algebraic z: F = [xdot1 - z, xdot2 - x1, x2 - u].
+
+    Index 3 (eq. 5.62-5.67)."""
 
     nx, nz, nu, index = 2, 1, 1, 3
+    state_names, algebraic_names = ("x1", "x2"), ("z",)
 
     def residual(self, t, xdot, x, z, u=None):
         u = _u(u, x)[..., 0]
@@ -62,11 +76,14 @@ class Example548(nn.Module):
 
 
 class Example581(nn.Module):
-    """Eq. (5.81): xdot = (x2 + z2, z1 + u), 0 = (x1 - x2, z2 - x1), index 2; its reduction
-    (eq. 5.86) replaces x1 - x2 by x2 + z2 - z1 - u — with u constant, as here; the notes'
-    eq. (5.85) keeps the -u that comes from substituting xdot2 = z1 + u."""
+    """Eq. (5.81), state (x1, x2), algebraic (z1, z2): xdot = (x2 + z2, z1 + u), index 2.
+
+    0 = (x1 - x2, z2 - x1); its reduction (eq. 5.86) replaces x1 - x2 by x2 + z2 - z1 - u —
+    with u constant, as here; the notes' eq. (5.85) keeps the -u that comes from substituting
+    xdot2 = z1 + u."""
 
     nx, nz, nu, index = 2, 2, 1, 2
+    state_names, algebraic_names = ("x1", "x2"), ("z1", "z2")
 
     def f(self, t, x, z, u=None):
         u = _u(u, x)[..., 0]
@@ -82,15 +99,19 @@ class Example581(nn.Module):
 
 
 class Example588(nn.Module):
-    """Eq. (5.88): xdot = A x - b z, 0 = (x^T x - 1)/2, index 2; reduced g~ = x^T (A x - b z)
-    (eq. 5.90, 5.93) with z = x^T A x / x^T b (eq. 5.92). A (n, n) and b (n,) are parameters."""
+    """Eq. (5.88), state (x1, .., xn) (x1, x2 by default), algebraic z: xdot = A x - b z.
+
+    Constraint 0 = (x^T x - 1)/2, index 2; reduced g~ = x^T (A x - b z) (eq. 5.90, 5.93) with
+    z = x^T A x / x^T b (eq. 5.92). A (n, n) and b (n,) are parameters."""
 
     nz, index = 1, 2
+    algebraic_names = ("z",)
 
     def __init__(self, A=((0.0, 1.0), (-1.0, -0.5)), b=(1.0, 0.5)):
         super().__init__()
         self.A, self.b = as_parameter(A, "A"), as_parameter(b, "b")
         self.nx = self.A.shape[-1]
+        self.state_names = tuple(f"x{i + 1}" for i in range(self.nx))
 
     def f(self, t, x, z, u=None):
         a, b = like(self.A, x), like(self.b, x)
@@ -108,8 +129,9 @@ class Example588(nn.Module):
 
 
 class TwoMassSystem(nn.Module):
-    """Two masses with friction and springs, eq. (5.41), as the ODE in s = (x1, x2, x1dot,
-    x2dot): m1 x1'' = K (x2 - x1) - K x1 - rho x1' + u, m2 x2'' = K (x1 - x2) - rho x2'.
+    """Two masses with friction and springs, eq. (5.41), state s = (x1, x2, x1dot, x2dot):
+
+    m1 x1'' = K (x2 - x1) - K x1 - rho x1' + u, m2 x2'' = K (x1 - x2) - rho x2'.
 
     Reductions (Fig. 5.3): m1 -> 0 gives eq. (5.42)-(5.43), the ODE
     (rho/K) x1' = x2 - 2 x1 + u/K (``ode_543``, s = (x1, x2, x2dot)); rho/K -> 0 gives the DAE
@@ -118,6 +140,7 @@ class TwoMassSystem(nn.Module):
     """
 
     nx, nu = 4, 1
+    state_names = ("x1", "x2", "x1dot", "x2dot")
 
     def __init__(self, m1=1e-2, m2=1.0, K=1e3, rho=1.0):
         super().__init__()
@@ -151,11 +174,13 @@ class TwoMassSystem(nn.Module):
 
 
 class SingularlyPerturbedLinear(nn.Module):
-    """Eq. (5.36): x1' = -x1 + x2, eps x2' = x1 - a x2 + u, as an ODE in x = (x1, x2). Its
-    limit eps -> 0 is the DAE (5.37) and, for a != 0, the ODE (5.38) with x2 = (x1 + u)/a.
+    """Eq. (5.36) as an ODE in the state (x1, x2): x1' = -x1 + x2, eps x2' = x1 - a x2 + u.
+
+    Its limit eps -> 0 is the DAE (5.37) and, for a != 0, the ODE (5.38) with x2 = (x1 + u)/a.
     Theorem 8 applies for a > 0."""
 
     nx, nu = 2, 1
+    state_names = ("x1", "x2")
 
     def __init__(self, eps=1e-2, a=2.0):
         super().__init__()

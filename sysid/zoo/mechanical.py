@@ -1,11 +1,13 @@
 """Mechanical plants of the notes (chapter 2, §1.5), each built with LagrangianSystem.
 
-Every plant is a :class:`sysid.mechanics.LagrangianSystem` (so ``forward(t, x, u)`` is the
-explicit first-order ODE in x = [q, qdot]) with physical parameters as ``nn.Parameter``, and
-also carries the notes' closed form transcribed by hand (``closed_form_acceleration``, and for
-constrained plants ``closed_form_kkt`` giving M(q) and the right-hand side of eq. 2.168) so
-tests can compare the autograd builder with the notes. Typos of the notes that were found by
-those comparisons are fixed in the closed forms and listed in each docstring.
+Every plant is a :class:`sysid.mechanics.LagrangianSystem` (so ``forward(t, x, u)`` is the explicit
+first-order ODE in x = [q, qdot], whose entries ``state_names`` lists: the coordinate names, then
+the same names with ``dot``; the first line of each class docstring gives them) with physical
+parameters as ``nn.Parameter``, and also carries the notes' closed form transcribed by hand
+(``closed_form_acceleration``, and for constrained plants ``closed_form_kkt`` giving M(q) and the
+right-hand side of eq. 2.168) so tests can compare the autograd builder with the notes. Typos of the
+notes that were found by those comparisons are fixed in the closed forms and listed in each
+docstring.
 
 Inputs (``u`` of shape (*batch, 1)): the notes give no inputs for most plants; where a plant
 has one here it is a horizontal force on the cart (crane family) or a force on the mass, added
@@ -42,12 +44,13 @@ def _mat(rows):
 
 
 class SpringMass(LagrangianSystem):
-    """Vertical spring-mass (eq. 2.45-2.54): q = x (downwards from the spring rest length),
-    T = m xdot^2 / 2, V = -m g x + k x^2 / 2, hence m xddot = m g - k x (eq. 2.53). Optional
-    input: a downward force u on the mass (an addition, through eq. 2.115)."""
+    """Vertical spring-mass, state (x, xdot), x downwards from the spring rest length:
+
+    eq. (2.45)-(2.54), q = x, T = m xdot^2 / 2, V = -m g x + k x^2 / 2, hence m xddot = m g - k x
+    (eq. 2.53). Optional input: a downward force u on the mass (an addition, through eq. 2.115)."""
 
     def __init__(self, m=1.0, k=10.0, g=9.81):
-        super().__init__(nq=1, nu=1)
+        super().__init__(nq=1, nu=1, coordinate_names=("x",))
         self.m, self.k, self.g = (
             as_parameter(m, "m", positive=True),
             as_parameter(k, "k"),
@@ -71,11 +74,13 @@ class SpringMass(LagrangianSystem):
 
 
 class SpringMassDamper(LagrangianSystem):
-    """Spring-mass-damper, eq. (1.26)-(1.28): m yddot + xi ydot + K y = u. The damper enters as
-    the generalised force -xi ydot and the input as a force u (eq. 2.112)."""
+    """Spring-mass-damper, state (y, ydot), eq. (1.26)-(1.28): m yddot + xi ydot + K y = u.
+
+    The damper enters as the generalised force -xi ydot and the input as a force u
+    (eq. 2.112)."""
 
     def __init__(self, m=1.0, xi=0.5, K=4.0):
-        super().__init__(nq=1, nu=1)
+        super().__init__(nq=1, nu=1, coordinate_names=("y",))
         self.m, self.xi, self.K = (
             as_parameter(m, "m", positive=True),
             as_parameter(xi, "xi"),
@@ -112,13 +117,15 @@ class _CartCrane(LagrangianSystem):
 
 
 class Crane(_CartCrane):
-    """Crane in polar coordinates, eq. (2.55)-(2.70): q = (x, theta), cart M at (x, 0), hanging
-    mass m at p_m = (x + L sin theta, -L cos theta) (eq. 2.56), V = -m g L cos theta (eq. 2.62).
-    W(q) of eq. (2.60); accelerations eq. (2.70) (checked: no typo). Input: horizontal force u
-    on the cart (an addition; eq. 2.115 gives Q = (u, 0))."""
+    """Crane in polar coordinates, state (x, theta, xdot, thetadot), eq. (2.55)-(2.70).
+
+    q = (x, theta), cart M at (x, 0), hanging mass m at p_m = (x + L sin theta, -L cos theta)
+    (eq. 2.56), V = -m g L cos theta (eq. 2.62). W(q) of eq. (2.60); accelerations eq. (2.70)
+    (checked: no typo). Input: horizontal force u on the cart (an addition; eq. 2.115 gives
+    Q = (u, 0))."""
 
     def __init__(self, M=1.0, m=0.5, L=1.0, g=9.81):
-        super().__init__(nq=2, nu=1)
+        super().__init__(nq=2, nu=1, coordinate_names=("x", "theta"))
         self.M, self.m = as_parameter(M, "M", positive=True), as_parameter(m, "m", positive=True)
         self.L, self.g = as_parameter(L, "L", positive=True), as_parameter(g, "g")
 
@@ -152,14 +159,15 @@ class Crane(_CartCrane):
 
 
 class ElasticCranePolar(_CartCrane):
-    """Elastic crane in polar coordinates, eq. (2.71)-(2.81): q = (x, theta, L), cart M at
-    (x, 0), hanging mass m at (x + L sin theta, -L cos theta), rod energy K (L - L0)^2 / 2
-    (eq. 2.71), gravity V = -m g L cos theta (eq. 2.77). W(q) of eq. (2.76) and the vector of
-    eq. (2.80) were checked against the autograd builder and are right as printed;
+    """Elastic crane, polar, state (x, theta, L, xdot, thetadot, Ldot), eq. (2.71)-(2.81).
+
+    q = (x, theta, L), cart M at (x, 0), hanging mass m at (x + L sin theta, -L cos theta), rod
+    energy K (L - L0)^2 / 2 (eq. 2.71), gravity V = -m g L cos theta (eq. 2.77). W(q) of eq. (2.76)
+    and the vector of eq. (2.80) were checked against the autograd builder and are right as printed;
     accelerations by eq. (2.81). Input: horizontal force u on the cart (addition)."""
 
     def __init__(self, M=1.0, m=0.5, L0=1.0, K=50.0, g=9.81):
-        super().__init__(nq=3, nu=1)
+        super().__init__(nq=3, nu=1, coordinate_names=("x", "theta", "L"))
         self.M, self.m = as_parameter(M, "M", positive=True), as_parameter(m, "m", positive=True)
         self.L0, self.K, self.g = as_parameter(L0, "L0"), as_parameter(K, "K"), as_parameter(g, "g")
 
@@ -208,16 +216,18 @@ class ElasticCranePolar(_CartCrane):
 
 
 class ElasticCraneCartesian(LagrangianSystem):
-    """Elastic crane in Cartesian coordinates, eq. (2.82)-(2.90): q = (x, p1, p2) with the
-    vertical axis p2 pointing down (Fig. 2.5), W = diag(M, m, m) (eq. 2.85), rod energy
-    K (L - L0)^2 / 2 with L = ||p - (x, 0)|| (eq. 2.86), gravity V = -m g p2 (eq. 2.87).
+    """Elastic crane, Cartesian, state (x, p1, p2, xdot, p1dot, p2dot), p2 down, eq. (2.82)-(2.90).
+
+    q = (x, p1, p2) with the vertical axis p2 pointing down (Fig. 2.5), W = diag(M, m, m)
+    (eq. 2.85), rod energy K (L - L0)^2 / 2 with L = ||p - (x, 0)|| (eq. 2.86), gravity
+    V = -m g p2 (eq. 2.87).
 
     Typo fixed: eq. (2.88) writes "- m g p2" in L = T - V; with V = -m g p2 it is "+ m g p2"
     (eq. 2.89c and 2.90 already use the right sign). Accelerations eq. (2.90). Input:
     horizontal force u on the cart (addition)."""
 
     def __init__(self, M=1.0, m=0.5, L0=1.0, K=50.0, g=9.81):
-        super().__init__(nq=3, nu=1)
+        super().__init__(nq=3, nu=1, coordinate_names=("x", "p1", "p2"))
         self.M, self.m = as_parameter(M, "M", positive=True), as_parameter(m, "m", positive=True)
         self.L0, self.K, self.g = as_parameter(L0, "L0"), as_parameter(K, "K"), as_parameter(g, "g")
 
@@ -246,9 +256,11 @@ class ElasticCraneCartesian(LagrangianSystem):
 
 
 class RigidCraneCartesian(LagrangianSystem):
-    """Rigid-rod crane in Cartesian coordinates with a constraint, eq. (2.138)-(2.149) and its
-    index-1 form eq. (2.175)-(2.178): q = (x, p1, p2) (p2 down), W = diag(M, m, m),
-    V = -m g p2, c(q) = (delta^T delta - L^2)/2 with delta = p - (x, 0) (eq. 2.145).
+    """Rigid-rod crane, Cartesian, state (x, p1, p2, xdot, p1dot, p2dot), p2 down, constrained.
+
+    Eq. (2.138)-(2.149) and its index-1 form eq. (2.175)-(2.178): q = (x, p1, p2) (p2 down),
+    W = diag(M, m, m), V = -m g p2, c(q) = (delta^T delta - L^2)/2 with delta = p - (x, 0)
+    (eq. 2.145).
 
     Typos fixed in eq. (2.178): M(q) is [[W, a^T], [a, 0]] with a = (x - p1, p1 - x, p2) (the
     printed block rows are garbled), and the last right-hand-side entry is
@@ -257,7 +269,7 @@ class RigidCraneCartesian(LagrangianSystem):
     cart (addition)."""
 
     def __init__(self, M=1.0, m=0.5, L=1.0, g=9.81, baumgarte=None):
-        super().__init__(nq=3, nu=1, baumgarte=baumgarte)
+        super().__init__(nq=3, nu=1, baumgarte=baumgarte, coordinate_names=("x", "p1", "p2"))
         self.M, self.m = as_parameter(M, "M", positive=True), as_parameter(m, "m", positive=True)
         self.L, self.g = as_parameter(L, "L", positive=True), as_parameter(g, "g")
 
@@ -301,9 +313,11 @@ class RigidCraneCartesian(LagrangianSystem):
 
 
 class TwoPendulumCranePolar(_CartCrane):
-    """Two-pendulum crane in polar coordinates, eq. (2.98)-(2.109): q = (x, theta1, theta2),
-    cart and both hanging masses of mass m, rods of length L, p1 = (x, 0) + R(theta1)(0, -L),
-    p2 = p1 + R(theta2)(0, -L) (eq. 2.99-2.102), V = m g (p1_y + p2_y) (eq. 2.106).
+    """Two-pendulum crane, polar, state (x, theta1, theta2, xdot, theta1dot, theta2dot).
+
+    Eq. (2.98)-(2.109): q = (x, theta1, theta2), cart and both hanging masses of mass m, rods of
+    length L, p1 = (x, 0) + R(theta1)(0, -L), p2 = p1 + R(theta2)(0, -L) (eq. 2.99-2.102),
+    V = m g (p1_y + p2_y) (eq. 2.106).
 
     Typos fixed: in W(q) of eq. (2.105) the (2, 1) entry is 2 L cos theta1 (printed
     cos theta2: a transposed entry, W must be symmetric) and the (2, 3), (3, 2) entries are
@@ -312,7 +326,7 @@ class TwoPendulumCranePolar(_CartCrane):
     the cart (addition)."""
 
     def __init__(self, m=1.0, L=1.0, g=9.81):
-        super().__init__(nq=3, nu=1)
+        super().__init__(nq=3, nu=1, coordinate_names=("x", "theta1", "theta2"))
         self.m, self.L, self.g = (
             as_parameter(m, "m", positive=True),
             as_parameter(L, "L", positive=True),
@@ -378,14 +392,21 @@ class TwoPendulumCranePolar(_CartCrane):
 
 
 class TwoPendulumCraneCartesian(LagrangianSystem):
-    """Two-pendulum crane in Cartesian constrained coordinates, eq. (2.150)-(2.158):
-    q = (x, p1, p2) in R^5 (vertical axes pointing down), W = m I (eq. 2.151; the notes say
-    "3x3 identity", it is 5x5), V = -m g (p1_y + p2_y) (eq. 2.152), constraints
+    """Two-pendulum crane, Cartesian, state (x, p1x, p1y, p2x, p2y, then rates ...dot), y down.
+
+    Constrained coordinates, eq. (2.150)-(2.158): q = (x, p1, p2) in R^5 with the points
+    p1 = (p1x, p1y), p2 = (p2x, p2y) (vertical axes pointing down), W = m I (eq. 2.151; the notes
+    say "3x3 identity", it is 5x5), V = -m g (p1_y + p2_y) (eq. 2.152), constraints
     c = (|delta1|^2 - L^2, |delta2|^2 - L^2)/2 with delta1 = (x, 0) - p1, delta2 = p2 - p1
     (eq. 2.153-2.154); explicit form eq. (2.157). Input: horizontal force u on the cart."""
 
     def __init__(self, m=1.0, L=1.0, g=9.81, baumgarte=None):
-        super().__init__(nq=5, nu=1, baumgarte=baumgarte)
+        super().__init__(
+            nq=5,
+            nu=1,
+            baumgarte=baumgarte,
+            coordinate_names=("x", "p1x", "p1y", "p2x", "p2y"),
+        )
         self.m, self.L, self.g = (
             as_parameter(m, "m", positive=True),
             as_parameter(L, "L", positive=True),
@@ -445,8 +466,10 @@ class TwoPendulumCraneCartesian(LagrangianSystem):
 
 
 class HangingChain(LagrangianSystem):
-    """Elastic hanging chain of N masses in 3-D, eq. (2.91)-(2.97): q = (p_1, ..., p_N) in
-    R^{3N} (z axis up), W = m I (eq. 2.92), V = m g sum_k z_k + K/2 sum_{k=0}^N
+    """Hanging chain of N masses in 3-D, state (x1, y1, z1, .., xN, yN, zN, then rates ...dot).
+
+    Elastic chain, eq. (2.91)-(2.97): q = (p_1, ..., p_N) in R^{3N}, p_k = (xk, yk, zk) (z axis
+    up), W = m I (eq. 2.92), V = m g sum_k z_k + K/2 sum_{k=0}^N
     |p_{k+1} - p_k|^2 with fixed ends p_0, p_{N+1} (eq. 2.93, rest length 0).
 
     Typos fixed: eq. (2.95c) has +m g (it is -m g e_z: gravity pulls down) and eq. (2.96)-(2.97)
@@ -456,7 +479,8 @@ class HangingChain(LagrangianSystem):
     def __init__(
         self, n_masses=10, m=0.1, K=10.0, g=9.81, p_start=(0.0, 0.0, 0.0), p_end=(1.0, 0.0, 0.0)
     ):
-        super().__init__(nq=3 * n_masses)
+        names = [f"{axis}{k + 1}" for k in range(int(n_masses)) for axis in "xyz"]
+        super().__init__(nq=3 * n_masses, coordinate_names=names)
         self.n_masses = int(n_masses)
         self.m, self.K, self.g = (
             as_parameter(m, "m", positive=True),
@@ -491,16 +515,18 @@ class HangingChain(LagrangianSystem):
 
 
 class Bowl(LagrangianSystem):
-    """Mass sliding in a bowl, eq. (2.123)-(2.137) and index-1 form eq. (2.170)-(2.174):
-    q = p in R^3 (z up), T = m |pdot|^2 / 2, V = m g p3 (eq. 2.133),
-    c = p3 - (p1^2 + p2^2)/4 (eq. 2.123). det M(q) = -m^2 (p1^2 + p2^2 + 4)/4 (eq. 2.174).
+    """Mass sliding in a bowl, state (p1, p2, p3, p1dot, p2dot, p3dot), p3 up, constrained.
+
+    Eq. (2.123)-(2.137) and index-1 form eq. (2.170)-(2.174): q = p in R^3 (z up),
+    T = m |pdot|^2 / 2, V = m g p3 (eq. 2.133), c = p3 - (p1^2 + p2^2)/4 (eq. 2.123).
+    det M(q) = -m^2 (p1^2 + p2^2 + 4)/4 (eq. 2.174).
 
     Typo fixed in eq. (2.173): the last right-hand-side entry is (p1dot^2 + p2dot^2)/2 (a factor
     1/2 is missing: from eq. 2.171c, a qddot = (p1dot^2 + p2dot^2)/2); the right-hand side's
     third entry is -m g (gravity, eq. 2.172a; printed +m g). Input: none."""
 
     def __init__(self, m=1.0, g=9.81, baumgarte=None):
-        super().__init__(nq=3, baumgarte=baumgarte)
+        super().__init__(nq=3, baumgarte=baumgarte, coordinate_names=("p1", "p2", "p3"))
         self.m, self.g = as_parameter(m, "m", positive=True), as_parameter(g, "g")
 
     def diagonal_mass(self):
@@ -538,8 +564,10 @@ class Bowl(LagrangianSystem):
 
 
 class DistributedRod(LagrangianSystem):
-    """Rigid rod with uniformly distributed mass m, length L, pivoting at the origin in the
-    vertical plane, q = theta measured from the horizontal x axis (eq. 2.17-2.24), built by
+    """Rigid rod pivoting in a vertical plane, state (theta, thetadot), theta from the x axis.
+
+    Uniformly distributed mass m, length L, pivoting at the origin in the vertical plane,
+    q = theta measured from the horizontal x axis (eq. 2.17-2.24), built by
     Gauss-Legendre quadrature along the rod. Optional input: a torque u at the pivot.
 
     Typo fixed: eq. (2.19) misses the factor 1/2 of the kinetic energy (T = m L^2 thetadot^2 / 6)
@@ -547,7 +575,7 @@ class DistributedRod(LagrangianSystem):
     mass concentrated at the tip, eq. 2.11). V = m g L sin(theta) / 2 (eq. 2.24) is right."""
 
     def __init__(self, m=1.0, L=1.0, g=9.81, n_nodes=2):
-        super().__init__(nq=1, nu=1)
+        super().__init__(nq=1, nu=1, coordinate_names=("theta",))
         self.m, self.L, self.g = (
             as_parameter(m, "m", positive=True),
             as_parameter(L, "L", positive=True),

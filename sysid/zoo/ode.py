@@ -5,7 +5,8 @@ directly as ``f`` to ``integrators.odeint``. States have shape ``(*batch, nx)``;
 0-dim tensor or ``(*batch, 1)`` and is ignored by these autonomous plants. Parameters are
 ``nn.Parameter`` that broadcast against the batch (see ``_params``). Where a closed-form
 solution exists, ``exact(t, x0)`` returns it with shape ``(*batch, len(t), nx)``, the layout of
-``Solution.x``.
+``Solution.x``. ``state_names`` lists the state components in order (the first line of each
+class docstring gives the same order).
 """
 
 import torch
@@ -31,16 +32,19 @@ def _squeeze_channel(p: torch.Tensor) -> torch.Tensor:
 
 
 class VanDerPol(nn.Module):
-    """Van der Pol oscillator in the state order of eq. (6.43):
+    """Van der Pol oscillator, state (x1, x2) = (velocity x2', position x2): eq. (6.43)'s order.
 
     x1' = mu (1 - x2^2) x1 - x2 + u,   x2' = x1,
 
-    with mu = 1 giving eq. (6.43) exactly (and, with u, the dynamics of eq. 1.37). The input u
-    (*batch, 1) is an optional force on x1 (zero when None). Not stiff for mu = O(1).
+    with mu = 1 giving eq. (6.43) exactly (and, with u, the dynamics of eq. 1.37). The first
+    component is the velocity-like one, the second the position: the reverse of the usual
+    (position, velocity) order (and of :class:`StiffVanDerPol`). The input u (*batch, 1) is an
+    optional force on x1 (zero when None). Not stiff for mu = O(1).
     """
 
     nx = 2
     nu = 1
+    state_names = ("x1", "x2")
 
     def __init__(self, mu=1.0):
         super().__init__()
@@ -57,7 +61,7 @@ class VanDerPol(nn.Module):
 
 
 class StiffVanDerPol(nn.Module):
-    """Van der Pol oscillator in the singularly perturbed (epsilon) scaling:
+    """Stiff Van der Pol oscillator, state (y1, y2) = (position, velocity y1'), epsilon scaling:
 
     y1' = y2,   eps y2' = (1 - y1^2) y2 - y1,
 
@@ -66,6 +70,7 @@ class StiffVanDerPol(nn.Module):
     """
 
     nx = 2
+    state_names = ("y1", "y2")
 
     def __init__(self, eps=1e-6):
         super().__init__()
@@ -79,11 +84,14 @@ class StiffVanDerPol(nn.Module):
 
 
 class Lorenz(nn.Module):
-    """Lorenz system, eq. (6.9): x1' = sigma (x2 - x1), x2' = x1 (rho - x3) - x2,
-    x3' = x1 x2 - beta x3. Defaults are the classic sigma = 10, rho = 28, beta = 8/3 (the notes
-    use beta = 3 with x0 = [1, 1, 1] for Fig. 6.2-6.5; pass ``beta=3.0`` to reproduce them)."""
+    """Lorenz system, state (x1, x2, x3), eq. (6.9):
+
+    x1' = sigma (x2 - x1), x2' = x1 (rho - x3) - x2, x3' = x1 x2 - beta x3. Defaults are the
+    classic sigma = 10, rho = 28, beta = 8/3 (the notes use beta = 3 with x0 = [1, 1, 1] for
+    Fig. 6.2-6.5; pass ``beta=3.0`` to reproduce them)."""
 
     nx = 3
+    state_names = ("x1", "x2", "x3")
 
     def __init__(self, sigma=10.0, rho=28.0, beta=8.0 / 3.0):
         super().__init__()
@@ -99,7 +107,7 @@ class Lorenz(nn.Module):
 
 
 class StiffLinear(nn.Module):
-    """Stiff linear system of eq. (6.42), x' = A(eps) x, in its stiff reading:
+    """Stiff linear system of eq. (6.42), state (x1, x2, x3, x4), x' = A(eps) x, stiff reading:
 
         A = [[0,      5,      1,        0      ],
              [-5,     0,      0,        1/2    ],
@@ -115,6 +123,7 @@ class StiffLinear(nn.Module):
     """
 
     nx = 4
+    state_names = ("x1", "x2", "x3", "x4")
 
     def __init__(self, eps=5e-4):
         super().__init__()
@@ -147,11 +156,24 @@ class StiffLinear(nn.Module):
 
 
 class LinearTestEquation(nn.Module):
-    """Dahlquist test equation x' = lam x, eq. (6.40); exact solution x0 exp(lam t)."""
+    """Dahlquist test equation, state x (one entry per entry of lam), x' = lam x, eq. (6.40).
+
+    Exact solution x0 exp(lam t). A scalar lam (or one of shape (*batch, 1)) acts on each
+    component of a state of any width; ``nx`` and ``state_names`` describe the default
+    single-component state ``x``, or ``x1..xn`` for lam of shape (..., n), n > 1.
+    """
 
     def __init__(self, lam=-1.0):
         super().__init__()
         self.lam = as_parameter(lam, "lam")
+
+    @property
+    def nx(self) -> int:
+        return self.lam.shape[-1] if self.lam.dim() else 1
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        return ("x",) if self.nx == 1 else tuple(f"x{i + 1}" for i in range(self.nx))
 
     def forward(self, t, x, u=None):
         return like(self.lam, x) * x
@@ -165,10 +187,12 @@ class LinearTestEquation(nn.Module):
 
 
 class Quadratic(nn.Module):
-    """x' = x^2, eq. (1.44): finite escape time 1/x0 for x0 > 0; exact x0 / (1 - x0 t) (eq. 1.45
-    is the case x0 = 1)."""
+    """Scalar state x, x' = x^2, eq. (1.44): finite escape time 1/x0 for x0 > 0.
+
+    Exact solution x0 / (1 - x0 t) (eq. 1.45 is the case x0 = 1)."""
 
     nx = 1
+    state_names = ("x",)
 
     def forward(self, t, x, u=None):
         return x**2
@@ -194,7 +218,7 @@ class Quadratic(nn.Module):
 
 
 class SqrtAbs(nn.Module):
-    """x' = sqrt(|x|), eq. (1.46): solutions through x = 0 are not unique (eq. 1.47).
+    """Scalar state x, x' = sqrt(|x|), eq. (1.46): solutions through x = 0 are not unique.
 
     ``exact(t, x0, dwell=0)`` returns the solution that, on reaching x = 0 (or starting there),
     rests there for ``dwell`` time units and then leaves as ((t - t0)/2)^2 (eq. 1.47 with
@@ -202,6 +226,7 @@ class SqrtAbs(nn.Module):
     """
 
     nx = 1
+    state_names = ("x",)
 
     def forward(self, t, x, u=None):
         return torch.sqrt(torch.abs(x))
@@ -219,10 +244,13 @@ class SqrtAbs(nn.Module):
 
 
 class NonlinearExample(nn.Module):
-    """The example of §1.7: x1' = (1 - x2^2) x1 - x2 + u (eq. 1.37a), x2' = x1 (eq. 1.37b),
-    output y = h(x) = x1 + x2^3 (eq. 1.38). Steady states x = [0, u_bar] (eq. 1.41)."""
+    """The example of §1.7, state (x1, x2) = (velocity x2', position x2), as in eq. (1.37):
+
+    x1' = (1 - x2^2) x1 - x2 + u (eq. 1.37a), x2' = x1 (eq. 1.37b), output
+    y = h(x) = x1 + x2^3 (eq. 1.38). Steady states x = [0, u_bar] (eq. 1.41)."""
 
     nx = 2
+    state_names = ("x1", "x2")
     nu = 1
     ny = 1
 
