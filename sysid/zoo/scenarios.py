@@ -267,11 +267,6 @@ def scenarios() -> list[Scenario]:
     ]
 
 
-def _kkt_multiplier(plant, x):
-    """The multipliers z of the index-1 KKT system (eq. 2.168) at states x (*batch, 2 nq)."""
-    return plant.kkt_solve(x[..., : plant.nq], x[..., plant.nq :])[1]
-
-
 def dae_scenarios() -> list[DAEScenario]:
     """Index-1 DAE forms of zoo plants: the DAE limits of the singularly perturbed plants
     (eq. 5.37, 5.44), the index-1 examples of chapter 5 (eq. 5.46 as a fully implicit DAE,
