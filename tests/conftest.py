@@ -1,4 +1,5 @@
-"""Shared fixtures. Global torch state (default dtype) is restored after every test."""
+"""Shared fixtures. Global torch state (default dtype) is restored after every test, and
+dynamo's compile caches are reset before every test module."""
 
 import functools
 
@@ -6,6 +7,16 @@ import numpy as np
 import pytest
 import torch
 from scipy.integrate import solve_ivp
+
+
+@pytest.fixture(autouse=True, scope="module")
+def fresh_dynamo():
+    """Reset dynamo before each test module: its process-wide limit of compiled graphs
+    (``accumulated_recompile_limit``, 256) would otherwise be reached by the modules that
+    compile many models, and later compiled runs would silently fall back to eager (reported
+    as ``compiled: False``), so tests of the compiled path would not run it."""
+    torch._dynamo.reset()
+    yield
 
 
 @pytest.fixture
