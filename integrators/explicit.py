@@ -295,6 +295,7 @@ class _Entry:
         self.steps_seen = 0
         self.compiled: dict = {}  # (outputs per chunk, component-major, shape...) -> chunk
         self.failed = False
+        self.failure = ""  # why the compiled chunk was given up (reported in the stats)
         self.backward_failed = False  # the compiled chunk's graph cannot be differentiated
         self.signatures: set = set()
         self.componentwise: bool | None = None  # see _is_componentwise
@@ -474,6 +475,7 @@ def solve_explicit(
         or of a (T, nx, *batch) one for ``"component-major"`` runs; not contiguous: call
         ``.contiguous()`` where a contiguous tensor is needed), per-sample ``status``
         (SUCCESS or NON_FINITE) and ``stats`` (n_steps, n_f_evals; ``extra["compiled"]``,
+        ``extra["compile_fallback"]`` why a requested compiled run went eager, else None,
         ``extra["compile_s"]`` the wall time of calls that triggered a compilation, else 0;
         ``extra["layout"]``: ``"component-major"`` for compiled runs without autograd of a
         component-wise model with at most :data:`COMPONENT_MAJOR_MAX_STATES` states, else
@@ -626,11 +628,13 @@ def solve_explicit(
             tic = time.perf_counter()
             try:
                 x_new, ys = compiled_chunk(x, t_stage[s:s_new], h[s:s_new], None, us, ds, out)
-            except Exception:  # compilation unavailable: fall back to eager, remember it
+            except Exception as exc:  # compilation unavailable: fall back to eager, remember it
                 entry.failed = True
+                entry.failure = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
             else:
                 if fresh and grad_mode and not _backward_works(ys, x, f):
                     entry.backward_failed = True
+                    entry.failure = "the compiled graph cannot be differentiated (autograd in f)"
                 else:
                     if fresh:
                         compile_s += time.perf_counter() - tic
@@ -734,12 +738,14 @@ def solve_explicit(
         messages = _failure_messages(failed, first, t)
     else:
         x_out = x_time_major.movedim(0, -2)  # (*batch, T, nx) view
+    compiled = bool(use_compiled and not entry.failed)
+    compiled = compiled and not (grad_mode and entry.backward_failed)
     stats = SolverStats(
         n_f_evals=n_steps * len(scheme.stages),
         n_steps=n_steps,
         extra={
-            "compiled": bool(use_compiled and not entry.failed)
-            and not (grad_mode and entry.backward_failed),
+            "compiled": compiled,
+            "compile_fallback": (entry.failure or None) if want and not compiled else None,
             "compile_s": compile_s,
             "substeps": m,
             "layout": "component-major" if component_major else "interleaved",
