@@ -11,10 +11,9 @@ from scipy.integrate import solve_ivp
 
 @pytest.fixture(autouse=True, scope="module")
 def fresh_dynamo():
-    """Reset dynamo before each test module: its process-wide limit of compiled graphs
-    (``accumulated_recompile_limit``, 256) would otherwise be reached by the modules that
-    compile many models, and later compiled runs would silently fall back to eager (reported
-    as ``compiled: False``), so tests of the compiled path would not run it."""
+    """Reset dynamo before each test module, so the graphs compiled by one module (the
+    correctness matrix compiles every zoo plant) do not count against dynamo's process-wide
+    limits (``accumulated_recompile_limit``) in the modules after it."""
     torch._dynamo.reset()
     yield
 
