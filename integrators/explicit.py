@@ -65,7 +65,7 @@ import torch
 
 from ._buffers import available_bytes, empty_buffer
 from ._options import check_flag, check_int, raise_shape_change
-from .errors import GraphMemoryError, InputValidationError, TableauError
+from .errors import GraphMemoryError, TableauError
 from .inputs import BoundRHS
 from .solution import Solution, SolverStats, Status
 
@@ -507,14 +507,10 @@ def solve_explicit(
         )
     substeps = check_int(substeps, "substeps")
     compile = check_flag(compile, "compile", allow=("auto",))
-    if not (
-        isinstance(checkpoint, bool)
-        or (isinstance(checkpoint, (int, np.integer)) and checkpoint >= 1)
-    ):
-        raise InputValidationError(
-            f"checkpoint must be True, False or an integer >= 1 (steps per segment), got "
-            f"{checkpoint!r}."
-        )
+    if isinstance(checkpoint, (bool, np.bool_)):
+        checkpoint = bool(checkpoint)
+    else:
+        checkpoint = check_int(checkpoint, "checkpoint (True, False or steps per segment)")
     scheme = _Scheme.from_tableau(tab)
     if isinstance(rhs, BoundRHS):
         f, kind, u_fn = rhs.f, rhs.kind, rhs.u
