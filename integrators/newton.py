@@ -19,12 +19,14 @@ and memory does not grow with the number of iterations. ``x0`` receives no gradi
 (Hessians and Hessian-vector products through a solve).
 
 ``minimize`` applies the same machinery to ``min_theta Phi(theta)`` with the exact Hessian
-(eq. 3.49-3.52) or to least-squares residuals with the regularised Gauss-Newton Hessian
-``J^T J + alpha I`` (eq. 3.57-3.61).
+(eq. 3.49-3.52), to least-squares residuals with the regularised Gauss-Newton Hessian
+``J^T J + alpha I`` (eq. 3.57-3.61), or, by Levenberg-Marquardt with adaptive damping, to
+``sum_k rho(r_k)`` for a robust per-residual loss ``rho`` (one iteration loop for all three).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
@@ -119,16 +121,18 @@ class MinimizeResult:
         converged: (*batch,) bool.
         status: (*batch,) int8 :class:`NewtonStatus` codes.
         iterations: (*batch,) int64.
-        loss: (*batch,) final loss (``0.5 ||r||^2`` for Gauss-Newton).
+        loss: (*batch,) final loss (``0.5 ||r||^2`` for Gauss-Newton, ``sum rho(r_k)`` for
+            Levenberg-Marquardt).
         loss_history: (iters + 1, *batch) loss before each iteration.
         grad: (*batch, n) gradient at ``theta``.
-        hessian: (*batch, n, n) the Hessian used at ``theta`` (exact, or ``J^T J`` for
-            Gauss-Newton, without regularisation).
-        J: (*batch, m, n) residual Jacobian at ``theta`` (Gauss-Newton only), e.g. for the
-            covariance ``sigma^2 (J^T J)^{-1}`` of a least-squares estimate.
-        residual: (*batch, m) residual at ``theta`` (Gauss-Newton only).
+        hessian: (*batch, n, n) the Hessian used at ``theta`` (exact, or ``J^T C J`` for the
+            residual methods, ``C = 1`` for Gauss-Newton; without regularisation).
+        J: (*batch, m, n) residual Jacobian at ``theta`` (residual methods only), e.g. for
+            the covariance ``sigma^2 (J^T J)^{-1}`` of a least-squares estimate.
+        residual: (*batch, m) residual at ``theta`` (residual methods only).
         n_fun_evals: batched evaluations of the objective / residual.
         messages: lines for members that did not converge.
+        damping: (*batch,) final relative damping ``lam`` (Levenberg-Marquardt only).
     """
 
     theta: torch.Tensor
@@ -143,6 +147,7 @@ class MinimizeResult:
     residual: torch.Tensor | None = None
     n_fun_evals: int = 0
     messages: list[str] = field(default_factory=list)
+    damping: torch.Tensor | None = None
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -580,10 +585,15 @@ def newton(
 
 
 # ---------------------------------------------------------------------------- minimize
-def _loss_derivatives(fun, theta, args, method, jacobian=None):
-    """(loss, grad, H, J, r) at ``theta`` for exact Newton or Gauss-Newton (eq. 3.58-3.60)."""
+MINIMIZE_METHODS = ("newton", "gauss_newton", "levenberg_marquardt")
+
+
+def _loss_derivatives(fun, theta, args, method, jacobian=None, loss=None):
+    """(loss, grad, H, J, r) at ``theta``: exact Newton (eq. 3.50-3.51), or for residuals
+    the quadratic model ``H = J' C J``, ``grad = J' psi(r)`` with the curvature weights
+    ``C = loss.curvature(r)`` (``C = 1``, ``psi(r) = r``: Gauss-Newton, eq. 3.58-3.60)."""
     batch = theta.shape[:-1]
-    if method == "gauss_newton":
+    if method != "newton":
         if jacobian is None:
             r, J = batch_jacobian(fun, theta, *args)
         else:
@@ -598,9 +608,12 @@ def _loss_derivatives(fun, theta, args, method, jacobian=None):
                 f"minimize: the residual must have shape (*batch, m) with batch {tuple(batch)}, "
                 f"got {tuple(r.shape)}."
             )
-        loss = 0.5 * (r * r).sum(-1)
-        grad = (J.transpose(-1, -2) @ r.unsqueeze(-1)).squeeze(-1)
-        return loss, grad, J.transpose(-1, -2) @ J, J, r
+        Jt = J.transpose(-1, -2)
+        if loss is None:
+            return 0.5 * (r * r).sum(-1), (Jt @ r.unsqueeze(-1)).squeeze(-1), Jt @ J, J, r
+        H = Jt @ (J * loss.curvature(r).unsqueeze(-1))
+        grad = (Jt @ loss.psi(r).unsqueeze(-1)).squeeze(-1)
+        return loss.rho(r).sum(-1), grad, H, J, r
     store = {}
 
     def gradient(z):
@@ -617,6 +630,17 @@ def _loss_derivatives(fun, theta, args, method, jacobian=None):
 
     grad, H = batch_jacobian(gradient, theta)
     return store["loss"], grad, 0.5 * (H + H.transpose(-1, -2)), None, None
+
+
+def _loss_only(fun, theta, args, method, loss=None, admissible=None):
+    """The objective at ``theta`` (``inf`` where it is not finite or ``theta`` inadmissible)."""
+    value = fun(theta, *args)
+    if method != "newton":
+        value = 0.5 * (value * value).sum(-1) if loss is None else loss.rho(value).sum(-1)
+    value = torch.where(torch.isfinite(value), value, torch.full_like(value, math.inf))
+    if admissible is not None:
+        value = torch.where(admissible(theta), value, torch.full_like(value, math.inf))
+    return value
 
 
 def _shifted_cholesky(H, alpha):
@@ -639,6 +663,21 @@ def _shifted_cholesky(H, alpha):
     return torch.where(ok[..., None, None], L, eye.expand_as(L)), ok
 
 
+def _damped_cholesky(H, lam, scale):
+    """Cholesky factor of ``H + lam scale I`` (Levenberg-Marquardt, eq. 3.61 with
+    ``alpha = lam scale``); ``lam`` grows tenfold per member while the matrix is numerically
+    indefinite. Returns ``(L, lam, ok)``."""
+    eye = torch.eye(H.shape[-1], dtype=H.dtype, device=H.device)
+    L, info = torch.linalg.cholesky_ex(H + (lam * scale)[..., None, None] * eye)
+    for _ in range(30):
+        if not bool((info != 0).any()):
+            break
+        lam = torch.where(info != 0, lam * 10, lam)
+        L, info = torch.linalg.cholesky_ex(H + (lam * scale)[..., None, None] * eye)
+    ok = info == 0
+    return torch.where(ok[..., None, None], L, eye.expand_as(L)), lam, ok
+
+
 def minimize(
     fun: Callable,
     theta0,
@@ -648,120 +687,212 @@ def minimize(
     line_search: bool = True,
     tol: float | None = None,
     xtol: float = 1e-10,
+    ftol: float = 1e-10,
     max_iter: int = 100,
     raise_on_failure: bool = False,
     jacobian: Callable | None = None,
+    loss=None,
+    admissible: Callable | None = None,
+    damping: float = 1e-6,
+    max_backtracks: int | None = None,
 ) -> MinimizeResult:
     """Batched unconstrained minimisation by Newton-type steps (notes §3.5).
 
     Each iteration solves ``(H + alpha I) dtheta = -grad`` and takes ``theta + t dtheta`` with
-    ``t`` from Armijo backtracking on the loss (Theorem 7) when ``line_search`` is on.
+    ``t = 1, 1/2, ...`` from Armijo backtracking on the loss (Theorem 7),
+    ``f(theta + t dtheta) <= f(theta) + 1e-4 t grad' dtheta``. The three methods share this
+    iteration; they differ in the model ``(H, grad)`` and in how ``alpha`` is chosen.
+
+    Methods:
+        ``"newton"``: ``fun(theta, *args) -> (*batch,)`` is the objective; ``H`` is its exact
+        Hessian from autograd (eq. 3.50-3.51); ``alpha = regularization``, doubled per
+        problem while ``H + alpha I`` is not positive definite, so every step is a descent
+        direction.
+
+        ``"gauss_newton"``: ``fun(theta, *args) -> (*batch, m)`` is a residual and the loss
+        ``0.5 ||r||^2``; ``H = J'J``, ``grad = J'r`` (eq. 3.57-3.60); ``alpha`` as for
+        ``"newton"`` (eq. 3.61).
+
+        ``"levenberg_marquardt"``: ``fun`` is a residual and the loss ``sum_k rho(r_k)``
+        (``0.5 ||r||^2`` when ``loss`` is None); ``H = J' C J``, ``grad = J' psi(r)`` with the
+        curvature weights ``C = loss.curvature(r)``, and ``alpha = lam trace(H) / n`` with a
+        per-problem ``lam`` (starting at ``damping``) that shrinks tenfold after a full step,
+        doubles after a shortened one and grows tenfold when the line search finds no
+        decrease; a problem whose ``lam`` exceeds ``1e10`` that way has failed. Candidates
+        that ``admissible`` rejects count as an infinite loss.
+
+    Loss protocol (``loss=``, Levenberg-Marquardt only): any object with elementwise
+    methods ``rho(r)`` (per-residual loss, ``~ r^2 / 2`` near 0), ``psi(r) = rho'(r)`` and
+    ``curvature(r)``, the weights ``c_k`` of the quadratic model
+    ``sum_k c_k (r_k + J_k d)^2 / 2`` used for the step (``rho''`` for a Newton step,
+    ``psi(r)/r`` for iteratively reweighted least squares), on (*batch, m) tensors.
 
     Args:
-        fun: for ``method="newton"``, the objective ``fun(theta, *args) -> (*batch,)`` with the
-            exact Hessian from autograd (eq. 3.50-3.51); for ``method="gauss_newton"``, the
-            residual ``fun(theta, *args) -> (*batch, m)`` of ``0.5 ||r||^2`` with the
-            Gauss-Newton Hessian ``J^T J`` (eq. 3.60). Problems in the batch must be
-            independent.
+        fun: objective or residual, see Methods; problems in the batch must be independent.
         theta0: (*batch, n) initial parameters (detached).
         *args: extra arguments of ``fun`` (not differentiated).
-        method: "newton" or "gauss_newton".
-        regularization: ``alpha >= 0`` of eq. 3.61 (Levenberg-Marquardt-style). Whenever
-            ``H + alpha I`` is not positive definite the shift is doubled per problem until it
-            is, so every step is a descent direction.
-        line_search: Armijo backtracking (else full steps).
-        tol: converged when ``||grad||_inf <= tol`` (eq. 3.49); default ``max(1e-8, 1000 eps)``.
-        xtol: also converged when an accepted step satisfies
-            ``||t dtheta||_inf <= xtol (1 + ||theta||_inf)``, or when the predicted decrease is
-            at the rounding level of the loss.
+        method: "newton", "gauss_newton" or "levenberg_marquardt".
+        regularization: ``alpha >= 0`` of eq. 3.61 for "newton" and "gauss_newton".
+        line_search: Armijo backtracking (else full steps; "newton", "gauss_newton").
+        tol: gradient tolerance. "newton", "gauss_newton": converged when
+            ``||grad||_inf <= tol`` (eq. 3.49), default ``max(1e-8, 1000 eps)``.
+            "levenberg_marquardt": when ``||grad||_inf <= tol (1 + f) sqrt(trace(H) / n)``
+            (scale-free), default ``1e-12``.
+        xtol: step tolerance. "newton", "gauss_newton": converged when an accepted step
+            satisfies ``||t dtheta||_inf <= xtol (1 + ||theta||_inf)``, or when the line search
+            fails with a predicted decrease at the rounding level of the loss.
+            "levenberg_marquardt": when ``||t dtheta||_2 <= xtol (xtol + ||theta||_2)``
+            (``xtol`` at least ``10 eps``).
+        ftol: "levenberg_marquardt": also converged when an accepted step decreases the loss
+            by at most ``ftol f`` (``ftol`` at least ``10 eps``).
         max_iter: iteration budget.
         raise_on_failure: raise :class:`ConvergenceError` naming the failed problems.
-        jacobian: Gauss-Newton only: ``jacobian(theta, *args) -> (r, J)`` with ``J`` of shape
+        jacobian: residual methods: ``jacobian(theta, *args) -> (r, J)`` with ``J`` of shape
             (*batch, m, n), replacing the reverse-mode autograd Jacobian; e.g. forward
             sensitivities of a simulation (:func:`integrators.sensitivities`), which cost
             ``n`` directions instead of ``m`` reverse passes when ``m >> n``.
+        loss: "levenberg_marquardt": the per-residual loss (protocol above); None is the
+            squared loss ``r^2 / 2``.
+        admissible: "levenberg_marquardt": ``theta (*batch, n) -> (*batch,)`` bool; steps to
+            inadmissible parameters (e.g. an unstable model) are rejected by the line search.
+            ``theta0`` must be admissible.
+        damping: "levenberg_marquardt": the initial relative damping ``lam``.
+        max_backtracks: step halvings tried per iteration; default 30 ("newton",
+            "gauss_newton") or 11 ("levenberg_marquardt").
 
     Returns:
-        :class:`MinimizeResult` with the estimate, the loss history, the gradient, the Hessian
-        (``J^T J`` for Gauss-Newton) and, for Gauss-Newton, ``J`` and the residual at the
-        solution (e.g. for the covariance ``sigma^2 (J^T J)^{-1}``).
+        :class:`MinimizeResult` with the estimate, the loss history, the gradient, the
+        Hessian used (``J'CJ`` for the residual methods, without damping), for the residual
+        methods ``J`` and the residual at the solution (e.g. for the covariance
+        ``sigma^2 (J'J)^{-1}``), and for Levenberg-Marquardt the final ``lam`` in ``damping``.
+        A line-search failure has status ``LINE_SEARCH_FAILED``.
     """
-    if method not in ("newton", "gauss_newton"):
+    if method not in MINIMIZE_METHODS:
         raise InputValidationError(
-            f"minimize: unknown method {method!r}; use 'newton' or 'gauss_newton'."
+            f"minimize: unknown method {method!r}; use one of {', '.join(MINIMIZE_METHODS)}."
         )
+    adaptive = method == "levenberg_marquardt"
     if regularization < 0:
         raise InputValidationError(f"minimize: regularization must be >= 0, got {regularization}.")
-    if jacobian is not None and method != "gauss_newton":
-        raise InputValidationError("minimize: jacobian= is only used by method='gauss_newton'.")
+    if jacobian is not None and method == "newton":
+        raise InputValidationError(
+            "minimize: jacobian= is only used by the residual methods 'gauss_newton' and "
+            "'levenberg_marquardt'."
+        )
+    if not adaptive and (loss is not None or admissible is not None):
+        raise InputValidationError(
+            "minimize: loss= and admissible= are only used by method='levenberg_marquardt'."
+        )
+    if adaptive and not line_search:
+        raise InputValidationError(
+            "minimize: method='levenberg_marquardt' always uses its line search; pass "
+            "line_search=True (or use method='gauss_newton' for full steps)."
+        )
+    if adaptive and not damping > 0:
+        raise InputValidationError(f"minimize: damping must be > 0, got {damping}.")
     theta = _validate_x0(theta0)
     frozen = _detach(args)
-    tol = max(1e-8, 1e3 * torch.finfo(theta.dtype).eps) if tol is None else float(tol)
-    batch, dev = theta.shape[:-1], theta.device
+    batch, dev, n = theta.shape[:-1], theta.device, theta.shape[-1]
     eps = torch.finfo(theta.dtype).eps
+    if adaptive:
+        tol = 1e-12 if tol is None else float(tol)
+        xtol, ftol = max(xtol, 10 * eps), max(ftol, 10 * eps)  # reachable in float32 too
+        trials = 1 + (11 if max_backtracks is None else max_backtracks)
+    else:
+        tol = max(1e-8, 1e3 * eps) if tol is None else float(tol)
+        trials = 1 + (_MAX_BACKTRACKS if max_backtracks is None else max_backtracks)
+        trials = trials if line_search else 1
     n_evals = 1
-    loss, grad, H, J, r = _loss_derivatives(fun, theta, frozen, method, jacobian)
+    loss_value, grad, H, J, r = _loss_derivatives(fun, theta, frozen, method, jacobian, loss)
     with torch.no_grad():
         status = torch.full(batch, NewtonStatus.MAX_ITER, dtype=torch.int8, device=dev)
         iterations = torch.zeros(batch, dtype=torch.int64, device=dev)
         active = torch.ones(batch, dtype=torch.bool, device=dev)
-        history = [loss]
+        lam = torch.full(batch, float(damping), dtype=theta.dtype, device=dev)
+        history = [loss_value]
         for _ in range(max_iter + 1):
-            nonfinite = active & ~(torch.isfinite(loss) & torch.isfinite(grad).all(-1))
+            nonfinite = active & ~(torch.isfinite(loss_value) & torch.isfinite(grad).all(-1))
             status[nonfinite] = NewtonStatus.NON_FINITE
-            done = active & ~nonfinite & (grad.abs().amax(-1) <= tol)
+            active &= ~nonfinite
+            gnorm = grad.abs().amax(-1)
+            if adaptive:  # the curvature scale of eq. 3.61's alpha and of the gradient test
+                scale = (H.diagonal(dim1=-2, dim2=-1).sum(-1) / n).clamp_min(
+                    torch.finfo(theta.dtype).tiny
+                )
+                done = active & (gnorm <= tol * (1 + loss_value) * scale.sqrt())
+            else:
+                done = active & (gnorm <= tol)
             status[done] = NewtonStatus.CONVERGED
-            active &= ~(done | nonfinite)
+            active &= ~done
             if not bool(active.any()) or int(iterations.max()) >= max_iter:
                 break
-            Lc, ok = _shifted_cholesky(torch.nan_to_num(H), regularization)
+            if adaptive:
+                Lc, lam, ok = _damped_cholesky(H, lam, scale)
+            else:
+                Lc, ok = _shifted_cholesky(torch.nan_to_num(H), regularization)
             status[active & ~ok] = NewtonStatus.SINGULAR
             active &= ok
             step = -torch.cholesky_solve(grad.unsqueeze(-1), Lc).squeeze(-1)
             slope = (grad * step).sum(-1)  # < 0: descent direction (Theorem 7)
             t = torch.ones(batch, dtype=theta.dtype, device=dev)
-            trial_loss = _loss_only(fun, theta + step, frozen, method)
-            n_evals += 1
-            if line_search:
-                for attempt in range(_MAX_BACKTRACKS + 1):
-                    accept = torch.isfinite(trial_loss) & (trial_loss <= loss + _ARMIJO * t * slope)
-                    retry = active & ~accept
-                    if not bool(retry.any()):
-                        break
-                    if attempt == _MAX_BACKTRACKS:
-                        # no decrease found: converged if the predicted decrease is at the
-                        # rounding level of the loss, else a genuine failure
-                        flat = retry & (-slope <= 10 * eps * loss.abs().clamp(min=eps))
-                        status[flat] = NewtonStatus.CONVERGED
-                        status[retry & ~flat] = NewtonStatus.LINE_SEARCH_FAILED
-                        active &= ~retry
-                        break
-                    t = torch.where(retry, t / 2, t)
-                    trial_loss = torch.where(
-                        retry,
-                        _loss_only(fun, theta + t[..., None] * step, frozen, method),
-                        trial_loss,
-                    )
-                    n_evals += 1
-            move = active[..., None]
-            small = (t[..., None] * step).abs().amax(-1) <= xtol * (1 + theta.abs().amax(-1))
-            theta = torch.where(move, theta + t[..., None] * step, theta)
+            accepted = torch.zeros(batch, dtype=torch.bool, device=dev)
+            trial_loss = loss_value.clone()
+            pending = active.clone()
+            for _attempt in range(trials):
+                if not bool(pending.any()):
+                    break
+                value = _loss_only(
+                    fun, theta + t[..., None] * step, frozen, method, loss, admissible
+                )
+                n_evals += 1
+                ok = pending & (value <= loss_value + _ARMIJO * t * slope)
+                ok = ok if line_search else pending
+                accepted |= ok
+                trial_loss = torch.where(ok, value, trial_loss)
+                pending &= ~ok
+                t = torch.where(pending, t / 2, t)
+            no_decrease = active & ~accepted
+            if adaptive:
+                full = accepted & (t == 1)
+                lam = torch.where(full, (lam / 10).clamp_min(1e-12), lam)
+                lam = torch.where(accepted & ~full, lam * 2, lam)
+                lam = torch.where(no_decrease, lam * 10, lam)
+            else:
+                # no decrease found: converged if the predicted decrease is at the rounding
+                # level of the loss, else a genuine failure
+                flat = no_decrease & (-slope <= 10 * eps * loss_value.abs().clamp(min=eps))
+                status[flat] = NewtonStatus.CONVERGED
+                status[no_decrease & ~flat] = NewtonStatus.LINE_SEARCH_FAILED
+                active &= ~no_decrease
+            move = active & accepted
+            dtheta = torch.where(move[..., None], t[..., None] * step, 0.0)
+            if adaptive:
+                small = dtheta.norm(dim=-1) <= xtol * (xtol + theta.norm(dim=-1))
+                small |= (loss_value - trial_loss) <= ftol * loss_value
+                small &= move
+            else:
+                small = dtheta.abs().amax(-1) <= xtol * (1 + theta.abs().amax(-1))
+            theta = theta + dtheta
             iterations += active.to(torch.int64)
-            new = _loss_derivatives(fun, theta, frozen, method, jacobian)
+            new = _loss_derivatives(fun, theta, frozen, method, jacobian, loss)
             n_evals += 1
-            keep = ~active
-            loss, grad, H = (
-                torch.where(keep, loss, new[0]),
+            keep = ~move
+            loss_value, grad, H = (
+                torch.where(keep, loss_value, new[0]),
                 torch.where(keep[..., None], grad, new[1]),
                 torch.where(keep[..., None, None], H, new[2]),
             )
-            if method == "gauss_newton":
+            if method != "newton":
                 J = torch.where(keep[..., None, None], J, new[3])
                 r = torch.where(keep[..., None], r, new[4])
-            history.append(loss)
-            stalled = active & small & torch.isfinite(loss)
+            history.append(loss_value)
+            stalled = active & small & torch.isfinite(loss_value)
             status[stalled] = NewtonStatus.CONVERGED
             active &= ~stalled
+            if adaptive:
+                failed = no_decrease & (lam > 1e10)
+                status[failed] = NewtonStatus.LINE_SEARCH_FAILED
+                active &= ~failed
     converged = status == NewtonStatus.CONVERGED
     messages = _describe(status, grad.abs().amax(-1), label="gradient norm")
     if raise_on_failure and not bool(converged.all()):
@@ -775,7 +906,7 @@ def minimize(
         converged=converged,
         status=status,
         iterations=iterations,
-        loss=loss,
+        loss=loss_value,
         loss_history=torch.stack(history),
         grad=grad,
         hessian=H,
@@ -783,9 +914,5 @@ def minimize(
         residual=r,
         n_fun_evals=n_evals,
         messages=messages,
+        damping=lam if adaptive else None,
     )
-
-
-def _loss_only(fun, theta, args, method):
-    value = fun(theta, *args)
-    return 0.5 * (value * value).sum(-1) if method == "gauss_newton" else value

@@ -367,3 +367,115 @@ def test_batch_jacobian_falls_back_to_a_component_loop():
     weights = torch.tensor([1.0, 2.0, 3.0], dtype=F64)
     _, J = batch_jacobian(lambda z: _NumpySquare.apply(z) * weights, x)
     torch.testing.assert_close(J, torch.diag_embed(2 * x * weights))
+
+
+# ------------------------------------------------------------- Levenberg-Marquardt
+class _Huber:
+    """Huber's loss with threshold c, as a duck-typed loss of ``minimize`` (the protocol)."""
+
+    def __init__(self, c):
+        self.c = c
+
+    def rho(self, r):
+        a = r.abs()
+        return torch.where(a <= self.c, 0.5 * r * r, self.c * a - 0.5 * self.c**2)
+
+    def psi(self, r):
+        return r.clamp(-self.c, self.c)
+
+    def curvature(self, r):
+        return torch.clamp(self.c / r.abs(), max=1.0)
+
+
+def _exp_data(seed, outliers=False):
+    g = torch.Generator().manual_seed(seed)
+    t = torch.linspace(0, 3, 40, dtype=F64)
+    truth = torch.tensor([[2.0, 1.3, 0.5], [1.0, 0.4, -0.2], [3.0, 2.5, 1.0]], dtype=F64)
+    y = exp_model(truth, t) + 0.05 * torch.randn(3, 40, generator=g, dtype=F64)
+    if outliers:
+        y[:, ::7] += 2.0  # gross errors in every 7th sample
+    return t, y
+
+
+def _exp_residual(theta, t, y):
+    return exp_model(theta, t) - y
+
+
+def test_levenberg_marquardt_matches_gauss_newton_and_scipy():
+    t, y = _exp_data(1)
+    th0 = torch.tensor([[1.0, 1.0, 0.0]], dtype=F64).expand(3, 3)
+    lm = minimize(_exp_residual, th0, t, y, method="levenberg_marquardt", xtol=0, ftol=0)
+    gn = minimize(_exp_residual, th0, t, y, method="gauss_newton")
+    assert bool(lm.converged.all())
+    assert lm.damping.shape == (3,) and bool((lm.damping > 0).all())
+    torch.testing.assert_close(lm.theta, gn.theta, rtol=1e-7, atol=1e-9)
+    for i in range(3):
+        ref = least_squares(
+            lambda q, i=i: q[0] * np.exp(-q[1] * t.numpy()) + q[2] - y[i].numpy(),
+            [1.0, 1.0, 0.0],
+            xtol=1e-15,
+            ftol=1e-15,
+            gtol=1e-15,
+        )
+        np.testing.assert_allclose(lm.theta[i].numpy(), ref.x, rtol=1e-7, atol=1e-9)
+    assert bool(torch.all(lm.loss_history[1:] <= lm.loss_history[:-1]))  # Armijo descent
+
+
+def test_levenberg_marquardt_with_a_robust_loss_matches_scipy_huber():
+    """The loss protocol: a duck-typed Huber loss gives scipy's loss='huber' minimiser."""
+    t, y = _exp_data(2, outliers=True)
+    c = 0.1
+    th0 = torch.tensor([[1.0, 1.0, 0.0]], dtype=F64).expand(3, 3)
+    res = minimize(
+        _exp_residual, th0, t, y, method="levenberg_marquardt", loss=_Huber(c), xtol=0, ftol=0
+    )
+    assert bool(res.converged.all())
+    for i in range(3):
+        ref = least_squares(
+            lambda q, i=i: q[0] * np.exp(-q[1] * t.numpy()) + q[2] - y[i].numpy(),
+            [1.0, 1.0, 0.0],
+            loss="huber",
+            f_scale=c,
+            xtol=1e-15,
+            ftol=1e-15,
+            gtol=1e-15,
+        )
+        np.testing.assert_allclose(res.theta[i].numpy(), ref.x, rtol=1e-6, atol=1e-8)
+        np.testing.assert_allclose(float(res.loss[i]), ref.cost, rtol=1e-9)
+
+
+def test_levenberg_marquardt_never_accepts_an_inadmissible_step():
+    """min (theta - 2)^2 restricted to theta < 1: every iterate stays admissible and the
+    estimate approaches the boundary from inside."""
+
+    def residual(theta):
+        return theta - 2.0
+
+    def admissible(theta):
+        return theta[..., 0] < 1.0
+
+    res = minimize(
+        residual,
+        torch.zeros(4, 1, dtype=F64),
+        method="levenberg_marquardt",
+        admissible=admissible,
+        max_iter=60,
+    )
+    assert bool(admissible(res.theta).all())
+    assert bool((res.theta[..., 0] > 0.99).all())
+    assert bool(torch.all(res.loss_history[1:] <= res.loss_history[:-1]))
+    free = minimize(residual, torch.zeros(4, 1, dtype=F64), method="levenberg_marquardt")
+    torch.testing.assert_close(free.theta, torch.full((4, 1), 2.0, dtype=F64))
+
+
+def test_levenberg_marquardt_options_are_checked():
+    th0 = torch.zeros(1, 3, dtype=F64)
+    t, y = _exp_data(3)
+    with pytest.raises(InputValidationError, match="levenberg_marquardt"):
+        minimize(_exp_residual, th0, t, y, method="gauss_newton", loss=_Huber(1.0))
+    with pytest.raises(InputValidationError, match="line_search"):
+        minimize(_exp_residual, th0, t, y, method="levenberg_marquardt", line_search=False)
+    with pytest.raises(InputValidationError, match="damping"):
+        minimize(_exp_residual, th0, t, y, method="levenberg_marquardt", damping=0.0)
+    with pytest.raises(InputValidationError, match="levenberg_marquardt"):
+        minimize(_exp_residual, th0, t, y, method="lm")
