@@ -2,7 +2,17 @@
 
 from . import dae, zoo
 from .data import IOData
-from .estimation import FitResult, UniformNoiseSet, fit, uniform_noise_mle_set
+from .estimation import (
+    FairLoss,
+    FitResult,
+    GaussianLoss,
+    HuberLoss,
+    LaplaceLoss,
+    UniformNoiseSet,
+    fit,
+    make_loss,
+    uniform_noise_mle_set,
+)
 from .filters import iir_filter
 from .linearize import linearize, simulate_lti_zoh, steady_state, zoh_discretize
 from .lls import LLSResult, fir_lls, lls
@@ -28,6 +38,11 @@ __all__ = [
     "PolynomialModel",
     "iir_filter",
     "FitResult",
+    "FairLoss",
+    "GaussianLoss",
+    "HuberLoss",
+    "LaplaceLoss",
+    "make_loss",
     "UniformNoiseSet",
     "fit",
     "uniform_noise_mle_set",
