@@ -1,8 +1,9 @@
 """Tests of sysid.estimation.fit and uniform_noise_mle_set (notes §4.2–4.6).
 
 Independent references: exact noise-free recovery, batched Monte-Carlo studies against the
-asymptotic covariance, statsmodels OLS, finite differences of the Jacobian, scipy linear
-programs (LAD and the uniform-noise polytope) and a brute-force grid search.
+asymptotic covariance, statsmodels OLS, finite differences of the Jacobian, scipy
+least_squares (Huber loss), scipy linear programs (LAD and the uniform-noise polytope) and a
+brute-force grid search.
 """
 
 import numpy as np
