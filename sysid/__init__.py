@@ -2,6 +2,21 @@
 
 from . import dae, zoo
 from .data import IOData
+from .errors import (
+    ConvergenceError,
+    ConvergenceWarning,
+    GraphMemoryError,
+    HighIndexError,
+    HighIndexWarning,
+    InputValidationError,
+    IntegrationError,
+    PoorExcitationWarning,
+    RKIdentError,
+    RKIdentWarning,
+    SingularMatrixError,
+    TableauError,
+    UnstableModelWarning,
+)
 from .estimation import FitResult, UniformNoiseSet, fit, uniform_noise_mle_set
 from .filters import iir_filter
 from .linearize import linearize, simulate_lti_zoh, steady_state, zoh_discretize
@@ -50,4 +65,17 @@ __all__ = [
     "LagrangianSystem",
     "distributed_body",
     "spring_potential",
+    "ConvergenceError",
+    "ConvergenceWarning",
+    "GraphMemoryError",
+    "HighIndexError",
+    "HighIndexWarning",
+    "InputValidationError",
+    "IntegrationError",
+    "PoorExcitationWarning",
+    "RKIdentError",
+    "RKIdentWarning",
+    "SingularMatrixError",
+    "TableauError",
+    "UnstableModelWarning",
 ]
