@@ -30,7 +30,12 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
-from integrators.errors import HighIndexError, InputValidationError, SingularMatrixError
+from integrators.errors import (
+    ConvergenceError,
+    HighIndexError,
+    SingularMatrixError,
+)
+from integrators.newton import NewtonStatus, newton
 
 from .linearize import _jacobian_rows
 from .mechanics import exact_higher_derivatives
@@ -367,22 +372,33 @@ class SingularPerturbation(nn.Module):
         return invertible, (eig.real < 0).all(-1)
 
     def slow_manifold(self, x, z0, u=None, *, t=None, tol=1e-12, max_iter=50):
-        """z on the slow manifold g(t, x, z, u) = 0 by batched Newton from z0 (*batch, nz)."""
+        """z on the slow manifold g(t, x, z, u) = 0 by batched Newton from z0 (*batch, nz).
+
+        Full Newton steps of :func:`integrators.newton.newton` in z (exact dg/dz by autograd);
+        a member stops once ``|g|_inf <= tol``. Differentiable with respect to x and u by the
+        implicit function theorem. Raises SingularMatrixError where dg/dz is singular
+        (Theorem 8 fails) and ConvergenceError (naming the samples) after ``max_iter``.
+        """
         tt = _as_time(t, x)
-        z = z0.detach().clone()
-        for _ in range(max_iter):
-            with torch.no_grad():
-                res = _call(self.g, tt, x, z, u=u)
-            if float(res.abs().max()) <= tol:
-                return z
-            gz = linearize_dae(self.f, self.g, x, z, u, t=t)["gz"]
-            step, info = torch.linalg.solve_ex(gz, res.unsqueeze(-1))
-            if bool((info != 0).any()):
-                raise SingularMatrixError("slow_manifold: dg/dz is singular (Theorem 8 fails)")
-            z = z - step.squeeze(-1)
-        raise InputValidationError(
-            f"slow_manifold: |g| > {tol:g} after {max_iter} Newton steps; give a better z0"
-        )
+
+        def phi(z, xx, *uu):
+            return _call(self.g, tt, xx, z, u=uu[0] if uu else None)
+
+        args = (x,) if u is None else (x, torch.as_tensor(u, dtype=x.dtype))
+        res = newton(phi, z0, *args, tol=tol, max_iter=max_iter)
+        singular = res.status == NewtonStatus.SINGULAR
+        if bool(singular.any()):
+            bad = torch.nonzero(singular)[:5].tolist()
+            raise SingularMatrixError(
+                f"slow_manifold: dg/dz is singular at batch indices {bad} (Theorem 8 fails)"
+            )
+        if not bool(res.converged.all()):
+            bad = torch.nonzero(~res.converged)[:5].tolist()
+            raise ConvergenceError(
+                f"slow_manifold: |g| > {tol:g} after {max_iter} Newton steps at batch indices "
+                f"{bad}; give a better z0"
+            )
+        return res.x
 
 
 __all__ = [
