@@ -41,7 +41,7 @@ import torch
 from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
 from integrators import odeint
 
-try:  # contract C6; a local copy keeps the benchmark usable without sysid
+try:  # the zoo's plant; a local copy keeps the benchmark usable without sysid
     from sysid.zoo import VanDerPol
 except ImportError:  # pragma: no cover
     VanDerPol = None

@@ -77,7 +77,7 @@ class FrozenLUSolve(torch.autograd.Function):
 
 
 class InputSignal:
-    """Stage inputs read from a ``BoundRHS`` (contract C1), or none.
+    """Stage inputs read from a ``BoundRHS`` (:mod:`integrators.inputs`), or none.
 
     Args:
         source: None or a bound rhs with ``kind`` / ``u`` / ``input_at`` (``bind_rhs``).

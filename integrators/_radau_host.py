@@ -151,7 +151,7 @@ def _writable(a: np.ndarray) -> np.ndarray:
 def _inverse(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Batched inverse of (B, q, q) matrices and a (B,) mask of the singular ones (their
     entries are garbage and never used). One matrix goes to LAPACK's ``gesv`` directly (the
-    routine ``np.linalg.inv`` runs, without its wrapper's cost of a few microseconds), a few
+    routine ``np.linalg.inv`` runs, without its wrapper's overhead), a few
     to ``np.linalg.inv``, many to ``torch.linalg.inv_ex`` (:data:`_TORCH_INVERSE_MIN`)."""
     if M.shape[0] == 1:
         (gesv,) = get_lapack_funcs(("gesv",), (M,))
@@ -167,7 +167,7 @@ def _inverse(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 # From this many matrices on, torch's batched inverse beats numpy's loop over LAPACK calls
-# (6 x 6, one thread: equal at 16 matrices, 2.3x faster at 128, 2.7x at 256).
+# (measured crossover: docs/benchmarks.md, ``bench_implicit``).
 _TORCH_INVERSE_MIN = 32
 
 

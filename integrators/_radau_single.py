@@ -6,10 +6,10 @@ Newton eq. 7.14-7.16, step eq. 7.18): the same initial step, stage guess, theta-
 simplified Newton, Jacobian and factorisation reuse, filtered embedded error estimate with its
 retry, step-size rule, statuses and messages, so it takes the same steps. With one trajectory
 every per-sample quantity (time, step size, flags, error norm, contraction rate) is a Python
-float or bool, which costs tens of nanoseconds per operation where a one-element numpy array
-costs about a microsecond; the stage vectors and the small Newton algebra stay numpy arrays
-shaped (1, ...) and go through the batched loop's helpers (factorisation, error filter, model
-wrapper, dense-output records and the gradient replay).
+float or bool, whose operations cost far less than those on a one-element numpy array (see
+docs/benchmarks.md, ``bench_implicit``); the stage vectors and the small Newton algebra stay
+numpy arrays shaped (1, ...) and go through the batched loop's helpers (factorisation, error
+filter, model wrapper, dense-output records and the gradient replay).
 
 Only float64 states take this path (:func:`single_loop_supported`): Python floats are float64,
 so its step control rounds as the batched loop's does (up to a bit of ``**``, and the summation

@@ -1,4 +1,4 @@
-"""Adaptive embedded explicit Runge-Kutta with per-sample step sizes (contract C2, notes §6.5).
+"""Adaptive embedded explicit Runge-Kutta with per-sample step sizes (notes §6.5).
 
 Each trial step computes the stages of the tableau once and two solutions from them,
 ``x_{k+1} = x_k + dt sum_i b_i K_i`` and ``xhat_{k+1} = x_k + dt sum_i bhat_i K_i``
@@ -9,7 +9,8 @@ step is ``K_1`` of the next one (notes eq. 6.45), so a step costs ``s - 1`` eval
 
 Batching: every sample of the batch has its own time, step size, error norm, decision and
 counters. The batch is advanced together, one batched ``rhs`` call per stage with the
-per-sample stage times passed as a ``(*batch, 1)`` tensor (contract C1); a sample that has
+per-sample stage times passed as a ``(*batch, 1)`` tensor (inputs bound to the model, see
+:mod:`integrators.inputs`); a sample that has
 finished (or failed) takes steps of size zero and its state is frozen, so its answer and its
 step count are exactly those of solving it alone.
 
@@ -144,7 +145,7 @@ def solve_adaptive(
 
     Args:
         rhs: ``rhs(t, x) -> (*batch, nx)`` with ``t`` a (*batch, 1) tensor of per-sample times
-            (contract C1; e.g. from :func:`integrators.inputs.bind_rhs`).
+            (an input bound to the model, e.g. by :func:`integrators.inputs.bind_rhs`).
         x0: (*batch, nx) initial states (at ``t[0]``).
         t: (T,) strictly increasing output times; the states are reported there by dense
             output, the steps are not shortened to hit them.

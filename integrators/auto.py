@@ -6,7 +6,7 @@ that region reaches about ``|lambda dt| ~ 3.3`` along the negative real axis. Wi
 spectral radius ``rho`` of ``J`` at ``x0`` (largest over the batch) and the typical step
 ``dt`` the output grid asks for (the mean output interval), ``rho dt > threshold`` means the
 explicit method would be forced to steps far below ``dt`` by stability alone: the problem is
-treated as stiff and integrated with Radau IIA (contract C3).
+treated as stiff and integrated with Radau IIA (``integrators.implicit``).
 """
 
 from __future__ import annotations
@@ -24,7 +24,8 @@ def choose_method(rhs, x0, t, *, threshold: float = STIFFNESS_THRESHOLD):
     """Pick "dopri5" or "radau_iia" for ``x' = rhs(t, x)`` from ``x0`` over ``t``.
 
     Args:
-        rhs: ``rhs(t, x) -> (*batch, n)`` (contract C1; called with the 0-dim time ``t[0]``).
+        rhs: ``rhs(t, x) -> (*batch, n)`` (input already bound, see :mod:`integrators.inputs`;
+            called with the 0-dim time ``t[0]``).
         x0: (*batch, n) initial states.
         t: (T,) output times.
         threshold: stiffness limit on ``rho * dt``.

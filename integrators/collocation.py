@@ -179,7 +179,7 @@ def collocation_output_weights(tab: ButcherTableau, theta):
     Returns:
         weights of shape ``(*theta.shape, s)``: a tensor (same dtype and device as ``theta``,
         differentiable with respect to it) when ``theta`` is a tensor, else a float64 ndarray.
-        For a 1-D ``theta`` this is the ``(len(theta), s)`` array of contract C5.
+        For a 1-D ``theta`` this is a ``(len(theta), s)`` array, one row of weights per fraction.
 
     Raises:
         TableauError: when ``tab`` is not a collocation method.

@@ -25,7 +25,7 @@ of such a model (detected once by tracing it, ``_cat_forwarding.reads_only_compo
 the state as a contiguous (nx, *batch) tensor, form each stage state component by component,
 and compile with a graph pass that reads the model's stacked pieces where they were computed
 (``_cat_forwarding``): all stages of a step then fuse into one vectorised loop over the batch
-(RK4 on 65 536 Van der Pol oscillators: 0.11 ms per step instead of 0.35-0.42 ms). Models
+(several times faster per step on large batches; timings in docs/benchmarks.md). Models
 that mix components in matrix products keep the interleaved layout, which suits them better.
 
 Outputs are collected time-major (without autograd, in one preallocated buffer, on huge

@@ -2,7 +2,7 @@
 
 Public entry points:
 
-- :func:`solve_implicit_ode` (contract C3): ``x' = rhs(t, x)`` with a Gauss-Legendre, Radau IIA
+- :func:`solve_implicit_ode`: ``x' = rhs(t, x)`` with a Gauss-Legendre, Radau IIA
   or any implicit tableau, fixed step (eq. 7.14-7.18) or adaptive (Radau IIA, odd ``s``).
 - :func:`daeint`: :class:`~integrators.problems.ImplicitODE` (eq. 7.51-7.52),
   :class:`~integrators.problems.SemiExplicitDAE` (eq. 7.63) and
@@ -311,7 +311,7 @@ def solve_implicit_ode(
     max_steps=100_000,
     **newton_options,
 ) -> Solution:
-    """Integrate the explicit ODE ``x' = rhs(t, x)`` with an implicit RK method (contract C3).
+    """Integrate the explicit ODE ``x' = rhs(t, x)`` with an implicit RK method.
 
     Args:
         rhs: ``rhs(t, x) -> (*batch, n)``, e.g. a ``BoundRHS`` from ``bind_rhs`` (its input is
@@ -332,8 +332,8 @@ def solve_implicit_ode(
             ("auto", "transformed", "full"), ``dt0`` (first step, adaptive), ``host_loop``
             (adaptive explicit ODEs on the CPU: "auto" (default) runs the step loop in numpy
             when ``s n <= 24`` and ``x0.numel() <= 1024``, where it takes the same steps
-            1.4-2x faster than the vectorised torch loop, and a single float64 trajectory
-            runs it with the step control in Python floats, 1.6x faster again; True forces
+            faster than the vectorised torch loop, and a single float64 trajectory runs it
+            with the step control in Python floats, faster again (docs/benchmarks.md); True forces
             it (an error where impossible), False keeps the torch loop; the choice is in
             ``stats.extra["host_loop"]`` and ``stats.extra["driver"]`` ("torch", "host" or
             "host, one trajectory")); for DAEs
@@ -472,7 +472,7 @@ def daeint(
             :func:`solve_implicit_ode`; ``index_tol`` (default 1e-10) is the relative
             singular-value threshold of the rank test.
         u: input: None, a callable ``u(t)`` or samples (T, nu) / (*batch, T, nu) on ``t``.
-        interpolation: "zoh" or "linear" for sampled inputs (contract C1).
+        interpolation: "zoh" or "linear" for sampled inputs (see :mod:`integrators.inputs`).
 
     Returns:
         :class:`Solution` with ``x`` (*batch, T, n) and ``z`` (*batch, T, m) (None for

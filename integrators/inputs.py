@@ -1,4 +1,4 @@
-"""Right-hand sides with bound inputs (contract C1).
+"""Right-hand sides with bound inputs: ``rhs(t, x) = f(t, x, u(t))``.
 
 A model is ``f(t, x)`` or ``f(t, x, u)``. :func:`bind_rhs` turns it into ``rhs(t, x)`` by
 binding an input signal, which is either
@@ -107,7 +107,7 @@ def _take(samples: torch.Tensor, idx: torch.Tensor, shared_time: bool) -> torch.
 
 
 def bind_rhs(f: Callable, u, t_grid, *, interpolation: str = "zoh") -> BoundRHS:
-    """Bind an input to a model: ``rhs(t, x)`` (contract C1).
+    """Bind an input to a model: ``rhs(t, x) = f(t, x, u(t))``.
 
     Args:
         f: ``f(t, x)`` when ``u is None``, else ``f(t, x, u)``; returns (*batch, nx).

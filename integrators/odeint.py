@@ -1,14 +1,13 @@
-"""``odeint``: validate, bind the input, dispatch to a solver (contract C4).
+"""``odeint``: validate, bind the input, dispatch to a solver.
 
 Dispatch:
 
 * an explicit tableau without ``b_err`` (``"euler"`` ... ``"rk38"``), or any explicit tableau
   with ``adaptive=False``: fixed-step explicit RK (:func:`integrators.explicit.solve_explicit`);
 * ``"dopri5"`` or any explicit tableau with ``b_err``: adaptive step control
-  (``integrators.adaptive.solve_adaptive``, contract C2);
+  (``integrators.adaptive.solve_adaptive``);
 * ``"gauss_legendre"``, ``"radau_iia"`` (with ``stages=``), ``"implicit_euler"``,
-  ``"implicit_midpoint"`` or an implicit tableau: ``integrators.implicit.solve_implicit_ode``
-  (contract C3);
+  ``"implicit_midpoint"`` or an implicit tableau: ``integrators.implicit.solve_implicit_ode``;
 * ``"auto"``: ``integrators.auto.choose_method`` picks one of the above; the choice is recorded
   in ``sol.stats.extra["auto"]``.
 
@@ -74,7 +73,7 @@ def odeint(
             of implicit ones): numbers or tensors, ``atol >= 0`` and ``rtol`` at least
             :data:`integrators._options.RTOL_MIN_EPS` machine epsilons of the state dtype
             (8.9e-16 in float64, 4.8e-7 in float32).
-        controller, dt0, max_steps: adaptive step control (contract C2); ``dt0`` (first trial
+        controller, dt0, max_steps: adaptive step control; ``dt0`` (first trial
             step, > 0; a longer one is cut to the span) and ``controller`` apply to adaptive
             methods only.
         stages: number of stages of ``"gauss_legendre"`` / ``"radau_iia"`` (those only).

@@ -3,7 +3,8 @@
 Each class only stores the user's functions; ``daeint`` turns them into stage residuals
 (notes eq. 7.52, 7.56, 7.63). The functions take the time first and the input ``u`` last;
 ``u`` is omitted when ``daeint`` is called without an input (``u=None``), exactly like ``f`` in
-``odeint`` (contract C1). Times are 0-dim tensors (fixed step) or (*batch, 1) (adaptive).
+``odeint`` (see :mod:`integrators.inputs`). Times are 0-dim tensors (fixed step) or (*batch, 1)
+(adaptive).
 
 Parameters to be identified: pass the functions as ``torch.nn.Module`` instances (or closures
 over tensors that require grad). Gradients reach every tensor the functions use through the

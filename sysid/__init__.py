@@ -2,6 +2,21 @@
 
 from . import dae, zoo
 from .data import IOData
+from .errors import (
+    ConvergenceError,
+    ConvergenceWarning,
+    GraphMemoryError,
+    HighIndexError,
+    HighIndexWarning,
+    InputValidationError,
+    IntegrationError,
+    PoorExcitationWarning,
+    RKIdentError,
+    RKIdentWarning,
+    SingularMatrixError,
+    TableauError,
+    UnstableModelWarning,
+)
 from .estimation import (
     FairLoss,
     FitResult,
@@ -65,4 +80,17 @@ __all__ = [
     "LagrangianSystem",
     "distributed_body",
     "spring_potential",
+    "ConvergenceError",
+    "ConvergenceWarning",
+    "GraphMemoryError",
+    "HighIndexError",
+    "HighIndexWarning",
+    "InputValidationError",
+    "IntegrationError",
+    "PoorExcitationWarning",
+    "RKIdentError",
+    "RKIdentWarning",
+    "SingularMatrixError",
+    "TableauError",
+    "UnstableModelWarning",
 ]

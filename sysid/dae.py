@@ -30,7 +30,12 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
-from integrators.errors import HighIndexError, InputValidationError, SingularMatrixError
+from integrators.errors import (
+    ConvergenceError,
+    HighIndexError,
+    SingularMatrixError,
+)
+from integrators.newton import NewtonStatus, minimize, newton
 
 from .linearize import _jacobian_rows
 from .mechanics import exact_higher_derivatives
@@ -133,7 +138,9 @@ def differential_index(F, xdot, x, z, u=None, *, t=None, max_index=5, rtol=1e-8,
 
     For k = 0, 1, ...: the derivative array [F, ..., d^k F/dt^k] (u held constant) is
     linearised in the unknowns (ydot, yddot, ..., y^(k+1)), y = (x, z), at derivatives made
-    consistent by ``newton_steps`` Gauss-Newton steps from ``xdot`` (and zero); the index is the
+    consistent by ``newton_steps`` Gauss-Newton steps from ``xdot`` (and zero) of
+    :func:`integrators.newton.minimize` (full steps; the rank-deficient ``J^T J`` shifted by
+    ``sqrt(eps) I``, which makes them least-norm steps up to that shift); the index is the
     first k for which ydot is uniquely determined (rank of the Jacobian minus the rank of its
     columns for the higher derivatives equals dim y). An ODE has index 0.
 
@@ -148,22 +155,28 @@ def differential_index(F, xdot, x, z, u=None, *, t=None, max_index=5, rtol=1e-8,
     n = x2.shape[-1] + z2.shape[-1]
     tt = _as_time(t, x)
     index = torch.full((x2.shape[0],), -1, dtype=torch.long, device=x.device)
-    with torch.enable_grad(), exact_higher_derivatives():
-        for k in range(max_index + 1):
-            w = x2.new_zeros(x2.shape[0], (k + 1) * n)
-            w[:, : x2.shape[-1]] = xd2
-            for step in range(newton_steps + 1):
-                wl = _leaf(w)
-                arr = _derivative_array(F, tt, x2, z2, u, wl.reshape(-1, k + 1, n), k)
-                (jac,) = _jacobian_rows(arr, (wl,), create=False)
-                jac = jac.detach()
-                if step == newton_steps:
-                    break
-                w = w - (torch.linalg.pinv(jac) @ arr.detach().unsqueeze(-1)).squeeze(-1)
-            full = _rank(jac, rtol) - _rank(jac[..., n:], rtol) == n
-            index = torch.where((index < 0) & full, torch.full_like(index, k), index)
-            if bool((index >= 0).all()):
-                return index.reshape(batch)
+    eps = torch.finfo(x.dtype).eps
+    for k in range(max_index + 1):
+
+        def array(w, order=k):
+            with torch.enable_grad(), exact_higher_derivatives():
+                return _derivative_array(F, tt, x2, z2, u, w.reshape(-1, order + 1, n), order)
+
+        w = x2.new_zeros(x2.shape[0], (k + 1) * n)
+        w[:, : x2.shape[-1]] = xd2
+        fit = minimize(
+            array,
+            w,
+            method="gauss_newton",
+            regularization=eps**0.5,
+            line_search=False,
+            max_iter=newton_steps,
+        )
+        jac = fit.J
+        full = _rank(jac, rtol) - _rank(jac[..., n:], rtol) == n
+        index = torch.where((index < 0) & full, torch.full_like(index, k), index)
+        if bool((index >= 0).all()):
+            return index.reshape(batch)
     bad = torch.nonzero(index < 0)[:5].flatten().tolist()
     raise HighIndexError(
         f"differential index exceeds max_index={max_index} at batch indices {bad} (or the "
@@ -367,22 +380,33 @@ class SingularPerturbation(nn.Module):
         return invertible, (eig.real < 0).all(-1)
 
     def slow_manifold(self, x, z0, u=None, *, t=None, tol=1e-12, max_iter=50):
-        """z on the slow manifold g(t, x, z, u) = 0 by batched Newton from z0 (*batch, nz)."""
+        """z on the slow manifold g(t, x, z, u) = 0 by batched Newton from z0 (*batch, nz).
+
+        Full Newton steps of :func:`integrators.newton.newton` in z (exact dg/dz by autograd);
+        a member stops once ``|g|_inf <= tol``. Differentiable with respect to x and u by the
+        implicit function theorem. Raises SingularMatrixError where dg/dz is singular
+        (Theorem 8 fails) and ConvergenceError (naming the samples) after ``max_iter``.
+        """
         tt = _as_time(t, x)
-        z = z0.detach().clone()
-        for _ in range(max_iter):
-            with torch.no_grad():
-                res = _call(self.g, tt, x, z, u=u)
-            if float(res.abs().max()) <= tol:
-                return z
-            gz = linearize_dae(self.f, self.g, x, z, u, t=t)["gz"]
-            step, info = torch.linalg.solve_ex(gz, res.unsqueeze(-1))
-            if bool((info != 0).any()):
-                raise SingularMatrixError("slow_manifold: dg/dz is singular (Theorem 8 fails)")
-            z = z - step.squeeze(-1)
-        raise InputValidationError(
-            f"slow_manifold: |g| > {tol:g} after {max_iter} Newton steps; give a better z0"
-        )
+
+        def phi(z, xx, *uu):
+            return _call(self.g, tt, xx, z, u=uu[0] if uu else None)
+
+        args = (x,) if u is None else (x, torch.as_tensor(u, dtype=x.dtype))
+        res = newton(phi, z0, *args, tol=tol, max_iter=max_iter)
+        singular = res.status == NewtonStatus.SINGULAR
+        if bool(singular.any()):
+            bad = torch.nonzero(singular)[:5].tolist()
+            raise SingularMatrixError(
+                f"slow_manifold: dg/dz is singular at batch indices {bad} (Theorem 8 fails)"
+            )
+        if not bool(res.converged.all()):
+            bad = torch.nonzero(~res.converged)[:5].tolist()
+            raise ConvergenceError(
+                f"slow_manifold: |g| > {tol:g} after {max_iter} Newton steps at batch indices "
+                f"{bad}; give a better z0"
+            )
+        return res.x
 
 
 __all__ = [

@@ -248,8 +248,8 @@ def _allpole_forward(a: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 def _lagged_dots(g: torch.Tensor, x: torch.Tensor, lags) -> torch.Tensor:
     """``r_j = sum_k g_k x_{k-j}`` for each lag j (``(*batch, len(lags))``), as dot products.
 
-    A single signal (batch of one element) takes ``torch.dot`` on 1-D views (the BLAS dot;
-    measured three to four times faster than a ``(1, N) @ (N, 1)`` matmul at N = 100 000)."""
+    A single signal (batch of one element) takes ``torch.dot`` on 1-D views (the BLAS dot,
+    faster than a ``(1, N) @ (N, 1)`` matmul; see docs/benchmarks.md, ``bench_filter``)."""
     N = x.shape[-1]
     batch = _broadcast(g.shape[:-1], x.shape[:-1])
     if batch.numel() == 1 and g.shape[:-1].numel() == 1 and x.shape[:-1].numel() == 1:

@@ -12,6 +12,7 @@
 import torch
 
 from integrators.errors import ConvergenceError, InputValidationError, SingularMatrixError
+from integrators.newton import NewtonStatus, newton
 
 
 def _call(f, t, x, u):
@@ -79,30 +80,36 @@ def linearize(f, x, u=None, h=None, t=None):
 def steady_state(f, x0, u=None, *, tol=1e-10, max_iter=50, t=None):
     """Solve f(t, x, u) = 0 for x by batched Newton from x0 (*batch, nx) (eq. 1.36).
 
+    Full Newton steps of :func:`integrators.newton.newton` (exact Jacobian df/dx by autograd);
+    a member stops once ``|f|_inf <= tol``. The result is differentiable with respect to ``u``
+    and to the parameters of an ``nn.Module`` ``f`` by the implicit function theorem.
+
     Returns x (*batch, nx). Raises SingularMatrixError where df/dx is singular and
     ConvergenceError (naming the samples) when |f| > tol after max_iter iterations.
     """
-    x = torch.as_tensor(x0).clone()
-    for _ in range(max_iter):
-        with torch.no_grad():
-            res = _call(f, torch.as_tensor(0.0 if t is None else t, dtype=x.dtype), x, u)
-        if float(res.abs().max()) <= tol:
-            return x
-        a = linearize(f, x, u, t=t)[0].detach()
-        step, info = torch.linalg.solve_ex(a, res.unsqueeze(-1))
-        if bool((info != 0).any()):
-            bad = torch.nonzero(info != 0)[:5].tolist()
-            raise SingularMatrixError(
-                f"steady_state: df/dx is singular at batch indices {bad}; the equilibrium "
-                "is not isolated there, try another initial guess"
-            )
-        x = x - step.squeeze(-1)
-    res = _call(f, torch.as_tensor(0.0 if t is None else t, dtype=x.dtype), x, u)
-    bad = torch.nonzero(res.abs().amax(-1) > tol)[:5].tolist()
-    raise ConvergenceError(
-        f"steady_state: |f(x, u)| > {tol:g} after {max_iter} Newton iterations at batch indices "
-        f"{bad}; try a better initial guess x0"
-    )
+    x0 = torch.as_tensor(x0)
+    tt = torch.as_tensor(0.0 if t is None else t, dtype=x0.dtype)
+    args = () if u is None else (torch.as_tensor(u, dtype=x0.dtype),)
+    params = tuple(f.parameters()) if isinstance(f, torch.nn.Module) else ()
+
+    def phi(x, *uu):
+        return _call(f, tt, x, uu[0] if uu else None)
+
+    res = newton(phi, x0, *args, tol=tol, max_iter=max_iter, params=params)
+    singular = res.status == NewtonStatus.SINGULAR
+    if bool(singular.any()):
+        bad = torch.nonzero(singular)[:5].tolist()
+        raise SingularMatrixError(
+            f"steady_state: df/dx is singular at batch indices {bad}; the equilibrium "
+            "is not isolated there, try another initial guess"
+        )
+    if not bool(res.converged.all()):
+        bad = torch.nonzero(~res.converged)[:5].tolist()
+        raise ConvergenceError(
+            f"steady_state: |f(x, u)| > {tol:g} after {max_iter} Newton iterations at batch "
+            f"indices {bad}; try a better initial guess x0"
+        )
+    return res.x
 
 
 def zoh_discretize(a, b, dt):

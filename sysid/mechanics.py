@@ -52,6 +52,7 @@ from integrators.errors import (
     RKIdentWarning,
     SingularMatrixError,
 )
+from integrators.newton import minimize
 
 
 def spring_potential(p_a, p_b, stiffness, rest_length=0.0):
@@ -807,29 +808,38 @@ class LagrangianSystem(nn.Module):
     def project_consistent(self, q, qdot, tol: float = 1e-12, max_iter: int = 50):
         """Least-norm projection of (q, qdot) onto C(q, qdot) = 0 (eq. 2.182).
 
-        Gauss-Newton steps q <- q - a^T (a a^T)^-1 c(q) until |c| <= tol, then
-        qdot <- qdot - a^T (a a^T)^-1 a qdot (the velocity made tangent, Fig. 2.9).
-        Raises ConvergenceError naming the samples that did not converge.
+        Positions: Gauss-Newton on ``min 0.5 |c(q)|^2`` by :func:`integrators.newton.minimize`;
+        with nc < nq constraints ``a^T a`` (a = dc/dq) is singular and a small shift ``alpha I``
+        (eq. 3.61) makes each step ``-a^T (a a^T + alpha I)^-1 c``, the least-norm step
+        ``-a^T (a a^T)^-1 c`` up to a relative ``alpha / sigma_min(a)^2``, until |c| <= tol.
+        Velocities: qdot <- qdot - a^T (a a^T)^-1 a qdot (made tangent, Fig. 2.9).
+        Raises SingularMatrixError where a a^T is singular and ConvergenceError naming the
+        samples with |c| > tol after ``max_iter`` steps.
         """
-        zero = torch.zeros_like(qdot)
-        for _ in range(max_iter):
-            c, a, _, _ = self.constraint_terms(q, zero)
-            if float(c.detach().abs().max()) <= tol:
-                break
-            gram = a @ a.transpose(-1, -2)
-            step = _solve(gram, c, "a a^T (constraint gradients are dependent)", strict=True)
-            q = q - (a.transpose(-1, -2) @ step.unsqueeze(-1)).squeeze(-1)
-        else:
-            c, a, _, _ = self.constraint_terms(q, zero)
-            if float(c.detach().abs().max()) > tol:
-                bad = torch.nonzero(c.abs().amax(-1) > tol)[:5].tolist()
-                raise ConvergenceError(
-                    f"project_consistent: |c(q)| > {tol:g} after {max_iter} Newton steps at "
-                    f"batch indices {bad}; start closer to the constraint manifold"
-                )
+        self._check_args("project_consistent", q=q, qdot=qdot)
+        eps = torch.finfo(q.dtype).eps
+        fit = minimize(
+            lambda qq: self.constraints(qq),
+            q,
+            method="gauss_newton",
+            regularization=eps**0.5,
+            line_search=False,  # full Gauss-Newton steps
+            tol=0.0,  # stop once the steps reach the rounding level; |c| is checked below
+            xtol=10 * eps,
+            max_iter=max_iter,
+        )
+        q = fit.theta
+        c, a, _, _ = self.constraint_terms(q, torch.zeros_like(qdot))
         gram = a @ a.transpose(-1, -2)
         cdot = (a @ qdot.unsqueeze(-1)).squeeze(-1)
-        step = _solve(gram, cdot, "a a^T", strict=True)
+        step = _solve(gram, cdot, "a a^T (constraint gradients are dependent)", strict=True)
+        bad = c.detach().abs().amax(-1) > tol
+        if bool(bad.any()):
+            raise ConvergenceError(
+                f"project_consistent: |c(q)| > {tol:g} after {max_iter} Gauss-Newton steps at "
+                f"batch indices {torch.nonzero(bad)[:5].tolist()}; start closer to the "
+                "constraint manifold"
+            )
         qdot = qdot - (a.transpose(-1, -2) @ step.unsqueeze(-1)).squeeze(-1)
         return q, qdot
 

@@ -4,19 +4,19 @@ import pytest
 import torch
 
 from integrators import odeint
-from integrators.errors import HighIndexError, SingularMatrixError
+from integrators.errors import ConvergenceError, HighIndexError, SingularMatrixError
 from sysid import dae
 from sysid.linearize import linearize, simulate_lti_zoh
 from sysid.zoo import Bowl, RigidCraneCartesian
 from sysid.zoo.dae import (
-    Example52,
-    Example53,
-    Example546,
-    Example548,
-    Example581,
-    Example588,
+    AlgebraicStateDAE,
+    LinearIndex1DAE,
+    LinearIndex2DAE,
+    LinearIndex3DAE,
     SingularlyPerturbedLinear,
+    SingularMassMatrixDAE,
     TwoMassSystem,
+    UnitSphereDAE,
 )
 
 DT = torch.float64
@@ -29,8 +29,8 @@ def _rand(*shape, seed=0):
 def test_definition_1_classifies_eq_5_2_and_5_3_as_daes_and_an_ode_as_ode():
     x, xdot = _rand(4, 2), _rand(4, 2, seed=1)
     none = torch.zeros(4, 0, dtype=DT)
-    assert bool(dae.is_dae(Example52().residual, xdot, x, none).all())  # eq. (5.9)
-    assert bool(dae.is_dae(Example53().residual, xdot, x, none).all())  # eq. (5.11)
+    assert bool(dae.is_dae(AlgebraicStateDAE().residual, xdot, x, none).all())  # eq. (5.9)
+    assert bool(dae.is_dae(SingularMassMatrixDAE().residual, xdot, x, none).all())  # eq. (5.11)
 
     def ode(t, xd, xx, z):
         return xd - torch.stack([xx[..., 1], -xx[..., 0]], -1)
@@ -46,22 +46,22 @@ def test_definition_1_classifies_eq_5_2_and_5_3_as_daes_and_an_ode_as_ode():
 def test_index1_tests_theorem_9_and_corollary_1():
     x, z, u = _rand(3, 2), _rand(3, 1, seed=1), _rand(3, 1, seed=2)
     xdot = torch.zeros(3, 2, dtype=DT)
-    assert bool(dae.is_index1(Example546().residual, xdot, x, z, u).all())  # eq. (5.50)
-    assert not bool(dae.is_index1(Example548().residual, xdot, x, z, u).any())  # eq. (5.49)
-    e581 = Example581()
+    assert bool(dae.is_index1(LinearIndex1DAE().residual, xdot, x, z, u).all())  # eq. (5.50)
+    assert not bool(dae.is_index1(LinearIndex3DAE().residual, xdot, x, z, u).any())  # eq. (5.49)
+    e581 = LinearIndex2DAE()
     z2 = _rand(3, 2, seed=3)
     assert not bool(dae.is_index1_semi_explicit(e581.g, x, z2, u).any())  # eq. (5.82)
     assert bool(dae.is_index1_semi_explicit(e581.reduced_g, x, z2, u).all())  # eq. (5.87)
 
 
-@pytest.mark.parametrize(("example", "expected"), [(Example546, 1), (Example548, 3)])
+@pytest.mark.parametrize(("example", "expected"), [(LinearIndex1DAE, 1), (LinearIndex3DAE, 3)])
 def test_differential_index_of_fully_implicit_examples(example, expected):
     x, z, u = _rand(3, 2), _rand(3, 1, seed=1), _rand(3, 1, seed=2)
     index = dae.differential_index(example().residual, torch.zeros(3, 2, dtype=DT), x, z, u)
     assert index.tolist() == [expected] * 3
 
 
-@pytest.mark.parametrize(("example", "expected"), [(Example581, 2), (Example588, 2)])
+@pytest.mark.parametrize(("example", "expected"), [(LinearIndex2DAE, 2), (UnitSphereDAE, 2)])
 def test_differential_index_and_reduction_of_semi_explicit_examples(example, expected):
     plant = example()
     x, z = _rand(3, plant.nx), _rand(3, plant.nz, seed=1)
@@ -76,7 +76,7 @@ def test_differential_index_and_reduction_of_semi_explicit_examples(example, exp
 
 
 def test_eq_5_88_reduced_multiplier_eq_5_92():
-    plant = Example588()
+    plant = UnitSphereDAE()
     x = _rand(5, 2)
     z = plant.multiplier(x)
     res = plant.reduced_g(torch.tensor(0.0), x, z)
@@ -202,3 +202,21 @@ def test_two_mass_system_reductions_converge_eq_5_41_to_5_44():
         limit = _two_mass_x2(reduced, [1.0, 0.0])[:, 0]
         dae_err.append(float((slow - limit).abs().max()))
     assert dae_err[0] > 5 * dae_err[1] > 25 * dae_err[2]
+
+
+def test_slow_manifold_is_differentiable_and_names_samples_that_do_not_converge():
+    """Eq. (5.38b): on the slow manifold of eq. (5.37) x2 = (x1 + u) / a, so dz/dx1 = 1/a and
+    dz/du = 1/a (implicit function theorem); a budget of zero Newton steps names the sample
+    that is not on the manifold yet."""
+    limit = SingularlyPerturbedLinear(a=2.0)
+    pert = dae.SingularPerturbation(limit.f, limit.g, nx=1)
+    x = torch.tensor([[0.5], [-1.0]], dtype=DT, requires_grad=True)
+    u = torch.tensor([[0.2], [0.1]], dtype=DT, requires_grad=True)
+    z = pert.slow_manifold(x, torch.zeros(2, 1, dtype=DT), u)
+    torch.testing.assert_close(z, (x + u).detach() / 2.0, rtol=0, atol=1e-12)
+    gx, gu = torch.autograd.grad(z.sum(), (x, u))
+    torch.testing.assert_close(gx, torch.full_like(gx, 0.5), rtol=0, atol=1e-12)
+    torch.testing.assert_close(gu, torch.full_like(gu, 0.5), rtol=0, atol=1e-12)
+    z0 = torch.tensor([[0.35], [0.0]], dtype=DT)  # sample 0 starts on the manifold
+    with pytest.raises(ConvergenceError, match=r"slow_manifold: .* batch indices \[\[1\]\]"):
+        pert.slow_manifold(x.detach(), z0, u.detach(), max_iter=0)

@@ -1,4 +1,4 @@
-"""Inputs bound to a model (contract C1): zero-order hold (notes eq. 8.34), linear
+"""Inputs bound to a model (integrators.inputs): zero-order hold (notes eq. 8.34), linear
 interpolation and callables, checked against exact discretisations and scipy.signal."""
 
 import numpy as np

@@ -9,7 +9,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from integrators.errors import ConvergenceError
+from integrators.errors import ConvergenceError, SingularMatrixError
 from sysid.linearize import linearize, simulate_lti_zoh, steady_state, zoh_discretize
 from sysid.zoo import NonlinearExample
 
@@ -48,6 +48,32 @@ def test_steady_state_by_newton_and_eq_1_42(u_bar):
 def test_steady_state_reports_non_convergence():
     with pytest.raises(ConvergenceError, match="batch indices"):
         steady_state(lambda t, x: x**2 + 1.0, torch.tensor([[0.5]], dtype=DT), max_iter=5)
+
+
+def test_steady_state_is_differentiable_by_the_implicit_function_theorem():
+    """Eq. (1.41): x_bar = [0, u_bar], so dx_bar/du_bar = [0, 1]; a spring-mass-damper
+    (eq. 1.26) rests at y = u / K, so dy/dK = -u / K^2 and dy/du = 1 / K."""
+    u = torch.tensor([[0.4], [-0.9]], dtype=DT, requires_grad=True)
+    x_bar = steady_state(NonlinearExample(), torch.tensor([[0.3, 0.2]] * 2, dtype=DT), u)
+    (grad,) = torch.autograd.grad(x_bar[:, 1].sum(), u)
+    torch.testing.assert_close(grad, torch.ones_like(u), rtol=0, atol=1e-12)
+    (grad,) = torch.autograd.grad(x_bar[:, 0].sum(), u)
+    torch.testing.assert_close(grad, torch.zeros_like(u), rtol=0, atol=1e-12)
+
+    from sysid.zoo import SpringMassDamper
+
+    plant = SpringMassDamper(K=4.0)
+    u = torch.tensor([[2.0]], dtype=DT, requires_grad=True)
+    x_bar = steady_state(plant, torch.tensor([[1.0, 0.5]], dtype=DT), u)
+    torch.testing.assert_close(x_bar, torch.tensor([[0.5, 0.0]], dtype=DT), rtol=0, atol=1e-12)
+    x_bar[0, 0].backward()
+    assert plant.K.grad.item() == pytest.approx(-2.0 / 16.0, rel=1e-10)
+    assert u.grad.item() == pytest.approx(1 / 4.0, rel=1e-10)
+
+
+def test_steady_state_names_the_sample_with_a_singular_jacobian():
+    with pytest.raises(SingularMatrixError, match=r"df/dx is singular at batch indices \[\[1\]\]"):
+        steady_state(lambda t, x: x**2 - 1.0, torch.tensor([[2.0], [0.0]], dtype=DT))
 
 
 def test_linearize_is_differentiable_with_respect_to_parameters():

@@ -1,4 +1,4 @@
-"""odeint (contract C4): every invalid input raises a clear error from the hierarchy, and the
+"""odeint: every invalid input raises a clear error from the hierarchy, and the
 method dispatch reaches the right solver (checked against closed forms)."""
 
 import math
@@ -131,7 +131,7 @@ def test_dispatch_dopri5_adaptive_and_fixed():
 
 
 def test_dispatch_implicit_methods():
-    """Implicit tableaus and collocation names reach the implicit solver (contract C3)."""
+    """Implicit tableaus and collocation names reach integrators.implicit.solve_implicit_ode."""
     pytest.importorskip("integrators.implicit")
     lam = -50.0
     t = torch.linspace(0, 0.2, 3, dtype=torch.float64)
@@ -146,7 +146,7 @@ def test_dispatch_implicit_methods():
 
 
 def test_dispatch_auto_records_the_choice():
-    """method="auto" asks integrators.auto (contract C3) and records its choice."""
+    """method="auto" asks integrators.auto.choose_method and records its choice."""
     pytest.importorskip("integrators.auto")
     t = torch.linspace(0, 1, 11, dtype=torch.float64)
     x0 = torch.ones(2, 1, dtype=torch.float64)

@@ -1,4 +1,4 @@
-"""ODE test plants of sysid.zoo.ode (contract C6) against closed forms, scipy and the notes."""
+"""ODE test plants of sysid.zoo.ode against closed forms, scipy and the notes."""
 
 import numpy as np
 import pytest

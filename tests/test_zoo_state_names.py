@@ -59,7 +59,7 @@ def test_state_names_follow_construction():
         *("x1", "y1", "z1", "x2", "y2", "z2"),
         *("x1dot", "y1dot", "z1dot", "x2dot", "y2dot", "z2dot"),
     )
-    assert zoo.Example588(A=torch.eye(3), b=torch.ones(3)).state_names == ("x1", "x2", "x3")
+    assert zoo.UnitSphereDAE(A=torch.eye(3), b=torch.ones(3)).state_names == ("x1", "x2", "x3")
     assert zoo.LinearTestEquation(lam=[-1.0, -2.0]).state_names == ("x1", "x2")
     assert zoo.Crane().state_names == ("x", "theta", "xdot", "thetadot")
 

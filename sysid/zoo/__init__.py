@@ -1,14 +1,14 @@
 """The plants of the notes as ``torch.nn.Module`` with physical parameters as ``nn.Parameter``."""
 
 from .dae import (
-    Example52,
-    Example53,
-    Example546,
-    Example548,
-    Example581,
-    Example588,
+    AlgebraicStateDAE,
+    LinearIndex1DAE,
+    LinearIndex2DAE,
+    LinearIndex3DAE,
     SingularlyPerturbedLinear,
+    SingularMassMatrixDAE,
     TwoMassSystem,
+    UnitSphereDAE,
 )
 from .mechanical import (
     Bowl,
@@ -35,14 +35,14 @@ from .ode import (
 )
 
 __all__ = [
-    "Example52",
-    "Example53",
-    "Example546",
-    "Example548",
-    "Example581",
-    "Example588",
+    "AlgebraicStateDAE",
+    "LinearIndex1DAE",
+    "LinearIndex2DAE",
+    "LinearIndex3DAE",
+    "SingularMassMatrixDAE",
     "SingularlyPerturbedLinear",
     "TwoMassSystem",
+    "UnitSphereDAE",
     "Bowl",
     "Crane",
     "DistributedRod",

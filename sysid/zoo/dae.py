@@ -18,9 +18,10 @@ def _u(u, x):
     return input_or_zero(u, x, 1)
 
 
-class Example52(nn.Module):
+class AlgebraicStateDAE(nn.Module):
     """Eq. (5.2) as F(xdot, x) = 0 in the state (x1, x2) (eq. 5.8), no algebraic state z:
 
+    a linear DAE whose x2 never appears differentiated (first example of the notes' §5.1).
     xdot1 = 2 x1 + x2, 0 = 3 x1 - x2; dF/dxdot = [[1, 0], [0, 0]] is singular (eq. 5.9): a DAE.
     Semi-explicit form eq. (5.12)."""
 
@@ -33,11 +34,12 @@ class Example52(nn.Module):
         )
 
 
-class Example53(nn.Module):
+class SingularMassMatrixDAE(nn.Module):
     """Eq. (5.3) as F(xdot, x) = 0 in the state (x1, x2), no algebraic state z:
 
-    both derivatives appear, but dF/dxdot = [[1, 1], [2, 2]] is singular (eq. 5.11): a DAE; the
-    combination -2 (5.3a) + (5.3b) gives -3 x1 = 0 (eq. 5.4b)."""
+    a linear DAE (second example of the notes' §5.1) in which both derivatives appear, but
+    dF/dxdot = [[1, 1], [2, 2]] is singular (eq. 5.11): a DAE; the combination -2 (5.3a) + (5.3b)
+    gives -3 x1 = 0 (eq. 5.4b)."""
 
     nx, nz, index = 2, 0, 1
     state_names, algebraic_names = ("x1", "x2"), ()
@@ -47,10 +49,11 @@ class Example53(nn.Module):
         return torch.stack([v1 + 2 * x1 + v2 + x2, 2 * v1 + x1 + 2 * v2 + 2 * x2], -1)
 
 
-class Example546(nn.Module):
+class LinearIndex1DAE(nn.Module):
     """Eq. (5.46), state (x1, x2), algebraic z: F = [xdot1 - z, xdot2 - x1, xdot1 + x2 - u].
 
-    Index 1 (solved in eq. 5.47)."""
+    A linear fully implicit DAE of index 1 (example of the notes' §5.4), solved for xdot and
+    z in eq. (5.47)."""
 
     nx, nz, nu, index = 2, 1, 1, 1
     state_names, algebraic_names = ("x1", "x2"), ("z",)
@@ -62,10 +65,11 @@ class Example546(nn.Module):
         )
 
 
-class Example548(nn.Module):
+class LinearIndex3DAE(nn.Module):
     """Eq. (5.48), state (x1, x2), algebraic z: F = [xdot1 - z, xdot2 - x1, x2 - u].
 
-    Index 3 (eq. 5.62-5.67)."""
+    A linear fully implicit DAE of index 3 (example of the notes' §5.4): three time
+    differentiations reach an ODE (eq. 5.62-5.67)."""
 
     nx, nz, nu, index = 2, 1, 1, 3
     state_names, algebraic_names = ("x1", "x2"), ("z",)
@@ -75,9 +79,10 @@ class Example548(nn.Module):
         return torch.stack([xdot[..., 0] - z[..., 0], xdot[..., 1] - x[..., 0], x[..., 1] - u], -1)
 
 
-class Example581(nn.Module):
+class LinearIndex2DAE(nn.Module):
     """Eq. (5.81), state (x1, x2), algebraic (z1, z2): xdot = (x2 + z2, z1 + u), index 2.
 
+    A linear semi-explicit DAE (index-reduction example of the notes' §5.6).
     0 = (x1 - x2, z2 - x1); its reduction (eq. 5.86) replaces x1 - x2 by x2 + z2 - z1 - u —
     with u constant, as here; the notes' eq. (5.85) keeps the -u that comes from substituting
     xdot2 = z1 + u."""
@@ -98,11 +103,12 @@ class Example581(nn.Module):
         return torch.stack([x[..., 1] + z[..., 1] - z[..., 0] - u, z[..., 1] - x[..., 0]], -1)
 
 
-class Example588(nn.Module):
+class UnitSphereDAE(nn.Module):
     """Eq. (5.88), state (x1, .., xn) (x1, x2 by default), algebraic z: xdot = A x - b z.
 
-    Constraint 0 = (x^T x - 1)/2, index 2; reduced g~ = x^T (A x - b z) (eq. 5.90, 5.93) with
-    z = x^T A x / x^T b (eq. 5.92). A (n, n) and b (n,) are parameters."""
+    Linear dynamics held on the unit sphere by the algebraic input z acting along b (example of
+    the notes' §5.6). Constraint 0 = (x^T x - 1)/2, index 2; reduced g~ = x^T (A x - b z)
+    (eq. 5.90, 5.93) with z = x^T A x / x^T b (eq. 5.92). A (n, n) and b (n,) are parameters."""
 
     nz, index = 1, 2
     algebraic_names = ("z",)

@@ -1,4 +1,4 @@
-"""Classic ODE test problems of the notes (contract C6).
+"""Classic ODE test problems of the notes, as ``sysid.zoo`` plants.
 
 Each plant is a ``torch.nn.Module`` whose ``forward(t, x, u=None) -> xdot`` can be passed
 directly as ``f`` to ``integrators.odeint``. States have shape ``(*batch, nx)``; ``t`` is a

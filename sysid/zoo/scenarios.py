@@ -320,9 +320,9 @@ def dae_scenarios() -> list[DAEScenario]:
             substeps=20,
         ),
         DAEScenario(
-            "Example546",
-            dae.Example546,
-            dae.Example546,
+            "LinearIndex1DAE",
+            dae.LinearIndex1DAE,
+            dae.LinearIndex1DAE,
             e546_problem,
             (0.0, 1.0),
             (-1.0,),
@@ -331,9 +331,9 @@ def dae_scenarios() -> list[DAEScenario]:
             smooth_input,
         ),
         DAEScenario(
-            "Example581",
-            dae.Example581,
-            dae.Example581,
+            "LinearIndex2DAE",
+            dae.LinearIndex2DAE,
+            dae.LinearIndex2DAE,
             e581_problem,
             (1.0, 1.0),
             (1.0, 1.0),
@@ -341,9 +341,9 @@ def dae_scenarios() -> list[DAEScenario]:
             None,
         ),
         DAEScenario(
-            "Example588",
-            dae.Example588,
-            dae.Example588,
+            "UnitSphereDAE",
+            dae.UnitSphereDAE,
+            dae.UnitSphereDAE,
             e588_problem,
             (0.6, 0.8),
             (0.0,),
@@ -388,8 +388,8 @@ class RefusedScenario:
     setup: Callable[[], tuple]
 
 
-def _index3_example_548():
-    plant = dae.Example548()
+def _index3_linear():
+    plant = dae.LinearIndex3DAE()
     x0 = torch.tensor([1.0, 0.0], dtype=torch.float64)
     return ImplicitDAE(plant.residual), x0, torch.zeros(1, dtype=torch.float64)
 
@@ -421,15 +421,23 @@ def refused_scenarios() -> list[RefusedScenario]:
     """The zoo's DAEs whose given form has index > 1 (eq. 5.2, 5.3, 5.48, 5.81, 5.88): the
     index check (Theorem 9) must refuse them with ``HighIndexError``."""
     return [
-        RefusedScenario("Example52", dae.Example52, _no_algebraic_states(dae.Example52)),
-        RefusedScenario("Example53", dae.Example53, _no_algebraic_states(dae.Example53)),
-        RefusedScenario("Example548", dae.Example548, _index3_example_548),
         RefusedScenario(
-            "Example581",
-            dae.Example581,
-            _index2_semi_explicit(dae.Example581, (1.0, 1.0), (0.0, 1.0)),
+            "AlgebraicStateDAE", dae.AlgebraicStateDAE, _no_algebraic_states(dae.AlgebraicStateDAE)
         ),
         RefusedScenario(
-            "Example588", dae.Example588, _index2_semi_explicit(dae.Example588, (0.6, 0.8), (0.0,))
+            "SingularMassMatrixDAE",
+            dae.SingularMassMatrixDAE,
+            _no_algebraic_states(dae.SingularMassMatrixDAE),
+        ),
+        RefusedScenario("LinearIndex3DAE", dae.LinearIndex3DAE, _index3_linear),
+        RefusedScenario(
+            "LinearIndex2DAE",
+            dae.LinearIndex2DAE,
+            _index2_semi_explicit(dae.LinearIndex2DAE, (1.0, 1.0), (0.0, 1.0)),
+        ),
+        RefusedScenario(
+            "UnitSphereDAE",
+            dae.UnitSphereDAE,
+            _index2_semi_explicit(dae.UnitSphereDAE, (0.6, 0.8), (0.0,)),
         ),
     ]
