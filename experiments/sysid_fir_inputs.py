@@ -19,8 +19,8 @@ import warnings
 import torch
 
 from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
-from integrators.errors import PoorExcitationWarning
 from sysid import FIR, fit_percent, lls
+from sysid.errors import PoorExcitationWarning
 from sysid.montecarlo import INPUT_KINDS, fir_regressor, input_signal, simulate_data
 
 NAME = "sysid_fir_inputs"

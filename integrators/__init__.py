@@ -6,18 +6,15 @@ from .controllers import IController, PIController
 from .dae_layer import DAELayer
 from .errors import (
     ConvergenceError,
-    ConvergenceWarning,
     GraphMemoryError,
     HighIndexError,
     HighIndexWarning,
     InputValidationError,
     IntegrationError,
-    PoorExcitationWarning,
     RKIdentError,
     RKIdentWarning,
     SingularMatrixError,
     TableauError,
-    UnstableModelWarning,
 )
 from .implicit import daeint, solve_implicit_ode
 from .inputs import CollocationInput, bind_rhs
@@ -49,13 +46,11 @@ __all__ = [
     "TABLEAU_NAMES",
     "ButcherTableau",
     "ConvergenceError",
-    "ConvergenceWarning",
     "GraphMemoryError",
     "HighIndexError",
     "HighIndexWarning",
     "InputValidationError",
     "IntegrationError",
-    "PoorExcitationWarning",
     "RKIdentError",
     "RKIdentWarning",
     "SingularMatrixError",
@@ -63,7 +58,6 @@ __all__ = [
     "SolverStats",
     "Status",
     "TableauError",
-    "UnstableModelWarning",
     "tableau",
     "collocation_output_weights",
     "gauss_legendre",

@@ -1,7 +1,9 @@
 """The project's exception and warning hierarchy.
 
-Every error raised by ``integrators`` and ``sysid`` derives from :class:`RKIdentError`, so a
-caller can catch the whole family at once. Messages say what was wrong, where (time, step,
+Every error raised by ``integrators`` and ``sysid`` derives from :class:`RKIdentError` and
+every warning from :class:`RKIdentWarning`, so a caller can catch the whole family at once.
+This module holds what ``integrators`` raises; the warnings only ``sysid`` issues live in
+``sysid.errors``, which re-exports everything here. Messages say what was wrong, where (time, step,
 sample index) and what to try.
 """
 
@@ -41,21 +43,6 @@ class SingularMatrixError(RKIdentError, RuntimeError):
 
 class RKIdentWarning(UserWarning):
     """Base class of every warning issued by this project."""
-
-
-class PoorExcitationWarning(RKIdentWarning):
-    """The input does not excite all parameters: the regressor matrix is ill-conditioned."""
-
-
-class ConvergenceWarning(RKIdentWarning):
-    """An iterative estimate stopped short of a stationary point (iteration limit, failed
-    line search, or a step that would still move it by a sizeable part of its standard
-    errors); the per-data-set flags say which."""
-
-
-class UnstableModelWarning(RKIdentWarning):
-    """An estimated model is unstable: its free-run simulation diverges, so simulation
-    errors, fit percentages and step responses computed from it are meaningless."""
 
 
 class HighIndexWarning(RKIdentWarning):

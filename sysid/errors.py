@@ -1,25 +1,39 @@
 """The project's exception and warning hierarchy, as seen from ``sysid``.
 
-Everything ``integrators`` raises is defined in :mod:`integrators.errors` and re-exported here,
-so ``sysid`` users catch the whole family (:class:`RKIdentError`, :class:`RKIdentWarning`)
-from one place.
+Everything ``integrators`` raises is defined in :mod:`integrators.errors` and re-exported here;
+the warnings that only ``sysid`` issues (estimation, least squares) are defined here, as
+subclasses of :class:`RKIdentWarning`. ``sysid`` users catch the whole family
+(:class:`RKIdentError`, :class:`RKIdentWarning`) from one place.
 """
 
 from integrators.errors import (
     ConvergenceError,
-    ConvergenceWarning,
     GraphMemoryError,
     HighIndexError,
     HighIndexWarning,
     InputValidationError,
     IntegrationError,
-    PoorExcitationWarning,
     RKIdentError,
     RKIdentWarning,
     SingularMatrixError,
     TableauError,
-    UnstableModelWarning,
 )
+
+
+class PoorExcitationWarning(RKIdentWarning):
+    """The input does not excite all parameters: the regressor matrix is ill-conditioned."""
+
+
+class ConvergenceWarning(RKIdentWarning):
+    """An iterative estimate stopped short of a stationary point (iteration limit, failed
+    line search, or a step that would still move it by a sizeable part of its standard
+    errors); the per-data-set flags say which."""
+
+
+class UnstableModelWarning(RKIdentWarning):
+    """An estimated model is unstable: its free-run simulation diverges, so simulation
+    errors, fit percentages and step responses computed from it are meaningless."""
+
 
 __all__ = [
     "ConvergenceError",

@@ -27,8 +27,9 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as F
 
-from integrators.errors import InputValidationError, PoorExcitationWarning, SingularMatrixError
+from integrators.errors import InputValidationError, SingularMatrixError
 
+from .errors import PoorExcitationWarning
 from .filters import fir_filter
 
 __all__ = ["DEFAULT_COND_WARN", "ROUNDING_WARN", "LLSResult", "fir_lls", "lls"]

@@ -393,7 +393,7 @@ def test_oe_on_unstable_plant_is_reported_not_converged():
     """
     import warnings
 
-    from integrators.errors import ConvergenceWarning
+    from sysid.errors import ConvergenceWarning
 
     data = _unstable_batch()
     with pytest.warns(
@@ -416,7 +416,7 @@ def test_arx_on_unstable_plant_warns_unstable_model():
     """Least squares identifies the unstable plant (consistent for ARX data): the estimate is
     flagged unstable (its simulation diverges) with the true pole modulus 1.5 (closed form
     roots of z^2 - 2.3 z + 1.2 = (z - 1.5)(z - 0.8))."""
-    from integrators.errors import PoorExcitationWarning, UnstableModelWarning
+    from sysid.errors import PoorExcitationWarning, UnstableModelWarning
 
     th = torch.tensor([[-1.2, 0.5, 0.5, 0.3], [-2.3, 1.2, 0.5, 0.3]], dtype=DT)
     u = input_signal("white", 60, (2,), generator=gen(42))
@@ -439,7 +439,7 @@ def test_arx_on_unstable_plant_warns_unstable_model():
 
 
 def test_iteration_limit_is_reported():
-    from integrators.errors import ConvergenceWarning
+    from sysid.errors import ConvergenceWarning
 
     model, th = TRUE["BJ"]
     u = input_signal("white", 300, generator=gen(44))

@@ -14,7 +14,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from integrators.errors import InputValidationError, PoorExcitationWarning, SingularMatrixError
+from integrators.errors import InputValidationError, SingularMatrixError
+from sysid.errors import PoorExcitationWarning
 from sysid.lls import lls
 
 DT = torch.float64
@@ -26,7 +27,7 @@ def toeplitz_regressor(u: torch.Tensor, n_taps: int) -> torch.Tensor:
     return padded.unfold(-1, n_taps, 1).flip(-1)
 
 
-@pytest.mark.filterwarnings("ignore::integrators.errors.PoorExcitationWarning")
+@pytest.mark.filterwarnings("ignore::sysid.errors.PoorExcitationWarning")
 @pytest.mark.parametrize("method", ["qr", "cholesky"])
 def test_ols_matches_statsmodels_longley(method):
     data = sm.datasets.longley.load_pandas()

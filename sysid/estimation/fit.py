@@ -15,9 +15,10 @@ import warnings
 
 import torch
 
-from integrators.errors import ConvergenceWarning, InputValidationError, UnstableModelWarning
+from integrators.errors import InputValidationError
 
 from ..data import IOData
+from ..errors import ConvergenceWarning, UnstableModelWarning
 from ..models import PolynomialModel
 from ._data import _batched_model, _weights
 from .least_squares import _fit_iv, _fit_lls

@@ -10,9 +10,8 @@ import warnings
 
 import torch
 
-from integrators.errors import PoorExcitationWarning
-
 from ..data import IOData
+from ..errors import PoorExcitationWarning
 from ..lls import lls
 from ..models import ARX, PolynomialModel
 from ._data import _copy_model, _groups, _with_outputs

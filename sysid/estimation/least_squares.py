@@ -17,9 +17,10 @@ import warnings
 
 import torch
 
-from integrators.errors import PoorExcitationWarning, SingularMatrixError
+from integrators.errors import SingularMatrixError
 
 from ..data import IOData
+from ..errors import PoorExcitationWarning
 from ..lls import lls
 from ..models import PolynomialModel
 from ._data import _regression_rows, _with_outputs

@@ -23,10 +23,11 @@ import torch
 import torch.autograd.forward_ad as fwAD
 import torch.nn.functional as F
 
-from integrators.errors import InputValidationError, PoorExcitationWarning
+from integrators.errors import InputValidationError
 from integrators.newton import NewtonStatus, minimize
 
 from ..data import IOData
+from ..errors import PoorExcitationWarning
 from ..filters import iir_filter
 from ..lls import lls
 from ..models import PolynomialModel

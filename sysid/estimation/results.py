@@ -17,8 +17,7 @@ import numpy as np
 import scipy.stats
 import torch
 
-from integrators.errors import PoorExcitationWarning
-
+from ..errors import PoorExcitationWarning
 from ..models import PolynomialModel
 
 __all__ = [
