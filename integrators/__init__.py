@@ -2,7 +2,7 @@
 
 from .adaptive import solve_adaptive
 from .collocation import collocation_output_weights, gauss_legendre, radau_iia
-from .controllers import IController, PIController
+from .controllers import GustafssonController, IController, PIController
 from .dae_layer import DAELayer
 from .errors import (
     ConvergenceError,
@@ -19,6 +19,7 @@ from .errors import (
 from .implicit import daeint, solve_implicit_ode
 from .inputs import CollocationInput, bind_rhs
 from .layers import ODELayer
+from .methods import METHOD_NAMES
 from .newton import (
     MinimizeResult,
     NewtonResult,
@@ -40,9 +41,11 @@ __all__ = [
     "SemiExplicitDAE",
     "daeint",
     "solve_implicit_ode",
+    "GustafssonController",
     "IController",
     "PIController",
     "solve_adaptive",
+    "METHOD_NAMES",
     "TABLEAU_NAMES",
     "ButcherTableau",
     "ConvergenceError",

@@ -29,9 +29,13 @@ from scipy.linalg import get_lapack_funcs
 
 from ._irk_core import IRKCore, host_shape, masked_update
 from ._irk_dense import StepRecords, stop_times
+from .controllers import GustafssonController
 from .errors import InputValidationError
-from .radau import embedded_weights, initial_step, next_step_sizes, stop_samples
+from .radau import embedded_weights, initial_step, stop_samples
 from .solution import Status
+
+#: The step-size rule of the host drivers (they run only with the default controller).
+_RULE = GustafssonController()
 
 # Largest ``x0.numel()`` that "auto" sends to the host loop. Measured with one thread
 # (same steps on both drivers), host / torch driver time: stiff Van der Pol (n = 2) 0.6 at
@@ -415,7 +419,7 @@ def integrate_adaptive_host(
             n_rej += reject
 
             hh = h_step.astype(np.float64, copy=False)
-            err_c, h_acc, h_rej, slow = next_step_sizes(
+            err_c, h_acc, h_rej, slow = _RULE.radau_step_sizes(
                 hh, err, finite, err_old, h_old, first, iters, theta, max_iter, expo
             )
 

@@ -26,8 +26,12 @@ import torch
 from ._irk_core import IRKCore, host_shape
 from ._irk_dense import stop_times
 from ._radau_host import _factorize, _HostModel, _method_constants, _records, _run_constants
-from .radau import initial_step, next_step_size, stop_samples
+from .controllers import GustafssonController
+from .radau import initial_step, stop_samples
 from .solution import Status
+
+#: The step-size rule of the host drivers (they run only with the default controller).
+_RULE = GustafssonController()
 
 
 def single_loop_supported(x0: torch.Tensor) -> bool:
@@ -180,7 +184,7 @@ def integrate_single_host(
             )
             if not finite:
                 err = math.inf
-            err_c, h_acc, h_rej, slow = next_step_size(
+            err_c, h_acc, h_rej, slow = _RULE.radau_step_size(
                 h_step, err, finite, err_old, h_old, first, iters, theta, max_iter, expo
             )
             if err >= 1.0:

@@ -18,11 +18,15 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from .errors import InputValidationError
 
 _TINY_ERR = 1e-10  # error norms below this are treated as this (factor capped anyway)
+#: Newton contraction rate above which (after more than two iterations) an implicit step
+#: re-evaluates the Jacobian (scipy's rule).
+REUSE_THETA = 1e-3
 
 
 def error_norm(err, x_old, x_new, rtol, atol) -> torch.Tensor:
@@ -104,6 +108,24 @@ class IController:
             ).clamp_min(self.min_factor)
         return accept, dt * factor
 
+    def radau_step_sizes(self, h, err, finite, err_old, h_old, first, iters, theta, max_iter, expo):
+        """The next step sizes of adaptive Radau IIA (the torch driver of
+        :mod:`integrators.radau`) from this controller, on host arrays (*batch,): the
+        arguments and results of :meth:`GustafssonController.radau_step_sizes`. The error
+        estimator of Radau IIA with ``s`` stages has order ``q = s = 1 / expo - 1``;
+        ``err_old`` is the previous accepted step's error. The step after acceptance and the
+        retry after rejection are both :meth:`propose`'s step (a non-finite trial shrinks by
+        ``min_factor``); the Newton matrix is refactorised whenever the step changes."""
+        err_c = np.maximum(err, _TINY_ERR)
+        _, h_new = self.propose(
+            torch.from_numpy(np.where(finite, err, np.inf)),
+            torch.from_numpy(np.asarray(err_old, dtype=np.float64)),
+            torch.from_numpy(np.asarray(h, dtype=np.float64)),
+            round(1.0 / expo) - 1,
+        )
+        h_new = h_new.numpy()
+        return err_c, h_new, h_new, slow_contraction(theta, iters)
+
     def __repr__(self) -> str:
         return (
             f"{type(self).__name__}(safety={self.safety}, min_factor={self.min_factor}, "
@@ -147,6 +169,102 @@ class PIController(IController):
         return (
             f"PIController(beta1={self.beta1}, beta2={self.beta2}, safety={self.safety}, "
             f"min_factor={self.min_factor}, max_factor={self.max_factor})"
+        )
+
+
+def slow_contraction(theta, iters):
+    """Whether a Newton solve contracted so slowly (rate ``theta > REUSE_THETA`` after more
+    than two iterations) that the Jacobian must be re-evaluated; arrays or Python numbers."""
+    return (theta > REUSE_THETA) & (iters > 2)
+
+
+class GustafssonController:
+    """Gustafsson's predictive controller of adaptive Radau IIA (Hairer & Wanner, §IV.8;
+    scipy's and RADAU5's rule), the default of the implicit adaptive methods.
+
+    With ``k`` the Newton iterations of the step (``k_max`` allowed) and ``q = s`` the order
+    of the error estimate,
+    ``h_new = h * min(max_factor, safety * min(1, pred) * err^(-1/(q+1)))`` where
+    ``safety = 0.9 (2 k_max + 1) / (2 k_max + k)`` and the predictive factor
+    ``pred = (h / h_old) (err_old / err)^(1/(q+1))`` uses the previous accepted step. A
+    rejected step shrinks by at least ``min_factor`` (by 4 where not finite); the
+    factorisation of the Newton matrix is kept (``h_new = h``) when the step would grow by
+    less than 20 % and Newton contracted fast.
+
+    Args:
+        min_factor, max_factor: bounds on ``h_new / h`` after a rejection / an acceptance.
+    """
+
+    def __init__(self, min_factor: float = 0.2, max_factor: float = 10.0):
+        _check_factors(1.0, min_factor, max_factor)
+        self.min_factor = float(min_factor)
+        self.max_factor = float(max_factor)
+
+    def radau_step_sizes(self, h, err, finite, err_old, h_old, first, iters, theta, max_iter, expo):
+        """The rule above, per sample (host arrays (*batch,)).
+
+        Args:
+            h: float64 step just attempted; err: its scaled error norm (inf where not finite);
+            finite: whether the step's state and error are finite; err_old, h_old: error (floored
+            at 1e-2) and size of the sample's last accepted step (h_old <= 0: none yet); first:
+            no step accepted yet; iters, theta: Newton iterations and contraction rate;
+            max_iter: Newton iteration limit; expo: ``1 / (s + 1)``.
+
+        Returns:
+            ``(err_c, h_accept, h_reject, slow)``: the error floored at 1e-10, the next step after
+            acceptance (``h`` itself when the factorisation is kept: growth in [1, 1.2) and fast
+            Newton), the retry step after rejection (``h / 4`` where non-finite) and whether
+            Newton contracted so slowly that the Jacobian must be re-evaluated.
+        """
+        with np.errstate(all="ignore"):
+            safety = 0.9 * (2 * max_iter + 1) / (2 * max_iter + iters)
+            err_c = np.maximum(err, 1e-10)
+            pred = h / np.maximum(h_old, 1e-300) * (err_old / err_c) ** expo
+            pred = np.where(first | (h_old <= 0), 1.0, np.minimum(pred, 1.0))
+            scaled = safety * pred * err_c**-expo
+            h_rej = np.where(
+                finite, h * np.minimum(np.maximum(scaled, self.min_factor), 1.0), 0.25 * h
+            )
+            grow = np.minimum(scaled, self.max_factor)
+        slow = slow_contraction(theta, iters)
+        keep_lu = ~slow & (grow < 1.2) & (grow >= 1.0)
+        return err_c, np.where(keep_lu, h, h * grow), h_rej, slow
+
+    def radau_step_size(self, h, err, finite, err_old, h_old, first, iters, theta, max_iter, expo):
+        """:meth:`radau_step_sizes` for one sample, in Python floats and bools (same arguments,
+        same results up to the rounding of ``**``, which numpy and the C library may round one
+        bit apart): the one-trajectory host loop's step control."""
+        safety = 0.9 * (2 * max_iter + 1) / (2 * max_iter + iters)
+        err_c = max(err, 1e-10)
+        if first or h_old <= 0:
+            pred = 1.0
+        else:
+            pred = min(h / max(h_old, 1e-300) * (err_old / err_c) ** expo, 1.0)
+        scaled = safety * pred * err_c**-expo
+        h_rej = h * min(max(scaled, self.min_factor), 1.0) if finite else 0.25 * h
+        grow = min(scaled, self.max_factor)
+        slow = slow_contraction(theta, iters)
+        keep_lu = not slow and 1.0 <= grow < 1.2
+        return err_c, h if keep_lu else h * grow, h_rej, slow
+
+    def __repr__(self) -> str:
+        return f"GustafssonController(min_factor={self.min_factor}, max_factor={self.max_factor})"
+
+
+def check_controller(controller, method: str, adaptive: bool) -> None:
+    """Refuse a ``controller`` that is not a controller object of this module, or one given
+    to a run at fixed steps (``adaptive`` False) of ``method``."""
+    if controller is None:
+        return
+    if not isinstance(controller, IController | GustafssonController):
+        raise InputValidationError(
+            f"controller must be an IController, PIController or GustafssonController "
+            f"(integrators.controllers), got {type(controller).__name__}."
+        )
+    if not adaptive:
+        raise InputValidationError(
+            f"controller applies to adaptive methods only; {method!r} runs at fixed steps "
+            "here (set their number per output interval with substeps)."
         )
 
 

@@ -26,7 +26,6 @@ differentiated.
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from ._irk_core import EPS, InputSignal, IRKCore
@@ -42,14 +41,15 @@ from ._options import (
     raise_shape_change,
     refuse_time_gradient,
 )
+from .controllers import GustafssonController, check_controller
 from .errors import HighIndexError, InputValidationError, TableauError
+from .methods import IMPLICIT_ADAPTIVE, resolve_method, run_kind
 from .problems import ImplicitDAE, ImplicitODE, SemiExplicitDAE
 from .solution import Solution, SolverStats
-from .tableau import ButcherTableau, tableau
+from .tableau import ButcherTableau
 
 __all__ = ["daeint", "solve_implicit_ode"]
 
-_DEFAULT_STAGES = {"gauss_legendre": 2, "radau_iia": 3}
 _NEWTON_KEYS = {
     "max_iter",
     "newton_tol",
@@ -61,42 +61,18 @@ _NEWTON_KEYS = {
 }
 
 
-def resolve_tableau(method, stages=None) -> ButcherTableau:
-    """The implicit tableau named by ``method`` ("gauss_legendre", "radau_iia",
-    "implicit_euler", "implicit_midpoint") or given as a :class:`ButcherTableau`."""
-    from .collocation import gauss_legendre, radau_iia
-
-    if stages is not None and not (isinstance(method, str) and method in _DEFAULT_STAGES):
-        name = method.name if isinstance(method, ButcherTableau) else method
-        raise InputValidationError(
-            f"stages={stages!r} applies to 'gauss_legendre' and 'radau_iia' only, not to "
-            f"{name!r} (its number of stages is fixed)."
-        )
-    if isinstance(method, ButcherTableau):
-        tab = method
-    elif method in _DEFAULT_STAGES:
-        s = _DEFAULT_STAGES[method] if stages is None else stages
-        tab = gauss_legendre(s) if method == "gauss_legendre" else radau_iia(s)
-    elif method in ("implicit_euler", "implicit_midpoint"):
-        tab = tableau(method)
-    else:
-        raise InputValidationError(
-            f"unknown implicit method {method!r}; use 'gauss_legendre', 'radau_iia' (with "
-            "stages=s), 'implicit_euler', 'implicit_midpoint' or an implicit ButcherTableau."
-        )
+def _implicit_tableau(method, stages, adaptive) -> tuple[ButcherTableau, bool]:
+    """The implicit tableau that ``method`` (a name or a tableau, :func:`resolve_method`) and
+    ``stages`` give, and whether its run controls the step size (``adaptive``: True, False or
+    None for the method's default)."""
+    tab = resolve_method(method).tableau(stages)
     if tab.is_explicit:
         raise TableauError(
             f"tableau {tab.name!r} is explicit; use odeint for explicit methods, or pass an "
             "implicit tableau here."
         )
-    return tab
-
-
-def _is_radau(tab: ButcherTableau) -> bool:
-    from .collocation import radau_iia
-
-    ref = radau_iia(tab.stages)
-    return np.allclose(tab.A, ref.A, atol=1e-12) and np.allclose(tab.b, ref.b, atol=1e-12)
+    kind = run_kind(tab, check_flag(adaptive, "adaptive", allow=(None,)))
+    return tab, kind == IMPLICIT_ADAPTIVE
 
 
 def _validate_state(x, label, dtype=None, device=None):
@@ -208,6 +184,7 @@ def _run(
     substeps,
     max_steps,
     options,
+    controller,
     extra,
     messages,
     method_name,
@@ -219,7 +196,17 @@ def _run(
     from ._radau_host import integrate_adaptive_host, use_host_loop
     from ._radau_single import integrate_single_host, single_loop_supported
 
-    host_loop = use_host_loop(core, x0, options.get("host_loop", "auto"), adaptive)
+    host_option = options.get("host_loop", "auto")
+    if controller is not None and not isinstance(controller, GustafssonController):
+        # the host drivers run Gustafsson's rule only; a user's I/PI controller drives the
+        # steps of the torch driver
+        if host_option is True:
+            raise InputValidationError(
+                f"host_loop=True runs Radau IIA's own GustafssonController; the controller "
+                f"{controller!r} needs the torch driver: pass host_loop=False or 'auto'."
+            )
+        host_option = False
+    host_loop = use_host_loop(core, x0, host_option, adaptive)
     single = host_loop and single_loop_supported(x0)
     if host_loop:
         out = (integrate_single_host if single else integrate_adaptive_host)(
@@ -252,6 +239,7 @@ def _run(
             index_tol=index_tol,
             index_check_every=every,
             dt0=options.get("dt0"),
+            controller=controller,
         )
     else:
         out = integrate_fixed(
@@ -283,6 +271,7 @@ def _run(
             stacked_stages=bool(core.stack_stages),
             host_loop=host_loop,
             driver="host, one trajectory" if single else "host" if host_loop else "torch",
+            **({"controller": repr(controller or GustafssonController())} if adaptive else {}),
         ),
     )
     return Solution(
@@ -309,6 +298,7 @@ def solve_implicit_ode(
     atol=1e-9,
     substeps=1,
     max_steps=100_000,
+    controller=None,
     **newton_options,
 ) -> Solution:
     """Integrate the explicit ODE ``x' = rhs(t, x)`` with an implicit RK method.
@@ -327,6 +317,10 @@ def solve_implicit_ode(
             ``atol + rtol |x|`` (both modes).
         substeps: fixed-step mode: steps per output interval.
         max_steps: adaptive mode: step attempts per sample before MAX_STEPS.
+        controller: adaptive mode: the step-size controller (:mod:`integrators.controllers`);
+            None or a :class:`~integrators.controllers.GustafssonController` runs Radau IIA's
+            predictive rule in any driver, an I or PI controller runs the torch driver
+            (``stats.extra["driver"]``, ``stats.extra["controller"]``).
         **newton_options: ``max_iter`` (Newton iterations per stage solve, 7 adaptive / 15
             fixed), ``newton_tol`` (override of the stopping tolerance), ``linear_solver``
             ("auto", "transformed", "full"), ``dt0`` (first step, adaptive), ``host_loop``
@@ -352,13 +346,14 @@ def solve_implicit_ode(
             not finite and > 0, ``dt0`` without step-size control, an unknown
             ``linear_solver``, tolerances failing
             :func:`integrators._options.check_tolerances`), ``stages`` with a method other
-            than "gauss_legendre" / "radau_iia", a state dtype other than float32/float64, or
+            than "gauss_legendre" / "radau_iia", a ``controller`` that is not one or is given
+            to a fixed-step run, a state dtype other than float32/float64, or
             ``t`` requiring grad (output times are not differentiated); during the run, a
             model output whose shape differs from the state's.
     """
     x0 = _validate_state(x0, "x0")
-    tab = resolve_tableau(method, stages)
-    adaptive = _check_adaptive(tab, adaptive)
+    tab, adaptive = _implicit_tableau(method, stages, adaptive)
+    check_controller(controller, tab.name, adaptive)
     options = _split_options(newton_options, adaptive)
     _check_run_options(t, rtol, atol, substeps, max_steps, x0.dtype, tab.name)
     t = _validate_time(t, x0)
@@ -388,6 +383,7 @@ def solve_implicit_ode(
         substeps=substeps,
         max_steps=max_steps,
         options=options,
+        controller=controller,
         extra={},
         messages=[],
         method_name=tab.name,
@@ -420,20 +416,6 @@ def _check_derivative_shape(xdot0, x0) -> None:
         )
 
 
-def _check_adaptive(tab, adaptive):
-    adaptive = check_flag(adaptive, "adaptive", allow=(None,))
-    radau = _is_radau(tab)
-    if adaptive is None:  # named Radau IIA methods adapt; implicit Euler etc. keep fixed steps
-        return radau and tab.stages % 2 == 1 and tab.name.startswith("radau_iia")
-    if adaptive and not (radau and tab.stages % 2 == 1):
-        raise InputValidationError(
-            f"adaptive step control is implemented for Radau IIA with an odd number of stages "
-            f"(its embedded estimate needs a real eigenvalue of A^-1); got {tab.name!r}. Use "
-            "method='radau_iia' with stages=1, 3 or 5, or adaptive=False."
-        )
-    return bool(adaptive)
-
-
 def daeint(
     problem,
     x0,
@@ -449,6 +431,7 @@ def daeint(
     interpolation="zoh",
     substeps=1,
     max_steps=100_000,
+    controller=None,
     **newton_options,
 ) -> Solution:
     """Integrate an implicit ODE or an index-1 DAE with an implicit RK method.
@@ -468,7 +451,8 @@ def daeint(
             consistent ``z(t0)`` carries the derivatives of that root with respect to ``x0``
             and every tensor the model uses, first and second order).
         t: (T,) strictly increasing output times.
-        method, stages, adaptive, rtol, atol, substeps, max_steps, **newton_options: as in
+        method, stages, adaptive, rtol, atol, substeps, max_steps, controller,
+            **newton_options: as in
             :func:`solve_implicit_ode`; ``index_tol`` (default 1e-10) is the relative
             singular-value threshold of the rank test.
         u: input: None, a callable ``u(t)`` or samples (T, nu) / (*batch, T, nu) on ``t``.
@@ -489,8 +473,8 @@ def daeint(
             f"{type(problem).__name__}; for x' = f(t, x) use odeint."
         )
     x0 = _validate_state(x0, "x0")
-    tab = resolve_tableau(method, stages)
-    adaptive = _check_adaptive(tab, adaptive)
+    tab, adaptive = _implicit_tableau(method, stages, adaptive)
+    check_controller(controller, tab.name, adaptive)
     options = _split_options(newton_options, adaptive)
     _check_run_options(t, rtol, atol, substeps, max_steps, x0.dtype, tab.name)
     t = _validate_time(t, x0)
@@ -551,6 +535,7 @@ def daeint(
         substeps=substeps,
         max_steps=max_steps,
         options=options,
+        controller=controller,
         extra=extra,
         messages=msgs,
         method_name=tab.name,

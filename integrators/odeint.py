@@ -1,6 +1,7 @@
 """``odeint``: validate, bind the input, dispatch to a solver.
 
-Dispatch:
+The method is resolved by :func:`integrators.methods.resolve_method`, and the kind of its run
+(:func:`integrators.methods.run_kind`) picks the solver:
 
 * an explicit tableau without ``b_err`` (``"euler"`` ... ``"rk38"``), or any explicit tableau
   with ``adaptive=False``: fixed-step explicit RK (:func:`integrators.explicit.solve_explicit`);
@@ -11,7 +12,10 @@ Dispatch:
 * ``"auto"``: ``integrators.auto.choose_method`` picks one of the above; the choice is recorded
   in ``sol.stats.extra["auto"]``.
 
-The adaptive, implicit and automatic solvers are imported only when used.
+Options left at ``None`` take the values of :data:`DEFAULTS`; an option given for a kind of run
+it does not apply to (:data:`integrators.methods.OPTION_KINDS`) raises
+:class:`InputValidationError` naming the method and the option. The adaptive, implicit and
+automatic solvers are imported only when used.
 """
 
 from __future__ import annotations
@@ -25,14 +29,33 @@ from ._options import (
     check_state_dtype,
     check_tolerances,
 )
-from .errors import InputValidationError, TableauError
+from .errors import InputValidationError
 from .explicit import solve_explicit
 from .inputs import bind_rhs, check_finite
+from .methods import (
+    AUTO,
+    EXPLICIT_ADAPTIVE,
+    IMPLICIT_ADAPTIVE,
+    IMPLICIT_FIXED,
+    METHOD_NAMES,
+    OPTION_KINDS,
+    Method,
+    resolve_method,
+    run_kind,
+)
 from .solution import Solution
-from .tableau import TABLEAU_NAMES, ButcherTableau, tableau
 
-COLLOCATION_METHODS = ("gauss_legendre", "radau_iia")
-METHOD_NAMES = TABLEAU_NAMES + COLLOCATION_METHODS + ("auto",)
+__all__ = ["METHOD_NAMES", "odeint"]
+
+#: The values of the options a call leaves at None.
+DEFAULTS = dict(
+    substeps=1,
+    rtol=1e-6,
+    atol=1e-9,
+    max_steps=100_000,
+    compile="auto",
+    checkpoint=False,
+)
 
 
 def odeint(
@@ -43,15 +66,15 @@ def odeint(
     method="rk4",
     u=None,
     interpolation="zoh",
-    substeps=1,
-    rtol=1e-6,
-    atol=1e-9,
+    substeps=None,
+    rtol=None,
+    atol=None,
     controller=None,
     dt0=None,
-    max_steps=100_000,
+    max_steps=None,
     stages=None,
-    compile="auto",
-    checkpoint=False,
+    compile=None,
+    checkpoint=None,
     **kwargs,
 ) -> Solution:
     """Simulate ``x' = f(t, x[, u])`` from ``x0`` and report the states at the times ``t``.
@@ -64,20 +87,23 @@ def odeint(
             is expanded to that batch.
         x0: (*batch, nx) initial states; array-likes become float64 tensors.
         t: (T,) strictly increasing output times, T >= 2 (converted to x0's dtype/device).
-        method: a name from :data:`METHOD_NAMES` or a :class:`ButcherTableau`.
+        method: a name from :data:`METHOD_NAMES` or a :class:`ButcherTableau`
+            (:mod:`integrators.methods`).
         u: None, a callable ``u(t)``, or samples (T, nu) / (*batch, T, nu) on ``t``
             (see :func:`integrators.inputs.bind_rhs`).
         interpolation: ``"zoh"`` (notes eq. 8.34) or ``"linear"`` for sampled ``u``.
-        substeps: fixed-step methods: integer number of steps per output interval.
-        rtol, atol: tolerances of adaptive methods (and the Newton scale ``atol + rtol |x|``
-            of implicit ones): numbers or tensors, ``atol >= 0`` and ``rtol`` at least
-            :data:`integrators._options.RTOL_MIN_EPS` machine epsilons of the state dtype
-            (8.9e-16 in float64, 4.8e-7 in float32).
-        controller, dt0, max_steps: adaptive step control; ``dt0`` (first trial
-            step, > 0; a longer one is cut to the span) and ``controller`` apply to adaptive
-            methods only.
+        substeps: fixed-step methods: integer number of steps per output interval (1).
+        rtol, atol: tolerances (1e-6, 1e-9) of adaptive methods (and the Newton scale
+            ``atol + rtol |x|`` of implicit ones): numbers or tensors, ``atol >= 0`` and
+            ``rtol`` at least :data:`integrators._options.RTOL_MIN_EPS` machine epsilons of
+            the state dtype (8.9e-16 in float64, 4.8e-7 in float32).
+        controller, dt0, max_steps: adaptive step control: ``controller`` an
+            :class:`~integrators.controllers.IController` or ``PIController`` (default of
+            dopri5) or ``GustafssonController`` (default of Radau IIA), ``max_steps`` step
+            attempts per sample (100 000), ``dt0`` the first trial step (> 0; a longer one is
+            cut to the span); adaptive methods only.
         stages: number of stages of ``"gauss_legendre"`` / ``"radau_iia"`` (those only).
-        compile: fixed-step explicit methods: ``True``, ``False`` or ``"auto"`` (see
+        compile: fixed-step explicit methods: ``True``, ``False`` or ``"auto"`` (default; see
             :func:`integrators.explicit.solve_explicit`).
         checkpoint: fixed-step explicit methods with autograd: ``True`` recomputes the graph
             in segments of about ``sqrt(n_steps)`` steps during the backward pass (memory
@@ -114,10 +140,18 @@ def odeint(
     """
     x0 = _validate_x0(x0)
     t = _validate_t(t, x0)
-    check_int(substeps, "substeps")
-    check_int(max_steps, "max_steps")
-    check_tolerances(rtol, atol, x0.dtype)
-    compile = check_flag(compile, "compile", allow=("auto",))
+    chosen = resolve_method(method)
+    if substeps is not None:
+        check_int(substeps, "substeps")
+    if max_steps is not None:
+        check_int(max_steps, "max_steps")
+    check_tolerances(
+        DEFAULTS["rtol"] if rtol is None else rtol,
+        DEFAULTS["atol"] if atol is None else atol,
+        x0.dtype,
+    )
+    if compile is not None:
+        compile = check_flag(compile, "compile", allow=("auto",))
     adaptive = check_flag(kwargs.pop("adaptive", None), "adaptive", allow=(None,))
     if stages is not None:
         check_int(stages, "stages")
@@ -140,53 +174,55 @@ def odeint(
         controller=controller,
         dt0=dt0,
         max_steps=max_steps,
-        stages=stages,
         compile=compile,
         checkpoint=checkpoint,
-        adaptive=adaptive,
     )
-    if isinstance(method, str) and method == "auto":
+    if chosen.kind == AUTO:
         from .auto import choose_method
 
+        if stages is not None:
+            chosen.tableau(stages)  # raises: "auto" takes no stages
+        chosen.check_options(AUTO, **options)
         name, info = choose_method(rhs, x0, t)
-        sol = _dispatch(rhs, x0, t, name, options, kwargs)
+        sol = _dispatch(rhs, x0, t, resolve_method(name), stages, adaptive, options, kwargs)
         sol.stats.extra["auto"] = {"method": name, **dict(info)}
         return sol
-    return _dispatch(rhs, x0, t, method, options, kwargs)
+    return _dispatch(rhs, x0, t, chosen, stages, adaptive, options, kwargs)
 
 
-def _dispatch(rhs, x0, t, method, options, kwargs) -> Solution:
-    """Run the solver that ``method`` names (see the module docstring)."""
-    if options["checkpoint"] is not False and not _is_fixed_step_explicit(method, options):
-        raise InputValidationError(
-            f"checkpoint={options['checkpoint']!r} applies to fixed-step explicit methods only, "
-            f"not to {getattr(method, 'name', method)!r}; adaptive and implicit solvers keep "
-            "their own graphs (use sensitivities() or a fixed-step method such as 'rk4')."
+def _dispatch(rhs, x0, t, method: Method, stages, adaptive, options, kwargs) -> Solution:
+    """Run the solver of ``method`` (see the module docstring) after refusing the options
+    that do not apply to it; ``options`` holds the values given (None: not given)."""
+    tab = method.tableau(stages)
+    kind = run_kind(tab, adaptive)
+    method.check_options(kind, **{name: options[name] for name in OPTION_KINDS})
+    opts = {
+        name: DEFAULTS[name] if v is None and name in DEFAULTS else v for name, v in options.items()
+    }
+    if kind in (IMPLICIT_FIXED, IMPLICIT_ADAPTIVE):
+        from .implicit import solve_implicit_ode
+
+        if opts["dt0"] is not None:
+            kwargs = {"dt0": opts["dt0"], **kwargs}
+        return solve_implicit_ode(
+            rhs,
+            x0,
+            t,
+            tab,
+            adaptive=kind == IMPLICIT_ADAPTIVE,
+            rtol=opts["rtol"],
+            atol=opts["atol"],
+            substeps=opts["substeps"],
+            max_steps=opts["max_steps"],
+            controller=opts["controller"],
+            **kwargs,
         )
-    if isinstance(method, str) and method in COLLOCATION_METHODS:
-        return _implicit(rhs, x0, t, method, options, kwargs)
-    tab = _resolve_tableau(method)
-    if not tab.is_explicit:
-        return _implicit(rhs, x0, t, tab, options, kwargs)
-    if options["stages"] is not None:
-        raise InputValidationError(
-            f"stages={options['stages']!r} applies to 'gauss_legendre' and 'radau_iia' only, "
-            f"not to the explicit tableau {tab.name!r} (its number of stages is fixed)."
-        )
-    adaptive = options["adaptive"]
-    if adaptive is None:
-        adaptive = tab.b_err is not None
     if kwargs:
         raise InputValidationError(
             f"unexpected keyword argument(s) {sorted(kwargs)} for the explicit method "
             f"{tab.name!r}; see the odeint docstring for the accepted options."
         )
-    if adaptive:
-        if tab.b_err is None:
-            raise TableauError(
-                f"tableau {tab.name!r} has no embedded weights b_err, so it cannot control its "
-                "step size; use 'dopri5' or pass adaptive=False."
-            )
+    if kind == EXPLICIT_ADAPTIVE:
         from .adaptive import solve_adaptive
 
         return solve_adaptive(
@@ -194,70 +230,20 @@ def _dispatch(rhs, x0, t, method, options, kwargs) -> Solution:
             x0,
             t,
             tab,
-            rtol=options["rtol"],
-            atol=options["atol"],
-            controller=options["controller"],
-            dt0=options["dt0"],
-            max_steps=options["max_steps"],
+            rtol=opts["rtol"],
+            atol=opts["atol"],
+            controller=opts["controller"],
+            dt0=opts["dt0"],
+            max_steps=opts["max_steps"],
         )
-    for name in ("dt0", "controller"):
-        if options[name] is not None:
-            raise InputValidationError(
-                f"{name} applies to adaptive methods only; {tab.name!r} runs at fixed steps "
-                "(set their number per output interval with substeps)."
-            )
     return solve_explicit(
         rhs,
         x0,
         t,
         tab,
-        substeps=options["substeps"],
-        compile=options["compile"],
-        checkpoint=options["checkpoint"],
-    )
-
-
-def _is_fixed_step_explicit(method, options) -> bool:
-    """Whether ``method`` (a name or tableau, not ``"auto"``) runs in ``solve_explicit``."""
-    if isinstance(method, str) and method not in TABLEAU_NAMES:
-        return False
-    tab = _resolve_tableau(method)
-    adaptive = options["adaptive"]
-    return tab.is_explicit and not (tab.b_err is not None if adaptive is None else adaptive)
-
-
-def _implicit(rhs, x0, t, method, options, kwargs) -> Solution:
-    from .implicit import solve_implicit_ode
-
-    if options["controller"] is not None:
-        raise InputValidationError(
-            "controller applies to the adaptive explicit methods (dopri5); the implicit "
-            "methods control their steps themselves (rtol, atol, dt0, max_steps)."
-        )
-    if options["dt0"] is not None:
-        kwargs = {"dt0": options["dt0"], **kwargs}
-    return solve_implicit_ode(
-        rhs,
-        x0,
-        t,
-        method,
-        stages=options["stages"],
-        adaptive=options["adaptive"],
-        rtol=options["rtol"],
-        atol=options["atol"],
-        substeps=options["substeps"],
-        max_steps=options["max_steps"],
-        **kwargs,
-    )
-
-
-def _resolve_tableau(method) -> ButcherTableau:
-    if isinstance(method, ButcherTableau):
-        return method
-    if isinstance(method, str) and method in TABLEAU_NAMES:
-        return tableau(method)
-    raise TableauError(
-        f"unknown method {method!r}; use a ButcherTableau or one of {', '.join(METHOD_NAMES)}."
+        substeps=opts["substeps"],
+        compile=opts["compile"],
+        checkpoint=opts["checkpoint"],
     )
 
 

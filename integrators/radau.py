@@ -15,10 +15,13 @@ matrix, ``err = (gamma/h E + G)^{-1} (gamma/h) M delta`` (``M = dR/dK``), which 
 reproduces scipy's / RADAU5's estimate (checked in tests). After a rejection the estimate
 is refined once by re-evaluating ``f`` at ``x_k + err`` (explicit ODEs).
 
-Step size: ``h_new = h * min(10, safety * min(1, pred) * err^(-1/(s+1)))`` with Gustafsson's
-predictive factor ``pred`` and ``safety = 0.9 (2 k_max + 1) / (2 k_max + k)`` (``k`` Newton
-iterations). The Jacobian is re-evaluated only when Newton failed or needed more than two
-iterations and contracted slowly (``theta > 1e-3``; scipy's rule); the factorisation is kept
+Step size: a controller of :mod:`integrators.controllers` maps the error norm to the next step;
+the default :class:`~integrators.controllers.GustafssonController` is
+``h_new = h * min(10, safety * min(1, pred) * err^(-1/(s+1)))`` with Gustafsson's predictive
+factor ``pred`` and ``safety = 0.9 (2 k_max + 1) / (2 k_max + k)`` (``k`` Newton
+iterations); an I or PI controller given by the user drives the steps instead. The Jacobian
+is re-evaluated only when Newton failed or needed more than two iterations and contracted
+slowly (``theta > 1e-3``; scipy's rule); the Gustafsson controller keeps the factorisation
 when the step would grow by < 20 %.
 """
 
@@ -30,11 +33,8 @@ import torch
 from ._irk_core import IRKCore, IterationMatrix, host_shape, masked_update, to_device, to_host
 from ._irk_dense import StepRecords, extrapolation_matrix, stop_times
 from ._irk_fixed import _flag_high_index
+from .controllers import GustafssonController
 from .solution import Status
-
-_REUSE_THETA = 1e-3
-_MAX_FACTOR = 10.0
-_MIN_FACTOR = 0.2
 
 
 def embedded_weights(tab) -> tuple[float, np.ndarray]:
@@ -66,8 +66,12 @@ def integrate_adaptive(
     index_tol,
     index_check_every=10,
     dt0=None,
+    controller=None,
 ):
     """Run adaptive Radau IIA; returns a dict of outputs, status, counters and messages.
+
+    ``controller``: the step-size controller (default
+    :class:`~integrators.controllers.GustafssonController`).
 
     The per-sample scalars (times, step sizes, flags, counters) live on the host as numpy
     arrays: the step-size control costs no device kernels, and each step needs one
@@ -77,6 +81,7 @@ def integrate_adaptive(
     dtype = x0.dtype
     hdt = np.float64 if dtype == torch.float64 else np.float32
     n, m, s = core.system.n, core.system.m, core.s
+    controller = GustafssonController() if controller is None else controller
     gamma, e_np = embedded_weights(core.tab)
     gamma_e = torch.as_tensor(gamma * e_np, dtype=dtype, device=x0.device)
     rms = 1.0 / (n + m) ** 0.5
@@ -242,7 +247,7 @@ def integrate_adaptive(
         n_rej += reject
 
         hh = h_step.astype(np.float64)
-        err_c, h_acc, h_rej, slow = next_step_sizes(
+        err_c, h_acc, h_rej, slow = controller.radau_step_sizes(
             hh, err, finite, err_old, h_old, first, iters, theta, max_iter, expo
         )
 
@@ -290,53 +295,6 @@ def integrate_adaptive(
         n_f=core.n_f_evals,
         records=records,
     )
-
-
-def next_step_sizes(h, err, finite, err_old, h_old, first, iters, theta, max_iter, expo):
-    """The step-size rule of the module docstring, per sample (host arrays (*batch,)).
-
-    Args:
-        h: float64 step just attempted; err: its scaled error norm (inf where not finite);
-        finite: whether the step's state and error are finite; err_old, h_old: error (floored
-        at 1e-2) and size of the sample's last accepted step (h_old <= 0: none yet); first:
-        no step accepted yet; iters, theta: Newton iterations and contraction rate;
-        max_iter: Newton iteration limit; expo: ``1 / (s + 1)``.
-
-    Returns:
-        ``(err_c, h_accept, h_reject, slow)``: the error floored at 1e-10, the next step after
-        acceptance (``h`` itself when the factorisation is kept: growth in [1, 1.2) and fast
-        Newton), the retry step after rejection (``h / 4`` where non-finite) and whether
-        Newton contracted so slowly that the Jacobian must be re-evaluated.
-    """
-    with np.errstate(all="ignore"):
-        safety = 0.9 * (2 * max_iter + 1) / (2 * max_iter + iters)
-        err_c = np.maximum(err, 1e-10)
-        pred = h / np.maximum(h_old, 1e-300) * (err_old / err_c) ** expo
-        pred = np.where(first | (h_old <= 0), 1.0, np.minimum(pred, 1.0))
-        scaled = safety * pred * err_c**-expo
-        h_rej = np.where(finite, h * np.minimum(np.maximum(scaled, _MIN_FACTOR), 1.0), 0.25 * h)
-        grow = np.minimum(scaled, _MAX_FACTOR)
-    slow = (theta > _REUSE_THETA) & (iters > 2)
-    keep_lu = ~slow & (grow < 1.2) & (grow >= 1.0)
-    return err_c, np.where(keep_lu, h, h * grow), h_rej, slow
-
-
-def next_step_size(h, err, finite, err_old, h_old, first, iters, theta, max_iter, expo):
-    """:func:`next_step_sizes` for one sample, in Python floats and bools (same arguments,
-    same results up to the rounding of ``**``, which numpy and the C library may round one
-    bit apart): the one-trajectory host loop's step control."""
-    safety = 0.9 * (2 * max_iter + 1) / (2 * max_iter + iters)
-    err_c = max(err, 1e-10)
-    if first or h_old <= 0:
-        pred = 1.0
-    else:
-        pred = min(h / max(h_old, 1e-300) * (err_old / err_c) ** expo, 1.0)
-    scaled = safety * pred * err_c**-expo
-    h_rej = h * min(max(scaled, _MIN_FACTOR), 1.0) if finite else 0.25 * h
-    grow = min(scaled, _MAX_FACTOR)
-    slow = theta > _REUSE_THETA and iters > 2
-    keep_lu = not slow and 1.0 <= grow < 1.2
-    return err_c, h if keep_lu else h * grow, h_rej, slow
 
 
 def _stage_guess(c, prev_W, have_prev, ratio, xdot, z, s):

@@ -77,12 +77,12 @@ import numpy as np
 import torch
 
 from ._irk_dense import extrapolation_matrix
-from .collocation import gauss_legendre, radau_iia
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
 from .inputs import CollocationInput
+from .methods import resolve_method
 from .newton import _default_tol, batch_jacobian
 from .solution import SolverStats
-from .tableau import ButcherTableau, tableau
+from .tableau import ButcherTableau
 
 __all__ = ["SensitivityResult", "sensitivities", "variational_sensitivities"]
 
@@ -170,15 +170,6 @@ def _prepare(x0, t, p, u):
                 f"T = {t.shape[0]}, got {tuple(u.shape)}."
             )
     return x0, t, p, u
-
-
-def _resolve_tableau(method, stages) -> ButcherTableau:
-    if isinstance(method, ButcherTableau):
-        return method
-    if method in ("gauss_legendre", "radau_iia"):
-        s = stages if stages is not None else (2 if method == "gauss_legendre" else 3)
-        return gauss_legendre(s) if method == "gauss_legendre" else radau_iia(s)
-    return tableau(method)
 
 
 class _InputParameters:
@@ -396,7 +387,9 @@ def sensitivities(
         x0: (*batch, nx) initial states.
         t: (T,) strictly increasing output grid.
         p: None, (np,) parameters shared by the batch, or (*batch, np).
-        method: a tableau or its name (default "rk4"); ``b_err`` is ignored.
+        method: a tableau or its name (default "rk4"; every name of
+            :data:`integrators.methods.METHOD_NAMES` but "auto"); the run is at fixed steps,
+            ``b_err`` is ignored.
         u: the input, one of
 
             * None;
@@ -408,7 +401,8 @@ def sensitivities(
               time: ``C = dx_k/dP``;
             * a callable ``u(t)`` (no input sensitivities).
         substeps: equal RK steps per output interval.
-        stages: number of stages for "gauss_legendre" (default 2) / "radau_iia" (default 3).
+        stages: number of stages for "gauss_legendre" (default 2) / "radau_iia" (default 3);
+            refused for other methods.
         newton_tol: implicit methods: the stage equations are solved to
             ``||r(K)||_inf <= newton_tol`` (units of ``dx/dt``) before the last correction;
             default ``max(1e-10, 100 eps)`` of the dtype.
@@ -419,13 +413,13 @@ def sensitivities(
 
     Raises:
         InputValidationError: bad shapes or grid, non-finite data, substeps < 1, a
-            CollocationInput on another grid.
-        TableauError: an unknown method.
+            CollocationInput on another grid, ``stages`` for a method of fixed stages.
+        TableauError: an unknown method or "auto".
         ConvergenceError: the stage equations of an implicit method did not converge.
         SingularMatrixError: the Newton matrix of an implicit step is singular.
     """
     x0, t, p, u = _prepare(x0, t, p, u)
-    tab = _resolve_tableau(method, stages)
+    tab = resolve_method(method).tableau(stages)
     if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
         raise InputValidationError(
             f"sensitivities: substeps must be an integer >= 1, got {substeps!r}."

@@ -466,13 +466,13 @@ def test_fixed_step_linear_system_factorises_once(method, stages):
     of each for Radau IIA s = 5, where a rate of round-off over round-off counted as slow);
     on a grid of two step sizes (100 + 100 steps): 1 Jacobian, 2 factorisations. The states
     equal the exact discrete map x_{k+1} = R(h M) x_k to 1e-12 relative."""
-    from integrators.implicit import resolve_tableau
+    from integrators.methods import resolve_method
 
     V = np.eye(3) + 0.3 * np.random.default_rng(0).standard_normal((3, 3))
     M = V @ np.diag([-1.0, -1e2, -1e4]) @ np.linalg.inv(V)
     Mt = torch.as_tensor(M)
     x0 = np.array([[1.0, -0.5, 2.0], [0.0, 1.0, 0.3]])
-    tab = resolve_tableau(method, stages)
+    tab = resolve_method(method).tableau(stages)
     uniform = np.linspace(0.0, 1.0, 201)
     two_sizes = np.concatenate([np.linspace(0.0, 0.5, 101), np.linspace(0.5, 1.5, 101)[1:]])
     for grid, n_lu in ((uniform, 1), (two_sizes, 2)):

@@ -391,7 +391,7 @@ def test_dt0_longer_than_the_span_is_cut_to_it_and_dt0_needs_an_adaptive_method(
     with pytest.raises(InputValidationError, match="dt0 must be a finite number > 0"):
         _dae(dt0=0.0)
     for kwargs in (dict(method="rk4"), dict(method="dopri5", adaptive=False), *IMPLICIT_PATHS[2:]):
-        with pytest.raises(InputValidationError, match="dt0 .*fixed steps"):
+        with pytest.raises(InputValidationError, match="dt0.*fixed steps"):
             odeint(decay, X0, T, dt0=0.1, **kwargs)
 
 
@@ -418,8 +418,8 @@ def test_bad_newton_options_are_refused(option, values, kwargs):
         (lambda: odeint(decay, X0, T, method="rk4", stages=3), "stages=3 applies to"),
         (lambda: odeint(decay, X0, T, method="implicit_euler", stages=2), "stages=2 applies to"),
         (lambda: odeint(decay, X0, T, method="radau_iia", stages=0), "stages"),
-        (lambda: odeint(decay, X0, T, method="radau_iia", controller=1), "controller applies"),
-        (lambda: odeint(decay, X0, T, method="rk4", controller=1), "controller applies"),
+        (lambda: odeint(decay, X0, T, method="radau_iia", controller=1), "controller must be"),
+        (lambda: odeint(decay, X0, T, method="rk4", controller=1), "controller=1 applies"),
         (lambda: solve_implicit_ode(decay, X0, T, substeps=2.0, adaptive=False), "substeps"),
         (lambda: solve_implicit_ode(decay, X0, T, max_steps=10.5), "max_steps"),
         (lambda: _dae(max_steps=0), "max_steps"),

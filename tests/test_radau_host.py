@@ -429,15 +429,17 @@ def test_one_trajectory_loop_unbatched_state_and_dispatch():
     theta=st.floats(0.0, 0.99),
 )
 def test_scalar_step_size_rule_equals_the_array_rule(h, err, err_old, h_old, first, iters, theta):
-    """``next_step_size`` (Python floats, one-trajectory loop) returns what
-    ``next_step_sizes`` (host arrays, batched loops) returns, to the last bit or two (numpy's
+    """``GustafssonController.radau_step_size`` (Python floats, one-trajectory loop) returns
+    what ``radau_step_sizes`` (host arrays, batched loops) returns, to the last bit or two (numpy's
     vectorised ``power`` and the C library's ``pow`` may round differently), and the same
     decisions."""
-    from integrators.radau import next_step_size, next_step_sizes
+    from integrators.controllers import GustafssonController
+
+    rule = GustafssonController()
 
     finite = np.isfinite(err)
-    scalar = next_step_size(h, err, finite, err_old, h_old, first, iters, theta, 7, 0.25)
-    arrays = next_step_sizes(
+    scalar = rule.radau_step_size(h, err, finite, err_old, h_old, first, iters, theta, 7, 0.25)
+    arrays = rule.radau_step_sizes(
         *(np.array([v]) for v in (h, err, finite, err_old, h_old, first, iters, theta)), 7, 0.25
     )
     for got, want in zip(scalar[:3], arrays[:3], strict=True):
