@@ -80,7 +80,7 @@ def steady_state(f, x0, u=None, *, tol=1e-10, max_iter=50, t=None):
     """Solve f(t, x, u) = 0 for x by batched Newton from x0 (*batch, nx) (eq. 1.36).
 
     Returns x (*batch, nx). Raises SingularMatrixError where df/dx is singular and
-    ConvergenceError (naming the samples) when |f| > tol after max_iter iterations.
+    ConvergenceError (naming the samples) when ``|f| > tol`` after max_iter iterations.
     """
     x = torch.as_tensor(x0).clone()
     for _ in range(max_iter):
@@ -108,7 +108,7 @@ def steady_state(f, x0, u=None, *, tol=1e-10, max_iter=50, t=None):
 def zoh_discretize(a, b, dt):
     """Exact ZOH discretisation (eq. 1.55 with u constant over a step).
 
-    a (*batch, n, n), b (*batch, n, m), dt a float or tensor broadcasting against *batch.
+    a (*batch, n, n), b (*batch, n, m), dt a float or tensor broadcasting against ``*batch``.
     Returns (Ad, Bd) = (e^{A dt}, int_0^dt e^{A s} ds B) from one matrix exponential of the
     augmented matrix [[A, B], [0, 0]] dt.
     """

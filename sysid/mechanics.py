@@ -72,7 +72,7 @@ def distributed_body(mass, position: Callable, n_nodes: int = 4):
 
     ``position(q, s)`` gives the material point at body coordinate s in [0, 1] with shape
     (..., D) for q (..., nq) and s broadcast against (...,). Gauss-Legendre with ``n_nodes``
-    nodes integrates T and V exactly when |pdot(s)|^2 and p(s) are polynomials of degree
+    nodes integrates T and V exactly when ``|pdot(s)|^2`` and p(s) are polynomials of degree
     <= 2 n_nodes - 1 in s (a straight rod needs 2 nodes).
 
     Returns (masses (n_nodes,), positions(q) -> (..., n_nodes, D)) to be combined with the
@@ -274,8 +274,8 @@ class LagrangianSystem(nn.Module):
     - ``diagonal_mass``: tensor (nq,) (or a scalar) or callable () -> (nq,):
       T = 1/2 sum_k w_k qdot_k^2 with a constant diagonal W (Cartesian coordinates, eq. 2.85,
       2.92); fastest path;
-    - ``point_masses`` (n_p,) and ``positions(q) -> (*batch, n_p, D)``: T = 1/2 sum m_i |pdot_i|^2
-      (eq. 2.3), pdot_i = J_i qdot by autograd (eq. 2.4);
+    - ``point_masses`` (n_p,) and ``positions(q) -> (*batch, n_p, D)``:
+      ``T = 1/2 sum m_i |pdot_i|^2`` (eq. 2.3), pdot_i = J_i qdot by autograd (eq. 2.4);
     - ``kinetic_energy(q, qdot) -> (*batch,)``: any T, quadratic in qdot (eq. 2.7).
 
     Further arguments: ``potential(q) -> (*batch,)``; ``gravity`` (D,) field acceleration,
@@ -807,7 +807,7 @@ class LagrangianSystem(nn.Module):
     def project_consistent(self, q, qdot, tol: float = 1e-12, max_iter: int = 50):
         """Least-norm projection of (q, qdot) onto C(q, qdot) = 0 (eq. 2.182).
 
-        Gauss-Newton steps q <- q - a^T (a a^T)^-1 c(q) until |c| <= tol, then
+        Gauss-Newton steps q <- q - a^T (a a^T)^-1 c(q) until ``|c| <= tol``, then
         qdot <- qdot - a^T (a a^T)^-1 a qdot (the velocity made tangent, Fig. 2.9).
         Raises ConvergenceError naming the samples that did not converge.
         """
