@@ -518,6 +518,7 @@ def _catalogue() -> dict[str, dict]:
     }
 
 
+#: Names of the catalogued tableaus, accepted by :func:`tableau` and by ``odeint(method=...)``.
 TABLEAU_NAMES = tuple(_catalogue())
 
 
