@@ -1,7 +1,7 @@
 """Step-size control for embedded Runge-Kutta pairs (notes §6.5), batched per sample.
 
 The solver measures each trial step with the weighted RMS norm of the local error estimate
-``err = x_{k+1} - xhat_{k+1} = dt sum_i (b_i - bhat_i) K_i`` (notes eq. 6.44a-b):
+``err = x_{k+1} - xhat_{k+1} = dt sum_i (b_i - bhat_i) K_i`` (notes eq. 6.44a-b)::
 
     ||err|| = sqrt(mean_j (err_j / (atol + rtol max(|x_k,j|, |x_{k+1},j|)))^2),
 

@@ -45,6 +45,7 @@ of ``q``:
   is ``sum_i P_{k,i} l_i(tau)``, evaluated at every stage time ``t_k + (m + c_i) h`` (substep
   ``m``, ``tau = (m + c_i) / substeps``), ``w_k = vec P_k`` and
   ``C[..., k, :, j, i, :] = dx_k / dP_{j,i}``.
+
 In both cases ``x_k`` depends only on the parameters of intervals ``j < k`` (causality).
 ``odeint`` given the same ``CollocationInput`` (a callable ``u(t)``) runs the same simulation
 except at a stage exactly on a grid point where the pieces jump (``c_i = 1``, e.g. RK4 or

@@ -419,7 +419,7 @@ class ButcherTableau:
         return out.reshape(z.shape)
 
     def stability_at_infinity(self) -> float:
-        """lim R(z) for |z| -> inf: ``1 - b^T A^{-1} 1`` (0 for L-stable Radau IIA).
+        """lim R(z) for ``|z| -> inf``: ``1 - b^T A^{-1} 1`` (0 for L-stable Radau IIA).
 
         Raises:
             TableauError: for tableaus with a singular ``A`` (explicit methods are unbounded).
@@ -518,6 +518,7 @@ def _catalogue() -> dict[str, dict]:
     }
 
 
+#: Names of the catalogued tableaus, accepted by :func:`tableau` and by ``odeint(method=...)``.
 TABLEAU_NAMES = tuple(_catalogue())
 
 

@@ -85,7 +85,7 @@ def steady_state(f, x0, u=None, *, tol=1e-10, max_iter=50, t=None):
     and to the parameters of an ``nn.Module`` ``f`` by the implicit function theorem.
 
     Returns x (*batch, nx). Raises SingularMatrixError where df/dx is singular and
-    ConvergenceError (naming the samples) when |f| > tol after max_iter iterations.
+    ConvergenceError (naming the samples) when ``|f| > tol`` after max_iter iterations.
     """
     x0 = torch.as_tensor(x0)
     tt = torch.as_tensor(0.0 if t is None else t, dtype=x0.dtype)
@@ -115,7 +115,7 @@ def steady_state(f, x0, u=None, *, tol=1e-10, max_iter=50, t=None):
 def zoh_discretize(a, b, dt):
     """Exact ZOH discretisation (eq. 1.55 with u constant over a step).
 
-    a (*batch, n, n), b (*batch, n, m), dt a float or tensor broadcasting against *batch.
+    a (*batch, n, n), b (*batch, n, m), dt a float or tensor broadcasting against ``*batch``.
     Returns (Ad, Bd) = (e^{A dt}, int_0^dt e^{A s} ds B) from one matrix exponential of the
     augmented matrix [[A, B], [0, 0]] dt.
     """

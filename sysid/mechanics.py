@@ -73,7 +73,7 @@ def distributed_body(mass, position: Callable, n_nodes: int = 4):
 
     ``position(q, s)`` gives the material point at body coordinate s in [0, 1] with shape
     (..., D) for q (..., nq) and s broadcast against (...,). Gauss-Legendre with ``n_nodes``
-    nodes integrates T and V exactly when |pdot(s)|^2 and p(s) are polynomials of degree
+    nodes integrates T and V exactly when ``|pdot(s)|^2`` and p(s) are polynomials of degree
     <= 2 n_nodes - 1 in s (a straight rod needs 2 nodes).
 
     Returns (masses (n_nodes,), positions(q) -> (..., n_nodes, D)) to be combined with the
@@ -275,8 +275,8 @@ class LagrangianSystem(nn.Module):
     - ``diagonal_mass``: tensor (nq,) (or a scalar) or callable () -> (nq,):
       T = 1/2 sum_k w_k qdot_k^2 with a constant diagonal W (Cartesian coordinates, eq. 2.85,
       2.92); fastest path;
-    - ``point_masses`` (n_p,) and ``positions(q) -> (*batch, n_p, D)``: T = 1/2 sum m_i |pdot_i|^2
-      (eq. 2.3), pdot_i = J_i qdot by autograd (eq. 2.4);
+    - ``point_masses`` (n_p,) and ``positions(q) -> (*batch, n_p, D)``:
+      ``T = 1/2 sum m_i |pdot_i|^2`` (eq. 2.3), pdot_i = J_i qdot by autograd (eq. 2.4);
     - ``kinetic_energy(q, qdot) -> (*batch,)``: any T, quadratic in qdot (eq. 2.7).
 
     Further arguments: ``potential(q) -> (*batch,)``; ``gravity`` (D,) field acceleration,
@@ -811,10 +811,10 @@ class LagrangianSystem(nn.Module):
         Positions: Gauss-Newton on ``min 0.5 |c(q)|^2`` by :func:`integrators.newton.minimize`;
         with nc < nq constraints ``a^T a`` (a = dc/dq) is singular and a small shift ``alpha I``
         (eq. 3.61) makes each step ``-a^T (a a^T + alpha I)^-1 c``, the least-norm step
-        ``-a^T (a a^T)^-1 c`` up to a relative ``alpha / sigma_min(a)^2``, until |c| <= tol.
+        ``-a^T (a a^T)^-1 c`` up to a relative ``alpha / sigma_min(a)^2``, until ``|c| <= tol``.
         Velocities: qdot <- qdot - a^T (a a^T)^-1 a qdot (made tangent, Fig. 2.9).
         Raises SingularMatrixError where a a^T is singular and ConvergenceError naming the
-        samples with |c| > tol after ``max_iter`` steps.
+        samples with ``|c| > tol`` after ``max_iter`` steps.
         """
         self._check_args("project_consistent", q=q, qdot=qdot)
         eps = torch.finfo(q.dtype).eps

@@ -397,7 +397,7 @@ class TwoPendulumCraneCartesian(LagrangianSystem):
     Constrained coordinates, eq. (2.150)-(2.158): q = (x, p1, p2) in R^5 with the points
     p1 = (p1x, p1y), p2 = (p2x, p2y) (vertical axes pointing down), W = m I (eq. 2.151; the notes
     say "3x3 identity", it is 5x5), V = -m g (p1_y + p2_y) (eq. 2.152), constraints
-    c = (|delta1|^2 - L^2, |delta2|^2 - L^2)/2 with delta1 = (x, 0) - p1, delta2 = p2 - p1
+    ``c = (|delta1|^2 - L^2, |delta2|^2 - L^2)/2`` with delta1 = (x, 0) - p1, delta2 = p2 - p1
     (eq. 2.153-2.154); explicit form eq. (2.157). Input: horizontal force u on the cart."""
 
     def __init__(self, m=1.0, L=1.0, g=9.81, baumgarte=None):
@@ -470,7 +470,7 @@ class HangingChain(LagrangianSystem):
 
     Elastic chain, eq. (2.91)-(2.97): q = (p_1, ..., p_N) in R^{3N}, p_k = (xk, yk, zk) (z axis
     up), W = m I (eq. 2.92), V = m g sum_k z_k + K/2 sum_{k=0}^N
-    |p_{k+1} - p_k|^2 with fixed ends p_0, p_{N+1} (eq. 2.93, rest length 0).
+    ``|p_{k+1} - p_k|^2`` with fixed ends p_0, p_{N+1} (eq. 2.93, rest length 0).
 
     Typos fixed: eq. (2.95c) has +m g (it is -m g e_z: gravity pulls down) and eq. (2.96)-(2.97)
     flip the sign of the spring terms; correct is
@@ -518,7 +518,7 @@ class Bowl(LagrangianSystem):
     """Mass sliding in a bowl, state (p1, p2, p3, p1dot, p2dot, p3dot), p3 up, constrained.
 
     Eq. (2.123)-(2.137) and index-1 form eq. (2.170)-(2.174): q = p in R^3 (z up),
-    T = m |pdot|^2 / 2, V = m g p3 (eq. 2.133), c = p3 - (p1^2 + p2^2)/4 (eq. 2.123).
+    ``T = m |pdot|^2 / 2``, V = m g p3 (eq. 2.133), c = p3 - (p1^2 + p2^2)/4 (eq. 2.123).
     det M(q) = -m^2 (p1^2 + p2^2 + 4)/4 (eq. 2.174).
 
     Typo fixed in eq. (2.173): the last right-hand-side entry is (p1dot^2 + p2dot^2)/2 (a factor

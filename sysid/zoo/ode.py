@@ -218,7 +218,7 @@ class Quadratic(nn.Module):
 
 
 class SqrtAbs(nn.Module):
-    """Scalar state x, x' = sqrt(|x|), eq. (1.46): solutions through x = 0 are not unique.
+    """Scalar state x, ``x' = sqrt(|x|)``, eq. (1.46): solutions through x = 0 are not unique.
 
     ``exact(t, x0, dwell=0)`` returns the solution that, on reaching x = 0 (or starting there),
     rests there for ``dwell`` time units and then leaves as ((t - t0)/2)^2 (eq. 1.47 with
