@@ -1,17 +1,28 @@
 """Shared plumbing for experiment scripts: command line, output folder, progress, tables,
 figures.
 
-Every experiment is a script ``experiments/<name>.py`` with ``main(argv=None)``. The helpers
-below keep them uniform::
+Every experiment is a script ``experiments/<name>.py`` with ``build_parser()`` and
+``main(argv=None)``. The helpers below keep them uniform::
+
+    import argparse
 
     from experiments._common import (
-        experiment_parser, finish, output_dir, plt, progress, save_figure, write_table,
+        experiment_parser, finish, output_dir, parse_early, progress, save_figure, write_table,
     )
 
-    def main(argv=None):
+    def build_parser() -> argparse.ArgumentParser:
         parser = experiment_parser("my_study", "What the study shows (notes Fig. 6.10).")
         parser.add_argument("--tol", type=float, default=1e-6, help="solver tolerance")
-        args = parser.parse_args(argv)
+        return parser
+
+    parse_early(__name__, build_parser)
+
+    import torch                                   # the heavy imports come after parse_early
+
+    from experiments._common import plt
+
+    def main(argv=None):
+        args = build_parser().parse_args(argv)
         out = output_dir(args, "my_study")                      # pathlib.Path, created
         rows = [{"method": m, "slope": study(m)} for m in progress(METHODS, "methods")]
         markdown = write_table(rows, out / "slopes")            # slopes.csv + slopes.md
@@ -29,7 +40,10 @@ results folder on the last line (``results: <folder>``), the last two by :func:`
   ``experiments/out/<name>/quick`` so that a quick run never overwrites a full run's.
 * ``--out DIR``: where results go; default ``experiments/out/<name>``
   (see :func:`default_output_dir`).
-* ``--help`` lists every option with its meaning and default.
+* ``--help`` lists every option with its meaning and default. It answers at once: the module
+  builds its parser from light imports only, and :func:`parse_early` parses the command line
+  of ``python -m experiments.<name>`` before the module imports torch, scipy, matplotlib or
+  ``control`` (``tests/test_experiment_conventions.py`` checks that none of them is loaded).
 
 Files that a rerun reads back (partial results of a resumable study) are written with
 :func:`atomic_write_text`: a run killed mid-write leaves the previous complete file, never a
@@ -52,6 +66,7 @@ import sys
 import tempfile
 
 __all__ = [
+    "DATASETS_DIR",
     "DEFAULT_OUT_ROOT",
     "atomic_write_text",
     "default_output_dir",
@@ -60,6 +75,7 @@ __all__ = [
     "markdown_table",
     "note",
     "output_dir",
+    "parse_early",
     "progress",
     "save_figure",
     "write_table",
@@ -67,6 +83,8 @@ __all__ = [
 
 DEFAULT_OUT_ROOT = pathlib.Path(__file__).resolve().parent / "out"
 QUICK_SUBDIR = "quick"
+#: The versioned data sets (read by ``experiments/_datasets.py``, written by ``make_datasets``).
+DATASETS_DIR = pathlib.Path(__file__).resolve().parent.parent / "datasets"
 
 
 def _pyplot():
@@ -162,6 +180,22 @@ def experiment_parser(
         "with --quick)",
     )
     return parser
+
+
+def parse_early(module_name: str, build_parser) -> None:
+    """Parse the command line of a script run as ``python -m experiments.<name>`` now.
+
+    Called at the top of an experiment module, after ``build_parser`` and before the heavy
+    imports: ``--help`` and a wrong option print their answer and exit before torch, scipy or
+    matplotlib are imported. A module imported by a test or another experiment
+    (``module_name != "__main__"``) is not affected; ``main(argv)`` parses its own ``argv``.
+
+    Args:
+        module_name: the calling module's ``__name__``.
+        build_parser: function of no arguments returning the experiment's parser.
+    """
+    if module_name == "__main__":
+        build_parser().parse_args()
 
 
 def output_dir(

@@ -29,16 +29,40 @@ Run: ``python -m experiments.bench_explicit`` (full sizes, minutes) or ``--quick
 
 from __future__ import annotations
 
+import argparse
 import datetime
 import math
 import platform
 import time
 
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(
+        "bench_explicit",
+        "Fixed-step RK4 and adaptive dopri5 against torchdiffeq and torchode (Van der Pol).",
+    )
+    parser.add_argument("--no-compile", action="store_true", help="skip torch.compile runs")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the random initial states")
+    return parser
+
+
+parse_early(__name__, build_parser)
+
 import numpy as np
 import scipy.integrate
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import odeint
 
 try:  # contract C6; a local copy keeps the benchmark usable without sysid
@@ -499,13 +523,7 @@ FULL_RTOLS = tuple(10.0 ** (-k / 2) for k in range(10, 15))  # 1e-5 ... 1e-7, ha
 
 
 def main(argv=None):
-    parser = experiment_parser(
-        "bench_explicit",
-        "Fixed-step RK4 and adaptive dopri5 against torchdiffeq and torchode (Van der Pol).",
-    )
-    parser.add_argument("--no-compile", action="store_true", help="skip torch.compile runs")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the random initial states")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, "bench_explicit")
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(1)

@@ -29,17 +29,49 @@ The estimators' ``experiments/bench_sysid.py`` may import
 
 from __future__ import annotations
 
+import argparse
 import time
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+NAME = "bench_filter"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument(
+        "--N", type=int, default=None, help="signal length (default 100000, 2000 with --quick)"
+    )
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=None,
+        help="best of this many runs (default 5, 3 with --quick)",
+    )
+    parser.add_argument(
+        "--threads", type=int, default=1, help="torch CPU threads (scipy runs on one)"
+    )
+    return parser
+
+
+parse_early(__name__, build_parser)
 
 import numpy as np
 import scipy.signal
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from sysid import OE, IOData
 from sysid.filters import cpu_backend
 
-NAME = "bench_filter"
 NB = NF = 4
 
 
@@ -166,20 +198,7 @@ def _time(fn, repeats: int, device: torch.device) -> tuple[float, float, object]
 
 
 def main(argv=None):
-    parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument(
-        "--N", type=int, default=None, help="signal length (default 100000, 2000 with --quick)"
-    )
-    parser.add_argument(
-        "--repeats",
-        type=int,
-        default=None,
-        help="best of this many runs (default 5, 3 with --quick)",
-    )
-    parser.add_argument(
-        "--threads", type=int, default=1, help="torch CPU threads (scipy runs on one)"
-    )
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(args.threads)
     try:

@@ -50,19 +50,63 @@ All peers run in this process, on one torch thread (``--threads``); times are th
 
 from __future__ import annotations
 
+import argparse
 import gc
 import threading
 import time
 import weakref
 
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+NAME = "bench_implicit"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__.split("\n\n")[0])
+    parser.add_argument(
+        "--repeats", type=int, default=3, help="timings are the best of this many runs"
+    )
+    parser.add_argument("--batch", type=int, default=256, help="trajectories in the batch case")
+    parser.add_argument(
+        "--batch-rtols",
+        type=float,
+        nargs="+",
+        default=[1e-6, 1e-9],
+        help="tolerances of the batch case (scipy's loop at 1e-9 takes long)",
+    )
+    parser.add_argument(
+        "--sections",
+        type=int,
+        nargs="+",
+        choices=(1, 2, 3),
+        default=[1, 2, 3],
+        help="sections of the study to run (see above)",
+    )
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument(
+        "--device",
+        default=None,
+        help="device of section 3 (default cuda when available, else cpu; adds CUDA peak memory)",
+    )
+    return parser
+
+
+parse_early(__name__, build_parser)
+
 import numpy as np
 import torch
 from scipy.integrate import solve_ivp
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import gauss_legendre, newton, radau_iia, solve_implicit_ode
-
-NAME = "bench_implicit"
 
 
 def _timed(fn, repeats):
@@ -609,35 +653,9 @@ def _memory_figure(newton_rows, path):
 
 
 def main(argv=None):
-    parser = experiment_parser(NAME, __doc__.split("\n\n")[0])
-    parser.add_argument(
-        "--repeats", type=int, default=3, help="timings are the best of this many runs"
-    )
-    parser.add_argument("--batch", type=int, default=256, help="trajectories in the batch case")
-    parser.add_argument(
-        "--batch-rtols",
-        type=float,
-        nargs="+",
-        default=[1e-6, 1e-9],
-        help="tolerances of the batch case (scipy's loop at 1e-9 takes long)",
-    )
-    parser.add_argument(
-        "--sections",
-        type=int,
-        nargs="+",
-        choices=(1, 2, 3),
-        default=[1, 2, 3],
-        help="sections of the study to run (see above)",
-    )
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
-    parser.add_argument(
-        "--device",
-        default="cuda" if torch.cuda.is_available() else "cpu",
-        help="device of section 3 (default cuda when available; adds CUDA peak memory)",
-    )
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
-    device = torch.device(args.device)
+    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     previous_dtype = torch.get_default_dtype()
     previous_threads = torch.get_num_threads()
     torch.set_default_dtype(torch.float64)

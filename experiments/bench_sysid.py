@@ -27,19 +27,38 @@ Run: ``python -m experiments.bench_sysid [--quick] [--out DIR] [--repeats R]``.
 
 from __future__ import annotations
 
+import argparse
 import time
+
+from experiments._common import experiment_parser, finish, output_dir, parse_early, write_table
+
+NAME = "bench_sysid"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument(
+        "--fir-sets",
+        type=int,
+        default=10_000,
+        help="FIR data sets in the batched least-squares case",
+    )
+    parser.add_argument("--repeats", type=int, default=3, help="best of this many runs")
+    return parser
+
+
+parse_early(__name__, build_parser)
 
 import numpy as np
 import scipy.optimize
 import scipy.signal
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, write_table
 from sysid import OE, IOData, fir_lls, fit, lls
 from sysid.filters import cpu_backend
 from sysid.montecarlo import fir_regressor
 
-NAME = "bench_sysid"
 REPEATS = 3
 
 
@@ -190,15 +209,7 @@ def bench_filter_gradient(N: int) -> list[dict]:
 
 
 def main(argv=None):
-    parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument(
-        "--fir-sets",
-        type=int,
-        default=10_000,
-        help="FIR data sets in the batched least-squares case",
-    )
-    parser.add_argument("--repeats", type=int, default=3, help="best of this many runs")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     global REPEATS
     REPEATS = args.repeats

@@ -26,16 +26,36 @@ Run: ``python -m experiments.convergence_explicit [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
 import math
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+NAME = "convergence_explicit"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, "Global error vs dt of the explicit RK methods.")
+    return parser
+
+
+parse_early(__name__, build_parser)
 
 import numpy as np
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import TABLEAU_NAMES, ButcherTableau, odeint, tableau
 from sysid.zoo import LinearTestEquation, Quadratic
 
-NAME = "convergence_explicit"
 ROUND_OFF_FLOOR = 1e-12  # relative to |x(T)|
 POINTS_IN_FIT = 4
 
@@ -93,8 +113,7 @@ def fitted_slope(dts, errors, scale: float = 1.0) -> float:
 
 
 def main(argv=None) -> list[dict]:
-    parser = experiment_parser(NAME, "Global error vs dt of the explicit RK methods.")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     steps = [round(4 * 2 ** (k / 2)) for k in range(11 if args.quick else 19)]
 

@@ -26,15 +26,35 @@ Run: ``python -m experiments.convergence_implicit [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
 import math
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+NAME = "convergence_implicit"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, "Global error vs dt of Gauss-Legendre and Radau IIA.")
+    return parser
+
+
+parse_early(__name__, build_parser)
 
 import numpy as np
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import gauss_legendre, odeint, radau_iia, tableau
 
-NAME = "convergence_implicit"
 T_END = 8.0
 X0 = 0.1
 ROUND_OFF_FLOOR = 1e-12
@@ -112,8 +132,7 @@ def collocation_runs(stages, steps) -> tuple[list[dict], dict, list[dict]]:
 
 
 def main(argv=None) -> list[dict]:
-    parser = experiment_parser(NAME, "Global error vs dt of Gauss-Legendre and Radau IIA.")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
 
     # 1. Fig. 7.2: explicit RK2 vs Gauss-Legendre s = 2.

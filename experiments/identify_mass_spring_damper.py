@@ -21,27 +21,55 @@ is the seconds-long variant the tests use.
 
 from __future__ import annotations
 
-import control
-import numpy as np
-import torch
-from torch.func import functional_call
+import argparse
 
 from experiments._common import (
     experiment_parser,
     finish,
     note,
     output_dir,
-    plt,
+    parse_early,
     save_figure,
     write_table,
 )
+
+NAME = "identify_mass_spring_damper"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument(
+        "--trials",
+        type=int,
+        default=None,
+        help="number of data sets (default 500, 24 with --quick)",
+    )
+    parser.add_argument(
+        "--samples",
+        type=int,
+        default=None,
+        help="samples per data set (default 1000, 200 with --quick)",
+    )
+    parser.add_argument("--noise", type=float, default=0.02, help="output noise std")
+    parser.add_argument("--seed", type=int, default=0, help="seed of inputs and noise")
+    return parser
+
+
+parse_early(__name__, build_parser)
+
+import control
+import numpy as np
+import torch
+from torch.func import functional_call
+
+from experiments._common import plt
 from integrators import odeint, sensitivities
 from integrators.newton import minimize
 from sysid import ARX, OE, IOData, fit, fit_percent, residual_test, zoh_discretize
 from sysid.montecarlo import input_signal
 from sysid.zoo import SpringMassDamper
 
-NAME = "identify_mass_spring_damper"
 TRUE_PHYSICAL = {"m": 1.0, "xi": 0.5, "K": 4.0}
 
 
@@ -127,22 +155,7 @@ def grey_box_fit(u: torch.Tensor, y: torch.Tensor, Ts: float, substeps: int):
 
 
 def main(argv=None):
-    parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument(
-        "--trials",
-        type=int,
-        default=None,
-        help="number of data sets (default 500, 24 with --quick)",
-    )
-    parser.add_argument(
-        "--samples",
-        type=int,
-        default=None,
-        help="samples per data set (default 1000, 200 with --quick)",
-    )
-    parser.add_argument("--noise", type=float, default=0.02, help="output noise std")
-    parser.add_argument("--seed", type=int, default=0, help="seed of inputs and noise")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     trials = args.trials or (24 if args.quick else 500)
     N = args.samples or (200 if args.quick else 1000)

@@ -14,15 +14,37 @@ Run: ``python -m experiments.lorenz_euler [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+NAME = "lorenz_euler"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, "Explicit Euler on the Lorenz system (Fig. 6.2-6.5).")
+    parser.add_argument("--t-end", type=float, default=20.0, help="horizon of Fig. 6.2-6.4 [s]")
+    return parser
+
+
+parse_early(__name__, build_parser)
+
 import numpy as np
 import torch
 from scipy.integrate import solve_ivp
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import odeint
 from sysid.zoo import Lorenz
 
-NAME = "lorenz_euler"
 X0 = (1.0, 1.0, 1.0)
 FIGURE_DTS = (1e-2, 10**-2.5, 1e-3)
 DEPARTURE_FRACTION = 0.1
@@ -63,9 +85,7 @@ def departure_time(t: np.ndarray, error: np.ndarray, threshold: float) -> float:
 
 
 def main(argv=None) -> dict[str, list[dict]]:
-    parser = experiment_parser(NAME, "Explicit Euler on the Lorenz system (Fig. 6.2-6.5).")
-    parser.add_argument("--t-end", type=float, default=20.0, help="horizon of Fig. 6.2-6.4 [s]")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     t_end = min(args.t_end, 10.0) if args.quick else args.t_end
     plant = Lorenz(sigma=10.0, rho=28.0, beta=3.0)

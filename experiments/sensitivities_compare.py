@@ -34,15 +34,41 @@ Run: ``python -m experiments.sensitivities_compare [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
 import time
 from functools import partial
 
-import torch
-
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
-from integrators import odeint, sensitivities, variational_sensitivities
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
 
 NAME = "sensitivities_compare"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, "Forward, variational, reverse-mode and FD sensitivities.")
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=None,
+        help="timings are the best of this many runs (default 3, 1 with --quick)",
+    )
+    return parser
+
+
+parse_early(__name__, build_parser)
+
+import torch
+
+from experiments._common import plt
+from integrators import odeint, sensitivities, variational_sensitivities
+
 P0 = (1.0, 1.0)
 X0 = (0.0, 2.0)
 FD_STEP = 1e-5
@@ -136,14 +162,7 @@ def rel_diff(a: torch.Tensor, ref: torch.Tensor) -> float:
 
 
 def main(argv=None) -> list[dict]:
-    parser = experiment_parser(NAME, "Forward, variational, reverse-mode and FD sensitivities.")
-    parser.add_argument(
-        "--repeats",
-        type=int,
-        default=None,
-        help="timings are the best of this many runs (default 3, 1 with --quick)",
-    )
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     repeats = args.repeats or (1 if args.quick else 3)
     t_end, dt = (2.0, 0.05) if args.quick else (5.0, 0.02)

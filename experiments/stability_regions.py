@@ -12,13 +12,36 @@ Run: ``python -m experiments.stability_regions [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+NAME = "stability_regions"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(
+        NAME, "Stability regions of the explicit Runge-Kutta methods (notes Fig. 6.7, 6.14)."
+    )
+    return parser
+
+
+parse_early(__name__, build_parser)
+
 import numpy as np
 from scipy.optimize import brentq
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import TABLEAU_NAMES, ButcherTableau, tableau
 
-NAME = "stability_regions"
 EXPLICIT_METHODS = tuple(n for n in TABLEAU_NAMES if tableau(n).is_explicit)
 
 
@@ -101,10 +124,7 @@ def plot_regions(methods, n_grid: int):
 
 
 def main(argv=None) -> list[dict]:
-    parser = experiment_parser(
-        NAME, "Stability regions of the explicit Runge-Kutta methods (notes Fig. 6.7, 6.14)."
-    )
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     rows = stability_table()
     markdown = write_table(rows, out / "stability_intervals")

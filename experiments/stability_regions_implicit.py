@@ -22,12 +22,35 @@ Run: ``python -m experiments.stability_regions_implicit [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
-import numpy as np
+import argparse
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
-from integrators import ButcherTableau, gauss_legendre, radau_iia, tableau
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
 
 NAME = "stability_regions_implicit"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(
+        NAME, "Stability regions, A- and L-stability of the implicit RK methods (notes §7.3)."
+    )
+    return parser
+
+
+parse_early(__name__, build_parser)
+
+import numpy as np
+
+from experiments._common import plt
+from integrators import ButcherTableau, gauss_legendre, radau_iia, tableau
+
 TOL = 1e-12
 
 
@@ -101,10 +124,7 @@ def plot_regions(methods: dict[str, ButcherTableau], n_grid: int):
 
 
 def main(argv=None) -> list[dict]:
-    parser = experiment_parser(
-        NAME, "Stability regions, A- and L-stability of the implicit RK methods (notes §7.3)."
-    )
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     methods = implicit_methods()
     rows = stability_table(methods, 400 if args.quick else 2000)

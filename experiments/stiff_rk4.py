@@ -24,15 +24,37 @@ Run: ``python -m experiments.stiff_rk4 [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+NAME = "stiff_rk4"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, "RK4 at its stability limit on the stiff eq. (6.42).")
+    parser.add_argument("--t-end", type=float, default=1.0, help="simulated horizon [s]")
+    return parser
+
+
+parse_early(__name__, build_parser)
+
 import numpy as np
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from experiments.stability_regions import stability_radius
 from integrators import odeint, tableau
 from sysid.zoo import StiffLinear
 
-NAME = "stiff_rk4"
 EPS = 5e-4
 
 
@@ -68,9 +90,7 @@ def run(plant: StiffLinear, x0: torch.Tensor, dt: float, t_end: float):
 
 
 def main(argv=None) -> list[dict]:
-    parser = experiment_parser(NAME, "RK4 at its stability limit on the stiff eq. (6.42).")
-    parser.add_argument("--t-end", type=float, default=1.0, help="simulated horizon [s]")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     t_end = min(args.t_end, 0.5) if args.quick else args.t_end
 

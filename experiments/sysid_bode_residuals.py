@@ -15,23 +15,43 @@ Run: ``python -m experiments.sysid_bode_residuals [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+NAME = "sysid_bode_residuals"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=2000, help="samples of the data set")
+    parser.add_argument("--sigma", type=float, default=0.3, help="noise standard deviation")
+    return parser
+
+
+parse_early(__name__, build_parser)
+
 import numpy as np
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from sysid import ARX, BJ, OE, fit, fit_percent, residual_test
 from sysid.montecarlo import input_signal, simulate_data
 
-NAME = "sysid_bode_residuals"
 TH_OE = [0.5, 0.3, -1.2, 0.5]
 TH_BJ = [0.5, 0.3, 0.4, -0.6, -1.2, 0.5]
 
 
 def main(argv=None):
-    parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, default=2000, help="samples of the data set")
-    parser.add_argument("--sigma", type=float, default=0.3, help="noise standard deviation")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     N = 600 if args.quick else args.n
     g = torch.Generator().manual_seed(5)

@@ -22,26 +22,48 @@ Run: ``python -m experiments.sysid_consistency [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
 import csv
 import io
 import math
-
-import numpy as np
-import torch
 
 from experiments._common import (
     atomic_write_text,
     experiment_parser,
     output_dir,
-    plt,
+    parse_early,
     progress,
     save_figure,
     write_table,
 )
+
+NAME = "sysid_consistency"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument("--trials", type=int, default=200, help="Monte-Carlo data sets per N")
+    parser.add_argument("--sigma", type=float, default=0.5, help="noise standard deviation")
+    parser.add_argument(
+        "--ns",
+        type=int,
+        nargs="+",
+        default=[250, 500, 1000, 2000, 4000, 8000],
+        help="data lengths N",
+    )
+    return parser
+
+
+parse_early(__name__, build_parser)
+
+import numpy as np
+import torch
+
+from experiments._common import plt
 from sysid import ARX, OE, fit
 from sysid.montecarlo import input_signal, simulate_data, summarize_estimates
 
-NAME = "sysid_consistency"
 B_TRUE = [0.5, 0.3]
 F_TRUE = [-1.2, 0.5]
 FIELDS = [
@@ -151,17 +173,7 @@ def loglog_slope(ns, values) -> float:
 
 
 def main(argv=None):
-    parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--trials", type=int, default=200, help="Monte-Carlo data sets per N")
-    parser.add_argument("--sigma", type=float, default=0.5, help="noise standard deviation")
-    parser.add_argument(
-        "--ns",
-        type=int,
-        nargs="+",
-        default=[250, 500, 1000, 2000, 4000, 8000],
-        help="data lengths N",
-    )
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     trials = 60 if args.quick else args.trials
     ns = [200, 800] if args.quick else args.ns

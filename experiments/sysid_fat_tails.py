@@ -12,22 +12,41 @@ Run: ``python -m experiments.sysid_fat_tails [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
-import numpy as np
-import torch
+import argparse
 
 from experiments._common import (
     experiment_parser,
     finish,
     output_dir,
-    plt,
+    parse_early,
     progress,
     save_figure,
     write_table,
 )
+
+NAME = "sysid_fat_tails"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument(
+        "--trials", type=int, default=500, help="Monte-Carlo data sets per noise law"
+    )
+    parser.add_argument("--n", type=int, default=500, help="samples per data set")
+    parser.add_argument("--sigma", type=float, default=0.2, help="noise scale")
+    return parser
+
+
+parse_early(__name__, build_parser)
+
+import numpy as np
+import torch
+
+from experiments._common import plt
 from sysid import ARX, fit
 from sysid.montecarlo import input_signal, simulate_data
 
-NAME = "sysid_fat_tails"
 THETA = [-1.2, 0.5, 0.5, 0.3]
 NOISES = [
     ("gaussian", {}),
@@ -39,13 +58,7 @@ NOISES = [
 
 
 def main(argv=None):
-    parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument(
-        "--trials", type=int, default=500, help="Monte-Carlo data sets per noise law"
-    )
-    parser.add_argument("--n", type=int, default=500, help="samples per data set")
-    parser.add_argument("--sigma", type=float, default=0.2, help="noise scale")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     trials = 40 if args.quick else args.trials
     N = 200 if args.quick else args.n

@@ -10,30 +10,42 @@ Run: ``python -m experiments.sysid_fir_covariance [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
-import torch
+import argparse
 
 from experiments._common import (
     experiment_parser,
     finish,
     output_dir,
-    plt,
+    parse_early,
     progress,
     save_figure,
     write_table,
 )
-from experiments.sysid_fir_inputs import true_fir
-from sysid import lls
-from sysid.montecarlo import fir_regressor, input_signal, noise_signal, summarize_estimates
 
 NAME = "sysid_fir_covariance"
 
 
-def main(argv=None):
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
     parser = experiment_parser(NAME, __doc__.splitlines()[0])
     parser.add_argument("--trials", type=int, default=20_000, help="Monte-Carlo data sets")
     parser.add_argument("--n", type=int, default=1000, help="samples per data set")
     parser.add_argument("--sigma", type=float, default=0.5, help="noise standard deviation")
-    args = parser.parse_args(argv)
+    return parser
+
+
+parse_early(__name__, build_parser)
+
+import torch
+
+from experiments._common import plt
+from experiments.sysid_fir_inputs import true_fir
+from sysid import lls
+from sysid.montecarlo import fir_regressor, input_signal, noise_signal, summarize_estimates
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     trials = 2000 if args.quick else args.trials
     N = 300 if args.quick else args.n
