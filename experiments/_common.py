@@ -77,6 +77,8 @@ __all__ = [
     "output_dir",
     "parse_early",
     "progress",
+    "readable_log_ticks",
+    "reference_slope",
     "save_figure",
     "write_table",
 ]
@@ -214,6 +216,9 @@ def output_dir(
 def progress(iterable, desc: str, total: int | None = None, **options):
     """A progress bar (tqdm, on stderr) over ``iterable``, labelled ``desc``.
 
+    The bar is shown only when stderr is a terminal (tqdm's ``disable=None``): a run whose
+    stderr goes to a file, a pipe or a test's capture gets no bar.
+
     Args:
         iterable: what the loop runs over.
         desc: what one item is, e.g. ``"noise laws"``.
@@ -225,6 +230,7 @@ def progress(iterable, desc: str, total: int | None = None, **options):
     """
     from tqdm.auto import tqdm
 
+    options.setdefault("disable", None)
     return tqdm(iterable, desc=desc, total=total, dynamic_ncols=True, **options)
 
 
@@ -348,3 +354,42 @@ def save_figure(fig, path) -> pathlib.Path:
     fig.savefig(path, dpi=150, bbox_inches="tight")
     _pyplot().close(fig)
     return path
+
+
+def reference_slope(ax, dts, errors, order: float, floor: float = 0.0, **style):
+    """Draw the reference line ``C dt^order`` on the log-log axes ``ax``, through the point of
+    the curve ``(dts, errors)`` with the smallest ``dt`` whose error is above ``floor`` (the
+    one closest to the asymptotic range, clear of round-off), over the curve's range of ``dt``;
+    a curve of that order runs parallel to it.
+
+    Args:
+        ax: matplotlib axes with log scales.
+        dts, errors: the measured curve (sequences of floats).
+        order: the slope ``p`` of the line.
+        floor: errors at or below it (round-off) are skipped.
+        **style: matplotlib line options (default a dotted line).
+
+    Returns:
+        The line (``matplotlib.lines.Line2D``), or ``None`` when no error is above ``floor``.
+    """
+    floor = max(floor, 0.0)
+    points = [(d, e) for d, e in zip(dts, errors, strict=True) if e > floor and math.isfinite(e)]
+    if not points:
+        return None
+    dt0, err0 = min(points)
+    span = [min(d for d, _ in points), max(d for d, _ in points)]
+    style.setdefault("ls", ":")
+    (line,) = ax.plot(span, [err0 * (d / dt0) ** order for d in span], **style)
+    return line
+
+
+def readable_log_ticks(axis) -> None:
+    """Label a log-scaled ``axis`` (``ax.xaxis`` or ``ax.yaxis``) at 1, 2 and 5 times the powers
+    of ten, written as plain numbers (``0.2``, ``500``, ``1e+04``), with unlabelled minor
+    ticks: over one or two decades matplotlib's default labels every minor tick as
+    ``2 x 10^-1`` and the labels overlap."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    axis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+    axis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+    axis.set_minor_formatter(NullFormatter())

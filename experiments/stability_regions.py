@@ -97,6 +97,26 @@ def stability_table(methods=EXPLICIT_METHODS) -> list[dict]:
     return rows
 
 
+def same_region_groups(methods, Z) -> list[tuple[list[str], np.ndarray]]:
+    """The methods grouped by their stability function on the grid ``Z`` (complex array):
+    methods whose |R| agree at every point of ``Z`` (e.g. the two-stage second-order methods,
+    which all have R(z) = 1 + z + z^2/2) share one |R(z)| = 1 curve.
+
+    Returns:
+        ``[(names, |R| on Z), ...]`` in the order of ``methods``' first members.
+    """
+    groups: list[tuple[list[str], np.ndarray]] = []
+    for name in methods:
+        R = np.abs(tableau(name).stability_function(Z))
+        for names, R_group in groups:
+            if np.allclose(R, R_group, rtol=1e-10, atol=1e-12):
+                names.append(name)
+                break
+        else:
+            groups.append(([name], R))
+    return groups
+
+
 def plot_regions(methods, n_grid: int):
     """Figure: Euler's disc (Fig. 6.7) and the |R| = 1 contours of all methods (Fig. 6.14)."""
     x = np.linspace(-4.0, 1.5, n_grid)
@@ -107,13 +127,20 @@ def plot_regions(methods, n_grid: int):
     ax_euler.contourf(x, y, euler, levels=[0.0, 1.0], colors=["0.75"])
     ax_euler.contour(x, y, euler, levels=[1.0], colors="k")
     ax_euler.set_title("explicit Euler: |1 + z| <= 1 (Fig. 6.7)")
-    colors = plt.cm.viridis(np.linspace(0, 0.9, len(methods)))
-    for name, color in zip(methods, colors, strict=True):
-        R = np.abs(tableau(name).stability_function(Z))
-        ax_all.contour(x, y, R, levels=[1.0], colors=[color])
-        ax_all.plot([], [], color=color, label=name)
+    styles = ["-", "--", "-.", ":"]
+    groups = same_region_groups(methods, Z)
+    for k, (names, R) in enumerate(groups):
+        color, style = f"C{k}", styles[k % len(styles)]
+        ax_all.contour(x, y, R, levels=[1.0], colors=[color], linestyles=[style], linewidths=1.8)
+        ax_all.plot([], [], color=color, ls=style, lw=1.8, label=" = ".join(names))
     ax_all.set_title("|R(z)| = 1 of the explicit methods (Fig. 6.14)")
-    ax_all.legend(loc="upper left", fontsize=8)
+    ax_all.legend(
+        loc="upper left",
+        bbox_to_anchor=(1.02, 1.0),
+        fontsize=8,
+        title="one curve per R(z)",
+        title_fontsize=8,
+    )
     for ax in (ax_euler, ax_all):
         ax.axhline(0.0, color="0.5", lw=0.5)
         ax.axvline(0.0, color="0.5", lw=0.5)

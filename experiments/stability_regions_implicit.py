@@ -107,7 +107,7 @@ def plot_regions(methods: dict[str, ButcherTableau], n_grid: int):
     cols = 4
     rows = -(-len(methods) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 4 * rows))
-    for ax, (name, tab) in zip(axes.ravel(), methods.items(), strict=False):
+    for k, (ax, (name, tab)) in enumerate(zip(axes.ravel(), methods.items(), strict=False)):
         R = np.abs(tab.stability_function(Z))
         R = np.where(np.isfinite(R), R, 1e6)
         ax.contourf(x, y, R, levels=[0.0, 1.0], colors=["0.8"])
@@ -117,7 +117,8 @@ def plot_regions(methods: dict[str, ButcherTableau], n_grid: int):
         ax.set_title(f"{name} (grey: |R| <= 1)", fontsize=9)
         ax.set_aspect("equal")
         ax.set_xlabel("Re(lambda dt)")
-        ax.set_ylabel("Im(lambda dt)")
+        if k % cols == 0:  # one y-label per row: the panels' labels would overlap their neighbours
+            ax.set_ylabel("Im(lambda dt)")
     for ax in axes.ravel()[len(methods) :]:
         ax.axis("off")
     return fig

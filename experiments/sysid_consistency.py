@@ -30,9 +30,11 @@ import math
 from experiments._common import (
     atomic_write_text,
     experiment_parser,
+    finish,
     output_dir,
     parse_early,
     progress,
+    readable_log_ticks,
     save_figure,
     write_table,
 )
@@ -180,9 +182,8 @@ def main(argv=None):
     partial = out / "consistency.csv"
     done = _load(partial)
     have = {int(r["N"]) for r in done if int(r["trials"]) == trials and r["sigma"] == args.sigma}
-    for N in progress(
-        ns, "data lengths N"
-    ):  # resumable: the file holds every finished N, rewritten atomically
+    # resumable: the file holds every finished N, rewritten atomically
+    for N in progress(ns, "data lengths N"):
         if N in have:
             continue
         done += run_n(N, trials, args.sigma, seed=N)
@@ -220,14 +221,18 @@ def main(argv=None):
     axes[1].loglog(n_all, rows[0]["std_f1"] * np.sqrt(n_all[0] / n_all), "k:", label="1/sqrt(N)")
     axes[0].set_title("|bias| of a1 (ARX) / f1 (OE)")
     axes[1].set_title("standard deviation of a1 / f1")
+    axes[0].set_ylabel("|mean estimate - true value|")
+    axes[1].set_ylabel("standard deviation over the data sets")
     for ax in axes:
-        ax.set_xlabel("N")
+        ax.set_xlabel("N (samples)")
+        readable_log_ticks(ax.xaxis)
         ax.legend(fontsize=7)
     fig.tight_layout()
     save_figure(fig, out / "consistency.png")
     write_table(rows, out / "consistency_table")
     markdown = write_table(summary, out / "consistency_summary")
     (out / "README.md").write_text(f"# {NAME}\n\n{__doc__}\n\n{markdown}")
+    finish(out, markdown)
     return summary
 
 

@@ -98,12 +98,17 @@ def main(argv=None):
     markdown = write_table(rows, out / "fat_tails")
     fig, ax = plt.subplots(figsize=(9, 4))
     x = np.arange(len(rows))
-    for i, (key, label) in enumerate(
-        [("mse_ls", "least squares"), ("mse_fair", "fair MLE (4.73)"), ("mse_laplace", "LAD")]
-    ):
-        ax.bar(x + (i - 1) * 0.27, [r[key] for r in rows], width=0.27, label=label)
+    estimators = [
+        ("mse_ls", "least squares", "o"),
+        ("mse_fair", "fair MLE (4.73)", "s"),
+        ("mse_laplace", "LAD", "^"),
+    ]
+    # points, not bars: a bar's length means nothing on a log axis
+    for i, (key, label, marker) in enumerate(estimators):
+        ax.semilogy(x + (i - 1) * 0.15, [r[key] for r in rows], marker, ms=7, label=label)
     ax.set_xticks(x, [r["noise"] for r in rows], fontsize=8)
-    ax.set_yscale("log")
+    ax.grid(axis="y", which="major", color="0.9")
+    ax.set_xlabel("noise law")
     ax.set_ylabel("mean squared parameter error")
     ax.legend()
     fig.tight_layout()

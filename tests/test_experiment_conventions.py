@@ -137,3 +137,9 @@ def test_make_datasets_names_known_before_imports():
     from experiments import make_datasets
 
     assert make_datasets.DATASET_NAMES == tuple(make_datasets.BY_NAME)
+
+
+def test_progress_bar_is_off_when_stderr_is_not_a_terminal(capsys):
+    """Under capture (not a TTY) the bar writes nothing and yields every item."""
+    assert list(_common.progress(range(5), "items")) == [0, 1, 2, 3, 4]
+    assert capsys.readouterr().err == ""
