@@ -40,6 +40,7 @@ from experiments._common import (
     finish,
     output_dir,
     parse_early,
+    progress,
     save_figure,
     write_table,
 )
@@ -150,7 +151,7 @@ def fixed_step_table(batches, n_steps, repeats, use_compile, seed):
     f = van_der_pol(1.0)
     t = torch.linspace(0.0, 0.01 * n_steps, n_steps + 1, dtype=torch.float64)
     gen = torch.Generator().manual_seed(seed)
-    for batch in batches:
+    for batch in progress(batches, "fixed-step RK4 batch sizes"):
         x0 = 4 * torch.rand(batch, 2, dtype=torch.float64, generator=gen) - 2
         n_ref = min(batch, 64)
         ref = reference(np.ones(n_ref), x0[:n_ref].numpy(), t.numpy())
@@ -381,9 +382,9 @@ def adaptive_tables(
         runs[name].append(row)
         return row
 
-    for rtol in grid:
-        for name in ADAPTIVE_SOLVERS:
-            run(name, rtol, "grid")
+    cases = [(rtol, name) for rtol in grid for name in ADAPTIVE_SOLVERS]
+    for rtol, name in progress(cases, f"dopri5 runs, T = {t_end:g} (rtol x solver)"):
+        run(name, rtol, "grid")
     equal = {
         name: next(r for r in rows if r["rtol"] == float(base_rtol)) for name, rows in runs.items()
     }

@@ -37,6 +37,7 @@ from experiments._common import (
     finish,
     output_dir,
     parse_early,
+    progress,
     save_figure,
     write_table,
 )
@@ -219,7 +220,7 @@ def _run(args):
     rows, curves = [], {}
     batch = 50 if args.quick else 2000
     cases = [(n, 1) for n in sizes] + [(200 if args.quick else 1000, batch)]
-    for n, n_sets in cases:
+    for n, n_sets in progress(cases, "signal lengths"):
         shape = () if n_sets == 1 else (n_sets,)
         u, y, theta = make_problem(n, batch=shape)
         if n_sets == 1:

@@ -59,6 +59,7 @@ import weakref
 from experiments._common import (
     experiment_parser,
     finish,
+    note,
     output_dir,
     parse_early,
     save_figure,
@@ -66,6 +67,12 @@ from experiments._common import (
 )
 
 NAME = "bench_implicit"
+#: Progress lines of the study's sections (see above).
+SECTIONS = {
+    1: "section 1: stiff Van der Pol, adaptive Radau IIA against scipy",
+    2: "section 2: fixed-step implicit RK on the non-stiff Van der Pol",
+    3: "section 3: implicit-function-theorem gradients against unrolled autograd",
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -664,16 +671,20 @@ def main(argv=None):
     try:
         if args.quick:
             if 1 in args.sections:
+                note(SECTIONS[1])
                 rows += stiff_rows(
                     t_end=0.3, rtols=(1e-4,), batch=8, n_check=3, ref_rtol=1e-10, repeats=1
                 )
             if 2 in args.sections:
+                note(SECTIONS[2])
                 rows += fixed_rows(t_end=1.0, dt=0.05, repeats=1)
             if 3 in args.sections:
+                note(SECTIONS[3])
                 rows += ift_irk_rows(t_end=1.0, dt=0.05, batch=4, repeats=1, device=device)
                 newton_rows = ift_newton_rows((0, 10), n=8, batch=16, repeats=2, device=device)
         else:
             if 1 in args.sections:
+                note(SECTIONS[1])
                 rows += stiff_rows(
                     t_end=2.0,
                     rtols=(1e-6, 1e-9),
@@ -684,8 +695,10 @@ def main(argv=None):
                     batch_rtols=args.batch_rtols,
                 )
             if 2 in args.sections:
+                note(SECTIONS[2])
                 rows += fixed_rows(t_end=10.0, dt=0.01, repeats=args.repeats)
             if 3 in args.sections:
+                note(SECTIONS[3])
                 rows += ift_irk_rows(
                     t_end=10.0, dt=0.01, batch=16, repeats=args.repeats, device=device
                 )

@@ -19,7 +19,14 @@ from __future__ import annotations
 import argparse
 import time
 
-from experiments._common import experiment_parser, finish, output_dir, parse_early, write_table
+from experiments._common import (
+    experiment_parser,
+    finish,
+    note,
+    output_dir,
+    parse_early,
+    write_table,
+)
 
 NAME = "bench_mechanics"
 
@@ -106,9 +113,11 @@ def main(argv=None):
     gen = torch.Generator().manual_seed(args.seed)
     chain = HangingChain(n_masses=args.masses, m=0.05, K=20.0)
     x = torch.randn(args.batch, 2 * chain.nq, dtype=torch.float64, generator=gen)
+    note(f"hanging chain, {args.masses} masses, batch {args.batch}")
     rows = _case(f"chain N={args.masses}", chain, chain_closed_form, x, args.repeats)
     crane = TwoPendulumCranePolar()
     x = torch.randn(args.batch, 6, dtype=torch.float64, generator=gen)
+    note("two-pendulum crane (polar)")
     rows += _case("two-pendulum crane (polar)", crane, crane_closed_form, x, args.repeats)
     finish(out, write_table(rows, out / NAME))
     return rows

@@ -30,7 +30,14 @@ from __future__ import annotations
 import argparse
 import time
 
-from experiments._common import experiment_parser, finish, output_dir, parse_early, write_table
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    progress,
+    write_table,
+)
 
 NAME = "bench_sysid"
 
@@ -217,10 +224,16 @@ def main(argv=None):
     torch.set_num_threads(1)  # same footing as the single-threaded numpy/scipy baselines
     try:
         if args.quick:
-            rows = bench_fir(300, 400) + bench_oe(2000) + bench_filter_gradient(2000)
+            stages = [(bench_fir, 300, 400), (bench_oe, 2000), (bench_filter_gradient, 2000)]
         else:
-            rows = bench_fir(args.fir_sets, 1000) + bench_oe(10_000)
-            rows += bench_filter_gradient(100_000)
+            stages = [
+                (bench_fir, args.fir_sets, 1000),
+                (bench_oe, 10_000),
+                (bench_filter_gradient, 100_000),
+            ]
+        rows = []
+        for bench, *sizes in progress(stages, "benchmarks"):
+            rows += bench(*sizes)
     finally:
         torch.set_num_threads(previous_threads)
     for task in dict.fromkeys(r["task"] for r in rows):

@@ -22,6 +22,7 @@ from experiments._common import (
     finish,
     output_dir,
     parse_early,
+    progress,
     save_figure,
     write_table,
 )
@@ -63,11 +64,15 @@ def main(argv=None):
     oe_data = simulate_data(true, u, noise_std=args.sigma, generator=g)
     bj_data = simulate_data(bj_true, u, noise_std=args.sigma, noise="model", generator=g)
     validation = simulate_data(true, u_val)  # noise-free validation output
+    specs = [
+        ("ARX(2,2) LS", "OE data", ARX(2, 2, 1), oe_data),
+        ("OE(2,2) GN", "OE data", OE(2, 2, 1), oe_data),
+        ("OE(2,2) GN", "BJ data", OE(2, 2, 1), bj_data),
+        ("BJ(2,1,1,2) GN", "BJ data", BJ(2, 1, 1, 2, 1), bj_data),
+    ]
     cases = [
-        ("ARX(2,2) LS", "OE data", fit(ARX(2, 2, 1), oe_data), oe_data),
-        ("OE(2,2) GN", "OE data", fit(OE(2, 2, 1), oe_data), oe_data),
-        ("OE(2,2) GN", "BJ data", fit(OE(2, 2, 1), bj_data), bj_data),
-        ("BJ(2,1,1,2) GN", "BJ data", fit(BJ(2, 1, 1, 2, 1), bj_data), bj_data),
+        (name, on, fit(model, data), data)
+        for name, on, model, data in progress(specs, "model fits")
     ]
     omega = torch.logspace(-2, np.log10(np.pi), 200, dtype=torch.float64)
     G_true = true.frequency_response(omega)[:, 0]
@@ -110,9 +115,12 @@ def main(argv=None):
         axes[i, 0].stem(rt.lags[1:], rt.autocorrelation[1:], basefmt=" ")
         axes[i, 0].axhspan(-rt.bound, rt.bound, color="0.85")
         axes[i, 0].set_title(f"{label}: residual autocorrelation", fontsize=8)
+        axes[i, 0].set_ylabel("correlation")
         axes[i, 1].stem(rt.cross_lags, rt.cross_correlation[0], basefmt=" ")
         axes[i, 1].axhspan(-rt.bound, rt.bound, color="0.85")
         axes[i, 1].set_title("cross-correlation with input (lag > 0: past inputs)", fontsize=8)
+    axes[-1, 0].set_xlabel("lag [samples]")
+    axes[-1, 1].set_xlabel("lag [samples]")
     fig.tight_layout()
     save_figure(fig, out / "residuals.png")
     markdown = write_table(rows, out / "bode_residuals")

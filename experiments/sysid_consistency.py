@@ -225,7 +225,9 @@ def main(argv=None):
     axes[1].set_ylabel("standard deviation over the data sets")
     for ax in axes:
         ax.set_xlabel("N (samples)")
-        readable_log_ticks(ax.xaxis)
+        ax.set_xticks(n_all, [str(n) for n in n_all])  # one label per data length, no minor labels
+        ax.minorticks_off()
+        readable_log_ticks(ax.yaxis)
         ax.legend(fontsize=7)
     fig.tight_layout()
     save_figure(fig, out / "consistency.png")

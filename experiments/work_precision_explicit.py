@@ -34,6 +34,7 @@ from experiments._common import (
     finish,
     output_dir,
     parse_early,
+    progress,
     save_figure,
     write_table,
 )
@@ -142,7 +143,7 @@ def main(argv=None) -> dict[str, list[dict]]:
     for problem, (plant, x0, t_end, exact) in cases.items():
         runs = {name: fixed_step_tableau(name) for name in explicit_methods()}
         runs["dopri5 adaptive"] = "dopri5"
-        for label, method in runs.items():
+        for label, method in progress(runs.items(), f"{problem}: methods", total=len(runs)):
             evals, errors = [], []
             adaptive = method == "dopri5"
             for setting in tolerances if adaptive else steps:
