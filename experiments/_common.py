@@ -71,6 +71,7 @@ __all__ = [
     "atomic_write_text",
     "default_output_dir",
     "experiment_parser",
+    "figure_defects",
     "finish",
     "markdown_table",
     "note",
@@ -393,3 +394,91 @@ def readable_log_ticks(axis) -> None:
     axis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
     axis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
     axis.set_minor_formatter(NullFormatter())
+
+
+def figure_defects(fig) -> list[str]:
+    """What makes a figure hard to read, as sentences (empty list: none found).
+
+    Checks every axes that shows data (lines, collections, patches or images):
+
+    * it has an x-label, or an axes below it in the same grid column has one; it has a
+      y-label, or an axes left of it in the same grid row has one;
+    * every line with data has a finite value;
+    * no bar (rectangle patch) stands on a log-scaled value axis (a bar's length means
+      nothing there);
+    * a legend, if any, has no empty or repeated entry;
+    * no two of the figure's axis labels, titles and tick labels overlap once drawn.
+
+    Args:
+        fig: a ``matplotlib.figure.Figure``, open or closed (drawn here on an Agg canvas).
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.patches import Rectangle
+
+    canvas = FigureCanvasAgg(fig)  # a closed figure has lost its pyplot canvas
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    problems = []
+    shown = [
+        ax
+        for ax in fig.axes
+        if ax.get_visible()
+        and ax.axison
+        and (ax.lines or ax.collections or ax.patches or ax.images)
+    ]
+
+    def place(ax):
+        spec = ax.get_subplotspec()
+        return (spec.rowspan.start, spec.colspan.start) if spec is not None else (0, 0)
+
+    texts = []
+    for ax in shown:
+        row, col = place(ax)
+        name = ax.get_title() or f"axes at row {row}, column {col}"
+        same_col = [o for o in shown if place(o)[1] == col and place(o)[0] >= row]
+        same_row = [o for o in shown if place(o)[0] == row and place(o)[1] <= col]
+        if not any(o.get_xlabel() for o in same_col):
+            problems.append(f"{name}: no x-label")
+        if not any(o.get_ylabel() for o in same_row):
+            problems.append(f"{name}: no y-label")
+        for line in ax.lines:
+            x, y = (list(map(float, v)) for v in line.get_data())
+            if y and not any(math.isfinite(v) for v in y):
+                problems.append(f"{name}: line {line.get_label()!r} has no finite value")
+        bars = [p for p in ax.patches if isinstance(p, Rectangle)]
+        if bars and "log" in (ax.get_xscale(), ax.get_yscale()):
+            problems.append(f"{name}: {len(bars)} bars on a log axis")
+        legend = ax.get_legend()
+        if legend is not None:
+            entries = [t.get_text() for t in legend.get_texts()]
+            if any(not e.strip() for e in entries) or len(set(entries)) != len(entries):
+                problems.append(f"{name}: legend entries {entries} empty or repeated")
+        labels = [ax.title, ax.xaxis.label, ax.yaxis.label]
+        labels += _drawn_tick_labels(ax.xaxis, 0) + _drawn_tick_labels(ax.yaxis, 1)
+        texts += [(name, t) for t in labels if t.get_visible() and t.get_text().strip()]
+    boxes = [(name, t.get_text(), t.get_window_extent(renderer)) for name, t in texts]
+    for i, (name_a, text_a, box_a) in enumerate(boxes):
+        for name_b, text_b, box_b in boxes[i + 1 :]:
+            if box_a.overlaps(box_b) and _overlap_area(box_a, box_b) > 1.0:
+                problems.append(f"{name_a}: {text_a!r} overlaps {name_b}: {text_b!r}")
+    return problems
+
+
+def _drawn_tick_labels(axis, coordinate: int) -> list:
+    """The tick labels of ``axis`` (major and minor) at ticks inside its view limits (matplotlib
+    keeps labels of ticks just outside, which are not drawn); ``coordinate`` is 0 for an
+    x-axis, 1 for a y-axis."""
+    lo, hi = sorted(axis.get_view_interval())
+    slack = 1e-9 * (hi - lo)
+    return [
+        t
+        for t in axis.get_ticklabels(which="both")
+        if lo - slack <= t.get_position()[coordinate] <= hi + slack
+    ]
+
+
+def _overlap_area(a, b) -> float:
+    """Area (pixels^2) of the intersection of two matplotlib ``Bbox``es."""
+    width = min(a.x1, b.x1) - max(a.x0, b.x0)
+    height = min(a.y1, b.y1) - max(a.y0, b.y0)
+    return max(width, 0.0) * max(height, 0.0)
