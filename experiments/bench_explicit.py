@@ -575,15 +575,14 @@ def main(argv=None):
         fig, ax = plt.subplots(figsize=(7, 4))
         solvers = list(dict.fromkeys(r["solver"] for r in fixed))
         batches = list(dict.fromkeys(r["batch"] for r in fixed))
-        width = 0.8 / len(solvers)
-        for i, name in enumerate(solvers):
+        for name in solvers:
             walls = [
                 next(r["wall_s"] for r in fixed if r["solver"] == name and r["batch"] == b)
                 for b in batches
             ]
-            ax.bar(np.arange(len(batches)) + i * width, walls, width, label=name)
-        ax.set_xticks(np.arange(len(batches)) + 0.4 - width / 2, [str(b) for b in batches])
-        ax.set_yscale("log")
+            ax.loglog(batches, walls, "o-", label=name)
+        ax.set_xticks(batches, [str(b) for b in batches])
+        ax.minorticks_off()
         ax.set_xlabel("batch size")
         ax.set_ylabel("wall time [s]")
         ax.legend(fontsize=7)

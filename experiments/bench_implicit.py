@@ -62,6 +62,7 @@ from experiments._common import (
     note,
     output_dir,
     parse_early,
+    readable_log_ticks,
     save_figure,
     write_table,
 )
@@ -635,11 +636,15 @@ def ift_newton_rows(starts, n, batch, repeats, device, seed=0, tol=1e-12, fd_ste
 def _time_figure(rows, path):
     fig, ax = plt.subplots(figsize=(9, 0.3 * len(rows) + 1.5))
     y = np.arange(len(rows))
-    ax.barh(y - 0.2, [r["ours_s"] for r in rows], height=0.4, label="ours")
-    ax.barh(y + 0.2, [r["peer_s"] for r in rows], height=0.4, label="peer")
+    # points, not bars: a bar's length means nothing on a log axis
+    ax.semilogx([r["ours_s"] for r in rows], y, "o", label="ours")
+    ax.semilogx([r["peer_s"] for r in rows], y, "s", mfc="none", label="peer")
     ax.set_yticks(y, [f"{r['case']} rtol={r['rtol']}" for r in rows], fontsize=6)
-    ax.set_xscale("log")
+    ax.set_ylim(len(rows) - 0.5, -0.5)  # first case on top
+    ax.grid(axis="y", color="0.9")
     ax.set_xlabel("wall time [s]")
+    readable_log_ticks(ax.xaxis)
+    ax.set_ylabel("case")
     ax.legend()
     fig.tight_layout()
     save_figure(fig, path)

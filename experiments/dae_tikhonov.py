@@ -464,6 +464,7 @@ def main(argv=None) -> list[dict]:
             label = (fam.slow_label, fam.fast_label)[k]
             row_axes[k].set_title(f"{fam.name}: {label}")
             row_axes[k].set_xlabel("t [s]")
+            row_axes[k].set_ylabel(label)
         row_axes[0].legend(fontsize=7)
         e = np.array([r["eps"] for r in fam_rows])
         row_axes[2].loglog(e, [r["dev_slow"] for r in fam_rows], "o", label="Radau IIA vs limit")
@@ -471,6 +472,7 @@ def main(argv=None) -> list[dict]:
         ref = fam_rows[-1]["dev_slow_exact"] * e / e[-1]
         row_axes[2].loglog(e, ref, "k:", label="slope 1")
         row_axes[2].set_xlabel("eps")
+        row_axes[2].set_ylabel("deviation from the limit")
         row_axes[2].set_title("max |x_eps - x_0| over slow states")
         row_axes[2].legend(fontsize=7)
     save_figure(fig, out / "tikhonov.png")

@@ -159,6 +159,7 @@ def main(argv=None) -> list[dict]:
         axes[0, col].plot(data["t"], data["x"][:, 1], "k", label="x2 (position)")
         axes[0, col].plot(data["t"], data["x"][:, 0], color="0.6", label="x1 = x2'")
         axes[0, col].set_title(f"Van der Pol, mu = {mu:g} (eq. 6.43)")
+        axes[0, col].set_ylabel("state")
         axes[0, col].legend(fontsize=8)
         axes[1, col].semilogy(data["t_k"], data["h_k"], ".-k", ms=3)
         axes[1, col].set_ylabel("dt chosen by dopri5")

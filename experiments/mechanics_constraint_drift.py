@@ -96,6 +96,7 @@ def main(argv=None):
             ax.semilogy(t, c[i].clamp_min(1e-16), label=label)
         ax.set_title(f"{plant_name}: |c(q(t))|, RK4 dt={args.dt:g}")
         ax.set_xlabel("t [s]")
+        ax.set_ylabel("constraint residual |c(q)|")
         ax.legend(fontsize=8)
     save_figure(fig, out / "constraint_drift.png")
     finish(out, write_table(rows, out / "constraint_drift"))

@@ -101,6 +101,7 @@ def main(argv=None):
             ax.semilogy(t, err.clamp_min(1e-17), label=method)
         ax.set_title(f"{case}: |E(t) - E(0)|, dt={dt:g}")
         ax.set_xlabel("t [s]")
+        ax.set_ylabel("energy error |E(t) - E(0)| [J]")
         ax.legend(fontsize=8)
     save_figure(fig, out / "energy_drift.png")
     finish(out, write_table(rows, out / "energy_drift"))

@@ -134,17 +134,20 @@ def main(argv=None) -> list[dict]:
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
     t, x, exact = runs["0.95 dt*"]
     for i, ax in enumerate(axes[:2]):
-        for j in (2 * i, 2 * i + 1):
-            ax.plot(t, exact[:, j], color="0.6", lw=2)
-            ax.plot(t, x[:, j], ":", color="k", label=f"x{j + 1}, RK4 dt = {0.95 * dt_star:.3g}")
-        ax.set_title(("slow states x1, x2", "fast states x3, x4")[i] + " (grey: exact)")
+        for j, color in zip((2 * i, 2 * i + 1), ("C0", "C1"), strict=True):
+            ax.plot(t, exact[:, j], color=color, lw=2.5, alpha=0.3)
+            ax.plot(t, x[:, j], ":", color=color, label=f"x{j + 1}, RK4 dt = {0.95 * dt_star:.3g}")
+        ax.plot([], [], color="0.5", lw=2.5, alpha=0.4, label="exact (wide, pale)")
+        ax.set_title(("slow states x1, x2", "fast states x3, x4")[i])
         ax.set_xlabel("t [s]")
+        ax.set_ylabel("state")
         ax.legend(fontsize=8)
     for label, (t, x, exact) in runs.items():
         err = (x - exact).abs().amax(dim=-1).clamp_min(1e-17)
         axes[2].semilogy(t, err, label=label)
     axes[2].set_title(f"max-norm error (dt* = {dt_star:.4g})")
     axes[2].set_xlabel("t [s]")
+    axes[2].set_ylabel("max |x - x_exact|")
     axes[2].legend(fontsize=8)
     save_figure(fig, out / "stiff_rk4.png")
     finish(out, markdown)

@@ -96,9 +96,13 @@ def main(argv=None):
         axes[r, 0].set_title(f"{kind}: empirical covariance")
         axes[r, 1].imshow(pred, cmap="RdBu_r", vmin=-vmax, vmax=vmax)
         axes[r, 1].set_title("sigma^2 (U'U)^-1 (eq. 4.101)")
+        for ax in axes[r, :2]:
+            ax.set_xlabel("tap j")
+            ax.set_ylabel("tap i")
         axes[r, 2].plot(emp.diagonal() ** 0.5, "ko", label="empirical std")
         axes[r, 2].plot(pred.diagonal() ** 0.5, "-", color="0.5", label="predicted std")
         axes[r, 2].set_xlabel("tap")
+        axes[r, 2].set_ylabel("standard deviation")
         axes[r, 2].legend(fontsize=7)
     fig.tight_layout()
     save_figure(fig, out / "fir_covariance.png")

@@ -91,7 +91,7 @@ def main(argv=None):
     for row, kind in enumerate(INPUT_KINDS):
         data, y_est, theta = fits[kind]
         axes[row, 0].plot(data.u[:, 0], color="k")
-        axes[row, 0].set_ylabel(kind)
+        axes[row, 0].set_ylabel(f"{kind} input")
         axes[row, 1].plot(data.y[:, 0], color="k", label="system")
         axes[row, 1].plot(y_est[:, 0], color="0.6", ls="--", label="model")
         axes[row, 2].plot(b, "ko-", ms=3, label="true")
@@ -99,6 +99,9 @@ def main(argv=None):
     axes[0, 0].set_title("input u")
     axes[0, 1].set_title("output y (estimation data)")
     axes[0, 2].set_title("FIR parameters")
+    for ax in axes[-1, :2]:
+        ax.set_xlabel("sample k")
+    axes[-1, 2].set_xlabel("tap")
     axes[0, 1].legend(fontsize=7)
     axes[0, 2].legend(fontsize=7)
     fig.tight_layout()

@@ -9,6 +9,8 @@ import math
 import numpy as np
 import pytest
 
+from experiments._common import figure_defects
+
 
 def read_csv(path) -> list[dict]:
     with open(path, newline="") as handle:
@@ -40,7 +42,6 @@ def test_common_helpers_write_csv_markdown_and_png(tmp_path):
 # ------------------------------------------------------------ stability regions
 def test_stability_regions_intervals_match_closed_forms(tmp_path, saved_figures):
     from experiments import stability_regions
-    from experiments._common import figure_defects
 
     stability_regions.main(["--quick", "--out", str(tmp_path)])
     fig = saved_figures["regions.png"]
@@ -110,12 +111,15 @@ def test_euler_stability_grows_iff_dt_above_two_over_lambda(tmp_path):
 
 
 # ------------------------------------------------------------------ stiff RK4
-def test_stiff_rk4_bounded_below_limit_blows_up_above(tmp_path):
+def test_stiff_rk4_bounded_below_limit_blows_up_above(tmp_path, saved_figures):
     from experiments import stiff_rk4
     from integrators import tableau
     from sysid.zoo import StiffLinear
 
     stiff_rk4.main(["--quick", "--out", str(tmp_path)])
+    assert saved_figures
+    for name, fig in saved_figures.items():
+        assert figure_defects(fig) == [], name  # labelled axes, legible ticks
     rows = by_key(read_csv(tmp_path / "stiff_rk4.csv"), "case")
     # independent limit: |R_rk4(lambda dt)| = 1 on the fast eigenvalue, by bisection
     A = StiffLinear(eps=5e-4).matrix().detach().numpy()
@@ -147,7 +151,6 @@ def test_lorenz_euler_departs_later_for_smaller_dt(
     from matplotlib.colors import to_hex
 
     from experiments import lorenz_euler
-    from experiments._common import figure_defects
 
     lorenz_euler.main(["--quick", "--out", str(tmp_path)])
     fig = saved_figures["lorenz_euler.png"]
@@ -172,7 +175,6 @@ def test_lorenz_euler_departs_later_for_smaller_dt(
 # ---------------------------------------------------------------- convergence
 def test_convergence_slopes_equal_orders(tmp_path, saved_figures, reference_slope_mismatches):
     from experiments import convergence_explicit
-    from experiments._common import figure_defects
     from integrators import tableau
 
     convergence_explicit.main(["--quick", "--out", str(tmp_path)])
@@ -197,10 +199,13 @@ def test_convergence_slopes_equal_orders(tmp_path, saved_figures, reference_slop
 
 
 # ------------------------------------------------------------ dopri5 step sizes
-def test_dopri5_steps_shrink_where_the_solution_moves_fast(tmp_path):
+def test_dopri5_steps_shrink_where_the_solution_moves_fast(tmp_path, saved_figures):
     from experiments import dopri5_steps
 
     dopri5_steps.main(["--quick", "--out", str(tmp_path)])
+    assert saved_figures
+    for name, fig in saved_figures.items():
+        assert figure_defects(fig) == [], name  # labelled axes, legible ticks
     rows = {float(r["mu"]): r for r in read_csv(tmp_path / "dopri5_steps.csv")}
     relax = rows[5.0]  # relaxation oscillation: slow drift, then fast jumps (Fig. 6.17)
     assert float(relax["mean_dt_fast_quartile"]) < 0.5 * float(relax["mean_dt_slow_quartile"])

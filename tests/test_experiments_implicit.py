@@ -14,6 +14,8 @@ import math
 
 import numpy as np
 
+from experiments._common import figure_defects
+
 
 def read_csv(path) -> list[dict]:
     with open(path, newline="") as handle:
@@ -34,10 +36,13 @@ def stiff_linear_eigenvalues(eps: float = 5e-4) -> np.ndarray:
     return np.linalg.eigvals(a)
 
 
-def test_implicit_euler_stays_bounded_and_converges_linearly(tmp_path):
+def test_implicit_euler_stays_bounded_and_converges_linearly(tmp_path, saved_figures):
     from experiments import implicit_euler_stiff
 
     implicit_euler_stiff.main(["--quick", "--out", str(tmp_path)])
+    assert saved_figures
+    for name, fig in saved_figures.items():
+        assert figure_defects(fig) == [], name  # labelled axes, legible ticks
     assert (tmp_path / "trajectories.png").exists() and (tmp_path / "implicit_euler.md").exists()
     rows = read_csv(tmp_path / "implicit_euler.csv")
     implicit = {float(r["dt"]): r for r in rows if r["method"] == "implicit_euler"}
@@ -70,7 +75,6 @@ def test_implicit_euler_stays_bounded_and_converges_linearly(tmp_path):
 # ------------------------------------------------------- convergence orders, Fig. 7.2
 def test_collocation_orders_and_fig72(tmp_path, saved_figures, reference_slope_mismatches):
     from experiments import convergence_implicit
-    from experiments._common import figure_defects
 
     convergence_implicit.main(["--quick", "--out", str(tmp_path)])
     fig = saved_figures["convergence.png"]
@@ -145,7 +149,6 @@ def test_stiff_work_precision(tmp_path):
 # ---------------------------------------------------------- stability regions, §7.3
 def test_stability_regions_implicit(tmp_path, saved_figures):
     from experiments import stability_regions_implicit
-    from experiments._common import figure_defects
 
     stability_regions_implicit.main(["--quick", "--out", str(tmp_path)])
     assert figure_defects(saved_figures["regions.png"]) == []
@@ -179,7 +182,6 @@ def test_stability_regions_implicit(tmp_path, saved_figures):
 # ------------------------------------------------------------ sensitivities, §8
 def test_sensitivities_agree(tmp_path, saved_figures):
     from experiments import sensitivities_compare
-    from experiments._common import figure_defects
 
     sensitivities_compare.main(["--quick", "--out", str(tmp_path)])
     assert figure_defects(saved_figures["sensitivities.png"]) == []  # e.g. no bars on log axis

@@ -18,8 +18,11 @@ def by(rows, **keys):
     return next(r for r in rows if all(r[k] == v for k, v in keys.items()))
 
 
-def test_fir_inputs_fig_4_1(tmp_path):
+def test_fir_inputs_fig_4_1(tmp_path, saved_figures):
     rows = sysid_fir_inputs.main(["--quick", "--out", str(tmp_path)])
+    assert saved_figures
+    for name, fig in saved_figures.items():
+        assert figure_defects(fig) == [], name  # labelled axes, legible ticks
     white, prbs = by(rows, input="white"), by(rows, input="prbs")
     step, sine = by(rows, input="step"), by(rows, input="sinusoid")
     # sinusoid and step excite few directions: U'U near singular, flagged, poor estimates
@@ -34,8 +37,11 @@ def test_fir_inputs_fig_4_1(tmp_path):
     assert (tmp_path / "fir_inputs.png").exists() and (tmp_path / "fir_inputs.csv").exists()
 
 
-def test_fir_covariance_eq_4_101(tmp_path):
+def test_fir_covariance_eq_4_101(tmp_path, saved_figures):
     rows = sysid_fir_covariance.main(["--quick", "--out", str(tmp_path)])
+    assert saved_figures
+    for name, fig in saved_figures.items():
+        assert figure_defects(fig) == [], name  # labelled axes, legible ticks
     for row in rows:
         assert row["trials"] >= 2000
         assert row["rel_frobenius_emp_vs_4.101"] < 0.15  # sampling error ~ sqrt(21/2000)
