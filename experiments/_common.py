@@ -1,17 +1,28 @@
 """Shared plumbing for experiment scripts: command line, output folder, progress, tables,
 figures.
 
-Every experiment is a script ``experiments/<name>.py`` with ``main(argv=None)``. The helpers
-below keep them uniform::
+Every experiment is a script ``experiments/<name>.py`` with ``build_parser()`` and
+``main(argv=None)``. The helpers below keep them uniform::
+
+    import argparse
 
     from experiments._common import (
-        experiment_parser, finish, output_dir, plt, progress, save_figure, write_table,
+        experiment_parser, finish, output_dir, parse_early, progress, save_figure, write_table,
     )
 
-    def main(argv=None):
+    def build_parser() -> argparse.ArgumentParser:
         parser = experiment_parser("my_study", "What the study shows (notes Fig. 6.10).")
         parser.add_argument("--tol", type=float, default=1e-6, help="solver tolerance")
-        args = parser.parse_args(argv)
+        return parser
+
+    parse_early(__name__, build_parser)
+
+    import torch                                   # the heavy imports come after parse_early
+
+    from experiments._common import plt
+
+    def main(argv=None):
+        args = build_parser().parse_args(argv)
         out = output_dir(args, "my_study")                      # pathlib.Path, created
         rows = [{"method": m, "slope": study(m)} for m in progress(METHODS, "methods")]
         markdown = write_table(rows, out / "slopes")            # slopes.csv + slopes.md
@@ -29,7 +40,10 @@ results folder on the last line (``results: <folder>``), the last two by :func:`
   ``experiments/out/<name>/quick`` so that a quick run never overwrites a full run's.
 * ``--out DIR``: where results go; default ``experiments/out/<name>``
   (see :func:`default_output_dir`).
-* ``--help`` lists every option with its meaning and default.
+* ``--help`` lists every option with its meaning and default. It answers at once: the module
+  builds its parser from light imports only, and :func:`parse_early` parses the command line
+  of ``python -m experiments.<name>`` before the module imports torch, scipy, matplotlib or
+  ``control`` (``tests/test_experiment_conventions.py`` checks that none of them is loaded).
 
 Files that a rerun reads back (partial results of a resumable study) are written with
 :func:`atomic_write_text`: a run killed mid-write leaves the previous complete file, never a
@@ -52,21 +66,28 @@ import sys
 import tempfile
 
 __all__ = [
+    "DATASETS_DIR",
     "DEFAULT_OUT_ROOT",
     "atomic_write_text",
     "default_output_dir",
     "experiment_parser",
+    "figure_defects",
     "finish",
     "markdown_table",
     "note",
     "output_dir",
+    "parse_early",
     "progress",
+    "readable_log_ticks",
+    "reference_slope",
     "save_figure",
     "write_table",
 ]
 
 DEFAULT_OUT_ROOT = pathlib.Path(__file__).resolve().parent / "out"
 QUICK_SUBDIR = "quick"
+#: The versioned data sets (read by ``experiments/_datasets.py``, written by ``make_datasets``).
+DATASETS_DIR = pathlib.Path(__file__).resolve().parent.parent / "datasets"
 
 
 def _pyplot():
@@ -164,6 +185,22 @@ def experiment_parser(
     return parser
 
 
+def parse_early(module_name: str, build_parser) -> None:
+    """Parse the command line of a script run as ``python -m experiments.<name>`` now.
+
+    Called at the top of an experiment module, after ``build_parser`` and before the heavy
+    imports: ``--help`` and a wrong option print their answer and exit before torch, scipy or
+    matplotlib are imported. A module imported by a test or another experiment
+    (``module_name != "__main__"``) is not affected; ``main(argv)`` parses its own ``argv``.
+
+    Args:
+        module_name: the calling module's ``__name__``.
+        build_parser: function of no arguments returning the experiment's parser.
+    """
+    if module_name == "__main__":
+        build_parser().parse_args()
+
+
 def output_dir(
     args: argparse.Namespace, name: str, default_out: pathlib.Path | None = None
 ) -> pathlib.Path:
@@ -180,6 +217,9 @@ def output_dir(
 def progress(iterable, desc: str, total: int | None = None, **options):
     """A progress bar (tqdm, on stderr) over ``iterable``, labelled ``desc``.
 
+    The bar is shown only when stderr is a terminal (tqdm's ``disable=None``): a run whose
+    stderr goes to a file, a pipe or a test's capture gets no bar.
+
     Args:
         iterable: what the loop runs over.
         desc: what one item is, e.g. ``"noise laws"``.
@@ -191,6 +231,7 @@ def progress(iterable, desc: str, total: int | None = None, **options):
     """
     from tqdm.auto import tqdm
 
+    options.setdefault("disable", None)
     return tqdm(iterable, desc=desc, total=total, dynamic_ncols=True, **options)
 
 
@@ -314,3 +355,130 @@ def save_figure(fig, path) -> pathlib.Path:
     fig.savefig(path, dpi=150, bbox_inches="tight")
     _pyplot().close(fig)
     return path
+
+
+def reference_slope(ax, dts, errors, order: float, floor: float = 0.0, **style):
+    """Draw the reference line ``C dt^order`` on the log-log axes ``ax``, through the point of
+    the curve ``(dts, errors)`` with the smallest ``dt`` whose error is above ``floor`` (the
+    one closest to the asymptotic range, clear of round-off), over the curve's range of ``dt``;
+    a curve of that order runs parallel to it.
+
+    Args:
+        ax: matplotlib axes with log scales.
+        dts, errors: the measured curve (sequences of floats).
+        order: the slope ``p`` of the line.
+        floor: errors at or below it (round-off) are skipped.
+        **style: matplotlib line options (default a dotted line).
+
+    Returns:
+        The line (``matplotlib.lines.Line2D``), or ``None`` when no error is above ``floor``.
+    """
+    floor = max(floor, 0.0)
+    points = [(d, e) for d, e in zip(dts, errors, strict=True) if e > floor and math.isfinite(e)]
+    if not points:
+        return None
+    dt0, err0 = min(points)
+    span = [min(d for d, _ in points), max(d for d, _ in points)]
+    style.setdefault("ls", ":")
+    (line,) = ax.plot(span, [err0 * (d / dt0) ** order for d in span], **style)
+    return line
+
+
+def readable_log_ticks(axis) -> None:
+    """Label a log-scaled ``axis`` (``ax.xaxis`` or ``ax.yaxis``) at 1, 2 and 5 times the powers
+    of ten, written as plain numbers (``0.2``, ``500``, ``1e+04``), with unlabelled minor
+    ticks: over one or two decades matplotlib's default labels every minor tick as
+    ``2 x 10^-1`` and the labels overlap."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    axis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+    axis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+    axis.set_minor_formatter(NullFormatter())
+
+
+def figure_defects(fig) -> list[str]:
+    """What makes a figure hard to read, as sentences (empty list: none found).
+
+    Checks every axes that shows data (lines, collections, patches or images):
+
+    * it has an x-label, or an axes below it in the same grid column has one; it has a
+      y-label, or an axes left of it in the same grid row has one;
+    * every line with data has a finite value;
+    * no bar (rectangle patch) stands on a log-scaled value axis (a bar's length means
+      nothing there);
+    * a legend, if any, has no empty or repeated entry;
+    * no two of the figure's axis labels, titles and tick labels overlap once drawn.
+
+    Args:
+        fig: a ``matplotlib.figure.Figure``, open or closed (drawn here on an Agg canvas).
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.patches import Rectangle
+
+    canvas = FigureCanvasAgg(fig)  # a closed figure has lost its pyplot canvas
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    problems = []
+    shown = [
+        ax
+        for ax in fig.axes
+        if ax.get_visible()
+        and ax.axison
+        and (ax.lines or ax.collections or ax.patches or ax.images)
+    ]
+
+    def place(ax):
+        spec = ax.get_subplotspec()
+        return (spec.rowspan.start, spec.colspan.start) if spec is not None else (0, 0)
+
+    texts = []
+    for ax in shown:
+        row, col = place(ax)
+        name = ax.get_title() or f"axes at row {row}, column {col}"
+        same_col = [o for o in shown if place(o)[1] == col and place(o)[0] >= row]
+        same_row = [o for o in shown if place(o)[0] == row and place(o)[1] <= col]
+        if not any(o.get_xlabel() for o in same_col):
+            problems.append(f"{name}: no x-label")
+        if not any(o.get_ylabel() for o in same_row):
+            problems.append(f"{name}: no y-label")
+        for line in ax.lines:
+            x, y = (list(map(float, v)) for v in line.get_data())
+            if y and not any(math.isfinite(v) for v in y):
+                problems.append(f"{name}: line {line.get_label()!r} has no finite value")
+        bars = [p for p in ax.patches if isinstance(p, Rectangle)]
+        if bars and "log" in (ax.get_xscale(), ax.get_yscale()):
+            problems.append(f"{name}: {len(bars)} bars on a log axis")
+        legend = ax.get_legend()
+        if legend is not None:
+            entries = [t.get_text() for t in legend.get_texts()]
+            if any(not e.strip() for e in entries) or len(set(entries)) != len(entries):
+                problems.append(f"{name}: legend entries {entries} empty or repeated")
+        labels = [ax.title, ax.xaxis.label, ax.yaxis.label]
+        labels += _drawn_tick_labels(ax.xaxis, 0) + _drawn_tick_labels(ax.yaxis, 1)
+        texts += [(name, t) for t in labels if t.get_visible() and t.get_text().strip()]
+    boxes = [(name, t.get_text(), t.get_window_extent(renderer)) for name, t in texts]
+    for i, (name_a, text_a, box_a) in enumerate(boxes):
+        for name_b, text_b, box_b in boxes[i + 1 :]:
+            if box_a.overlaps(box_b) and _overlap_area(box_a, box_b) > 1.0:
+                problems.append(f"{name_a}: {text_a!r} overlaps {name_b}: {text_b!r}")
+    return problems
+
+
+def _drawn_tick_labels(axis, coordinate: int) -> list:
+    """The tick labels of ``axis`` (major and minor) at ticks inside its view limits (matplotlib
+    keeps labels of ticks just outside, which are not drawn); ``coordinate`` is 0 for an
+    x-axis, 1 for a y-axis."""
+    lo, hi = sorted(axis.get_view_interval())
+    slack = 1e-9 * (hi - lo)
+    return [
+        t
+        for t in axis.get_ticklabels(which="both")
+        if lo - slack <= t.get_position()[coordinate] <= hi + slack
+    ]
+
+
+def _overlap_area(a, b) -> float:
+    """Area (pixels^2) of the intersection of two matplotlib ``Bbox``es."""
+    width = min(a.x1, b.x1) - max(a.x0, b.x0)
+    height = min(a.y1, b.y1) - max(a.y0, b.y0)
+    return max(width, 0.0) * max(height, 0.0)

@@ -16,12 +16,11 @@ import pathlib
 
 import numpy as np
 
+from experiments._common import DATASETS_DIR
 from integrators.errors import InputValidationError
 from sysid import IOData
 
 __all__ = ["DATASETS_DIR", "available", "load_csv", "load_iodata"]
-
-DATASETS_DIR = pathlib.Path(__file__).resolve().parent.parent / "datasets"
 
 
 def available(folder: pathlib.Path | None = None) -> list[str]:

@@ -29,16 +29,41 @@ Run: ``python -m experiments.bench_explicit`` (full sizes, minutes) or ``--quick
 
 from __future__ import annotations
 
+import argparse
 import datetime
 import math
 import platform
 import time
 
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    progress,
+    save_figure,
+    write_table,
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(
+        "bench_explicit",
+        "Fixed-step RK4 and adaptive dopri5 against torchdiffeq and torchode (Van der Pol).",
+    )
+    parser.add_argument("--no-compile", action="store_true", help="skip torch.compile runs")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the random initial states")
+    return parser
+
+
+parse_early(__name__, build_parser)
+
 import numpy as np
 import scipy.integrate
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import odeint
 
 try:  # the zoo's plant; a local copy keeps the benchmark usable without sysid
@@ -126,7 +151,7 @@ def fixed_step_table(batches, n_steps, repeats, use_compile, seed):
     f = van_der_pol(1.0)
     t = torch.linspace(0.0, 0.01 * n_steps, n_steps + 1, dtype=torch.float64)
     gen = torch.Generator().manual_seed(seed)
-    for batch in batches:
+    for batch in progress(batches, "fixed-step RK4 batch sizes"):
         x0 = 4 * torch.rand(batch, 2, dtype=torch.float64, generator=gen) - 2
         n_ref = min(batch, 64)
         ref = reference(np.ones(n_ref), x0[:n_ref].numpy(), t.numpy())
@@ -357,9 +382,9 @@ def adaptive_tables(
         runs[name].append(row)
         return row
 
-    for rtol in grid:
-        for name in ADAPTIVE_SOLVERS:
-            run(name, rtol, "grid")
+    cases = [(rtol, name) for rtol in grid for name in ADAPTIVE_SOLVERS]
+    for rtol, name in progress(cases, f"dopri5 runs, T = {t_end:g} (rtol x solver)"):
+        run(name, rtol, "grid")
     equal = {
         name: next(r for r in rows if r["rtol"] == float(base_rtol)) for name, rows in runs.items()
     }
@@ -499,13 +524,7 @@ FULL_RTOLS = tuple(10.0 ** (-k / 2) for k in range(10, 15))  # 1e-5 ... 1e-7, ha
 
 
 def main(argv=None):
-    parser = experiment_parser(
-        "bench_explicit",
-        "Fixed-step RK4 and adaptive dopri5 against torchdiffeq and torchode (Van der Pol).",
-    )
-    parser.add_argument("--no-compile", action="store_true", help="skip torch.compile runs")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the random initial states")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, "bench_explicit")
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -556,15 +575,14 @@ def main(argv=None):
         fig, ax = plt.subplots(figsize=(7, 4))
         solvers = list(dict.fromkeys(r["solver"] for r in fixed))
         batches = list(dict.fromkeys(r["batch"] for r in fixed))
-        width = 0.8 / len(solvers)
-        for i, name in enumerate(solvers):
+        for name in solvers:
             walls = [
                 next(r["wall_s"] for r in fixed if r["solver"] == name and r["batch"] == b)
                 for b in batches
             ]
-            ax.bar(np.arange(len(batches)) + i * width, walls, width, label=name)
-        ax.set_xticks(np.arange(len(batches)) + 0.4 - width / 2, [str(b) for b in batches])
-        ax.set_yscale("log")
+            ax.loglog(batches, walls, "o-", label=name)
+        ax.set_xticks(batches, [str(b) for b in batches])
+        ax.minorticks_off()
         ax.set_xlabel("batch size")
         ax.set_ylabel("wall time [s]")
         ax.legend(fontsize=7)

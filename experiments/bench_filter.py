@@ -29,17 +29,50 @@ The estimators' ``experiments/bench_sysid.py`` may import
 
 from __future__ import annotations
 
+import argparse
 import time
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    progress,
+    save_figure,
+    write_table,
+)
+
+NAME = "bench_filter"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument(
+        "--N", type=int, default=None, help="signal length (default 100000, 2000 with --quick)"
+    )
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=None,
+        help="best of this many runs (default 5, 3 with --quick)",
+    )
+    parser.add_argument(
+        "--threads", type=int, default=1, help="torch CPU threads (scipy runs on one)"
+    )
+    return parser
+
+
+parse_early(__name__, build_parser)
 
 import numpy as np
 import scipy.signal
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from sysid import OE, IOData
 from sysid.filters import cpu_backend
 
-NAME = "bench_filter"
 NB = NF = 4
 
 
@@ -166,20 +199,7 @@ def _time(fn, repeats: int, device: torch.device) -> tuple[float, float, object]
 
 
 def main(argv=None):
-    parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument(
-        "--N", type=int, default=None, help="signal length (default 100000, 2000 with --quick)"
-    )
-    parser.add_argument(
-        "--repeats",
-        type=int,
-        default=None,
-        help="best of this many runs (default 5, 3 with --quick)",
-    )
-    parser.add_argument(
-        "--threads", type=int, default=1, help="torch CPU threads (scipy runs on one)"
-    )
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(args.threads)
     try:
@@ -200,7 +220,7 @@ def _run(args):
     rows, curves = [], {}
     batch = 50 if args.quick else 2000
     cases = [(n, 1) for n in sizes] + [(200 if args.quick else 1000, batch)]
-    for n, n_sets in cases:
+    for n, n_sets in progress(cases, "signal lengths"):
         shape = () if n_sets == 1 else (n_sets,)
         u, y, theta = make_problem(n, batch=shape)
         if n_sets == 1:

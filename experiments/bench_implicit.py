@@ -50,19 +50,71 @@ All peers run in this process, on one torch thread (``--threads``); times are th
 
 from __future__ import annotations
 
+import argparse
 import gc
 import threading
 import time
 import weakref
 
+from experiments._common import (
+    experiment_parser,
+    finish,
+    note,
+    output_dir,
+    parse_early,
+    readable_log_ticks,
+    save_figure,
+    write_table,
+)
+
+NAME = "bench_implicit"
+#: Progress lines of the study's sections (see above).
+SECTIONS = {
+    1: "section 1: stiff Van der Pol, adaptive Radau IIA against scipy",
+    2: "section 2: fixed-step implicit RK on the non-stiff Van der Pol",
+    3: "section 3: implicit-function-theorem gradients against unrolled autograd",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__.split("\n\n")[0])
+    parser.add_argument(
+        "--repeats", type=int, default=3, help="timings are the best of this many runs"
+    )
+    parser.add_argument("--batch", type=int, default=256, help="trajectories in the batch case")
+    parser.add_argument(
+        "--batch-rtols",
+        type=float,
+        nargs="+",
+        default=[1e-6, 1e-9],
+        help="tolerances of the batch case (scipy's loop at 1e-9 takes long)",
+    )
+    parser.add_argument(
+        "--sections",
+        type=int,
+        nargs="+",
+        choices=(1, 2, 3),
+        default=[1, 2, 3],
+        help="sections of the study to run (see above)",
+    )
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument(
+        "--device",
+        default=None,
+        help="device of section 3 (default cuda when available, else cpu; adds CUDA peak memory)",
+    )
+    return parser
+
+
+parse_early(__name__, build_parser)
+
 import numpy as np
 import torch
 from scipy.integrate import solve_ivp
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import gauss_legendre, newton, radau_iia, solve_implicit_ode
-
-NAME = "bench_implicit"
 
 
 def _timed(fn, repeats):
@@ -584,11 +636,15 @@ def ift_newton_rows(starts, n, batch, repeats, device, seed=0, tol=1e-12, fd_ste
 def _time_figure(rows, path):
     fig, ax = plt.subplots(figsize=(9, 0.3 * len(rows) + 1.5))
     y = np.arange(len(rows))
-    ax.barh(y - 0.2, [r["ours_s"] for r in rows], height=0.4, label="ours")
-    ax.barh(y + 0.2, [r["peer_s"] for r in rows], height=0.4, label="peer")
+    # points, not bars: a bar's length means nothing on a log axis
+    ax.semilogx([r["ours_s"] for r in rows], y, "o", label="ours")
+    ax.semilogx([r["peer_s"] for r in rows], y, "s", mfc="none", label="peer")
     ax.set_yticks(y, [f"{r['case']} rtol={r['rtol']}" for r in rows], fontsize=6)
-    ax.set_xscale("log")
+    ax.set_ylim(len(rows) - 0.5, -0.5)  # first case on top
+    ax.grid(axis="y", color="0.9")
     ax.set_xlabel("wall time [s]")
+    readable_log_ticks(ax.xaxis)
+    ax.set_ylabel("case")
     ax.legend()
     fig.tight_layout()
     save_figure(fig, path)
@@ -609,35 +665,9 @@ def _memory_figure(newton_rows, path):
 
 
 def main(argv=None):
-    parser = experiment_parser(NAME, __doc__.split("\n\n")[0])
-    parser.add_argument(
-        "--repeats", type=int, default=3, help="timings are the best of this many runs"
-    )
-    parser.add_argument("--batch", type=int, default=256, help="trajectories in the batch case")
-    parser.add_argument(
-        "--batch-rtols",
-        type=float,
-        nargs="+",
-        default=[1e-6, 1e-9],
-        help="tolerances of the batch case (scipy's loop at 1e-9 takes long)",
-    )
-    parser.add_argument(
-        "--sections",
-        type=int,
-        nargs="+",
-        choices=(1, 2, 3),
-        default=[1, 2, 3],
-        help="sections of the study to run (see above)",
-    )
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
-    parser.add_argument(
-        "--device",
-        default="cuda" if torch.cuda.is_available() else "cpu",
-        help="device of section 3 (default cuda when available; adds CUDA peak memory)",
-    )
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
-    device = torch.device(args.device)
+    device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     previous_dtype = torch.get_default_dtype()
     previous_threads = torch.get_num_threads()
     torch.set_default_dtype(torch.float64)
@@ -646,16 +676,20 @@ def main(argv=None):
     try:
         if args.quick:
             if 1 in args.sections:
+                note(SECTIONS[1])
                 rows += stiff_rows(
                     t_end=0.3, rtols=(1e-4,), batch=8, n_check=3, ref_rtol=1e-10, repeats=1
                 )
             if 2 in args.sections:
+                note(SECTIONS[2])
                 rows += fixed_rows(t_end=1.0, dt=0.05, repeats=1)
             if 3 in args.sections:
+                note(SECTIONS[3])
                 rows += ift_irk_rows(t_end=1.0, dt=0.05, batch=4, repeats=1, device=device)
                 newton_rows = ift_newton_rows((0, 10), n=8, batch=16, repeats=2, device=device)
         else:
             if 1 in args.sections:
+                note(SECTIONS[1])
                 rows += stiff_rows(
                     t_end=2.0,
                     rtols=(1e-6, 1e-9),
@@ -666,8 +700,10 @@ def main(argv=None):
                     batch_rtols=args.batch_rtols,
                 )
             if 2 in args.sections:
+                note(SECTIONS[2])
                 rows += fixed_rows(t_end=10.0, dt=0.01, repeats=args.repeats)
             if 3 in args.sections:
+                note(SECTIONS[3])
                 rows += ift_irk_rows(
                     t_end=10.0, dt=0.01, batch=16, repeats=args.repeats, device=device
                 )

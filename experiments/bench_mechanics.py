@@ -16,14 +16,38 @@ between the two accelerations.
 
 from __future__ import annotations
 
+import argparse
 import time
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    note,
+    output_dir,
+    parse_early,
+    write_table,
+)
+
+NAME = "bench_mechanics"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument("--masses", type=int, default=50, help="masses of the hanging chain")
+    parser.add_argument("--batch", type=int, default=1024, help="states evaluated in one batch")
+    parser.add_argument(
+        "--repeats", type=int, default=50, help="timings are the best of this many runs"
+    )
+    parser.add_argument("--seed", type=int, default=0, help="seed of the random states")
+    return parser
+
+
+parse_early(__name__, build_parser)
 
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, write_table
 from sysid.zoo import HangingChain, TwoPendulumCranePolar
-
-NAME = "bench_mechanics"
 
 
 def chain_closed_form(plant: HangingChain, x: torch.Tensor) -> torch.Tensor:
@@ -82,23 +106,18 @@ def _case(name, plant, closed, x, repeats):
 
 
 def main(argv=None):
-    parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--masses", type=int, default=50, help="masses of the hanging chain")
-    parser.add_argument("--batch", type=int, default=1024, help="states evaluated in one batch")
-    parser.add_argument(
-        "--repeats", type=int, default=50, help="timings are the best of this many runs"
-    )
-    parser.add_argument("--seed", type=int, default=0, help="seed of the random states")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     if args.quick:
         args.masses, args.batch, args.repeats = 10, 64, 5
     out = output_dir(args, NAME)
     gen = torch.Generator().manual_seed(args.seed)
     chain = HangingChain(n_masses=args.masses, m=0.05, K=20.0)
     x = torch.randn(args.batch, 2 * chain.nq, dtype=torch.float64, generator=gen)
+    note(f"hanging chain, {args.masses} masses, batch {args.batch}")
     rows = _case(f"chain N={args.masses}", chain, chain_closed_form, x, args.repeats)
     crane = TwoPendulumCranePolar()
     x = torch.randn(args.batch, 6, dtype=torch.float64, generator=gen)
+    note("two-pendulum crane (polar)")
     rows += _case("two-pendulum crane (polar)", crane, crane_closed_form, x, args.repeats)
     finish(out, write_table(rows, out / NAME))
     return rows

@@ -27,19 +27,45 @@ Run: ``python -m experiments.bench_sysid [--quick] [--out DIR] [--repeats R]``.
 
 from __future__ import annotations
 
+import argparse
 import time
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    progress,
+    write_table,
+)
+
+NAME = "bench_sysid"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument(
+        "--fir-sets",
+        type=int,
+        default=10_000,
+        help="FIR data sets in the batched least-squares case",
+    )
+    parser.add_argument("--repeats", type=int, default=3, help="best of this many runs")
+    return parser
+
+
+parse_early(__name__, build_parser)
 
 import numpy as np
 import scipy.optimize
 import scipy.signal
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, write_table
 from sysid import OE, IOData, fir_lls, fit, lls
 from sysid.filters import cpu_backend
 from sysid.montecarlo import fir_regressor
 
-NAME = "bench_sysid"
 REPEATS = 3
 
 
@@ -190,15 +216,7 @@ def bench_filter_gradient(N: int) -> list[dict]:
 
 
 def main(argv=None):
-    parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument(
-        "--fir-sets",
-        type=int,
-        default=10_000,
-        help="FIR data sets in the batched least-squares case",
-    )
-    parser.add_argument("--repeats", type=int, default=3, help="best of this many runs")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     global REPEATS
     REPEATS = args.repeats
@@ -206,10 +224,16 @@ def main(argv=None):
     torch.set_num_threads(1)  # same footing as the single-threaded numpy/scipy baselines
     try:
         if args.quick:
-            rows = bench_fir(300, 400) + bench_oe(2000) + bench_filter_gradient(2000)
+            stages = [(bench_fir, 300, 400), (bench_oe, 2000), (bench_filter_gradient, 2000)]
         else:
-            rows = bench_fir(args.fir_sets, 1000) + bench_oe(10_000)
-            rows += bench_filter_gradient(100_000)
+            stages = [
+                (bench_fir, args.fir_sets, 1000),
+                (bench_oe, 10_000),
+                (bench_filter_gradient, 100_000),
+            ]
+        rows = []
+        for bench, *sizes in progress(stages, "benchmarks"):
+            rows += bench(*sizes)
     finally:
         torch.set_num_threads(previous_threads)
     for task in dict.fromkeys(r["task"] for r in rows):

@@ -26,16 +26,38 @@ Run: ``python -m experiments.convergence_explicit [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
 import math
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    progress,
+    reference_slope,
+    save_figure,
+    write_table,
+)
+
+NAME = "convergence_explicit"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, "Global error vs dt of the explicit RK methods.")
+    return parser
+
+
+parse_early(__name__, build_parser)
 
 import numpy as np
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import TABLEAU_NAMES, ButcherTableau, odeint, tableau
 from sysid.zoo import LinearTestEquation, Quadratic
 
-NAME = "convergence_explicit"
 ROUND_OFF_FLOOR = 1e-12  # relative to |x(T)|
 POINTS_IN_FIT = 4
 
@@ -93,50 +115,57 @@ def fitted_slope(dts, errors, scale: float = 1.0) -> float:
 
 
 def main(argv=None) -> list[dict]:
-    parser = experiment_parser(NAME, "Global error vs dt of the explicit RK methods.")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     steps = [round(4 * 2 ** (k / 2)) for k in range(11 if args.quick else 19)]
 
     rows, curves = [], {}
-    for problem, (plant, x0, t_end, exact) in problems().items():
-        for name in explicit_methods():
-            tab = fixed_step_tableau(name)
-            scale = float(exact.abs().max())
-            errors = []
-            for n in steps:
-                errors.append(global_error(plant, x0, t_end, exact, tab, n))
-                if errors[-1] < 0.1 * ROUND_OFF_FLOOR * scale:
-                    break  # finer steps only measure round-off
-            dts = [t_end / n for n in steps[: len(errors)]]
-            slope = fitted_slope(dts, errors, scale=scale)
-            curves[(problem, name)] = (dts, errors)
-            rows.append(
-                {
-                    "problem": problem,
-                    "method": name,
-                    "stages": tab.stages,
-                    "order": tab.order,
-                    "fitted_slope": slope,
-                    "slope_minus_order": slope - tab.order,
-                    "error_at_finest_dt": errors[-1],
-                    "finest_dt": dts[-1],
-                    "n_runs": len(errors),
-                }
-            )
+    setups = problems()
+    cases = [(problem, name) for problem in setups for name in explicit_methods()]
+    for problem, name in progress(cases, "problem x method"):
+        plant, x0, t_end, exact = setups[problem]
+        tab = fixed_step_tableau(name)
+        scale = float(exact.abs().max())
+        errors = []
+        for n in steps:
+            errors.append(global_error(plant, x0, t_end, exact, tab, n))
+            if errors[-1] < 0.1 * ROUND_OFF_FLOOR * scale:
+                break  # finer steps only measure round-off
+        dts = [t_end / n for n in steps[: len(errors)]]
+        slope = fitted_slope(dts, errors, scale=scale)
+        curves[(problem, name)] = (dts, errors)
+        rows.append(
+            {
+                "problem": problem,
+                "method": name,
+                "stages": tab.stages,
+                "order": tab.order,
+                "fitted_slope": slope,
+                "slope_minus_order": slope - tab.order,
+                "error_at_finest_dt": errors[-1],
+                "finest_dt": dts[-1],
+                "n_runs": len(errors),
+            }
+        )
     markdown = write_table(rows, out / "convergence")
 
     problem_names = list(problems())
     fig, axes = plt.subplots(1, len(problem_names), figsize=(16, 5))
     fig.suptitle("Global error vs dt of the explicit RK methods (notes Fig. 6.10-6.11)")
+    orders = {row["method"]: row["order"] for row in rows}
     for ax, problem in zip(axes, problem_names, strict=True):
         for name in explicit_methods():
             dts, errors = curves[(problem, name)]
-            ax.loglog(dts, np.maximum(errors, 1e-17), "o-", ms=3, label=name)
+            (line,) = ax.loglog(
+                dts, np.maximum(errors, 1e-17), "o-", ms=3, label=f"{name} (p = {orders[name]})"
+            )
+            floor = ROUND_OFF_FLOOR * float(setups[problem][3].abs().max())
+            reference_slope(ax, dts, errors, orders[name], floor, color=line.get_color(), lw=1)
+        ax.plot([], [], "k:", lw=1, label="reference slope dt^p")
         ax.set_title(problem)
         ax.set_xlabel("dt")
         ax.set_ylabel("|x_N - x(T)|")
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=7)
     save_figure(fig, out / "convergence.png")
     finish(out, markdown)
     return rows

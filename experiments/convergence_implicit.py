@@ -26,15 +26,39 @@ Run: ``python -m experiments.convergence_implicit [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
 import math
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    note,
+    output_dir,
+    parse_early,
+    progress,
+    readable_log_ticks,
+    reference_slope,
+    save_figure,
+    write_table,
+)
+
+NAME = "convergence_implicit"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, "Global error vs dt of Gauss-Legendre and Radau IIA.")
+    return parser
+
+
+parse_early(__name__, build_parser)
 
 import numpy as np
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import gauss_legendre, odeint, radau_iia, tableau
 
-NAME = "convergence_implicit"
 T_END = 8.0
 X0 = 0.1
 ROUND_OFF_FLOOR = 1e-12
@@ -77,7 +101,7 @@ def collocation_runs(stages, steps) -> tuple[list[dict], dict, list[dict]]:
     {(family, s): (dts, errors)} and one row per successful run."""
     rows, curves, points = [], {}, []
     for family, build in (("gauss_legendre", gauss_legendre), ("radau_iia", radau_iia)):
-        for s in stages:
+        for s in progress(stages, f"{family} stages"):
             tab = build(s)
             dts, errors, failed = [], [], 0
             for n in steps:
@@ -112,14 +136,15 @@ def collocation_runs(stages, steps) -> tuple[list[dict], dict, list[dict]]:
 
 
 def main(argv=None) -> list[dict]:
-    parser = experiment_parser(NAME, "Global error vs dt of Gauss-Legendre and Radau IIA.")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
 
     # 1. Fig. 7.2: explicit RK2 vs Gauss-Legendre s = 2.
     fig72_steps = [4 * 2**k for k in range(7 if args.quick else 10)]
     fig72 = []
-    for label, method in (("midpoint (ERK2)", tableau("midpoint")), ("gauss_2", gauss_legendre(2))):
+    note("Fig. 7.2: explicit midpoint vs Gauss-Legendre s = 2")
+    fig72_methods = (("midpoint (ERK2)", tableau("midpoint")), ("gauss_2", gauss_legendre(2)))
+    for label, method in fig72_methods:
         options = {} if method.is_explicit else NEWTON
         for n in fig72_steps:
             err, status = global_error(method, n, **options)
@@ -139,6 +164,7 @@ def main(argv=None) -> list[dict]:
 
     # 3. Newton tolerance vs accuracy (Gauss s = 3, N = 64: truncation error ~ 2e-13).
     tol_rows = []
+    note("Newton tolerance vs accuracy (Gauss s = 3)")
     for rtol in (1e-6, 1e-8, 1e-10, 1e-12, 1e-13):
         err, status = global_error(gauss_legendre(3), 64, rtol=rtol, atol=rtol * 1e-2)
         tol_rows.append(
@@ -147,20 +173,31 @@ def main(argv=None) -> list[dict]:
     write_table(tol_rows, out / "newton_tolerance")
 
     fig, (ax72, ax_ord) = plt.subplots(1, 2, figsize=(12, 5))
-    for label in ("midpoint (ERK2)", "gauss_2"):
+    for label, method in fig72_methods:
         pts = [r for r in fig72 if r["method"] == label and r["status"] == 0]
-        ax72.loglog(
-            [r["dt"] for r in pts], [max(r["error"], 1e-17) for r in pts], "o-", label=label
+        dts, errors = [r["dt"] for r in pts], [r["error"] for r in pts]
+        (line,) = ax72.loglog(
+            dts, [max(e, 1e-17) for e in errors], "o-", label=f"{label} (p = {method.order})"
         )
+        reference_slope(ax72, dts, errors, method.order, ROUND_OFF_FLOOR, color=line.get_color())
+    ax72.plot([], [], "k:", label="reference slope dt^p")
     ax72.set_title("ERK2 vs IRK4 (Gauss s = 2), logistic eq. (Fig. 7.2)")
     ax72.set_xlabel("dt")
     ax72.set_ylabel("|x_N - x(T)|")
     ax72.legend()
+    orders = {(row["family"], row["stages"]): row["order"] for row in rows}
     for (family, s), (dts, errors) in curves.items():
         style = "o-" if family == "gauss_legendre" else "s--"
-        ax_ord.loglog(dts, np.maximum(errors, 1e-17), style, ms=3, label=f"{family} s={s}")
+        p = orders[(family, s)]
+        (line,) = ax_ord.loglog(
+            dts, np.maximum(errors, 1e-17), style, ms=3, label=f"{family} s={s} (p = {p})"
+        )
+        reference_slope(ax_ord, dts, errors, p, ROUND_OFF_FLOOR, color=line.get_color(), lw=1)
+    ax_ord.plot([], [], "k:", lw=1, label="reference slope dt^p")
     ax_ord.set_title("Gauss-Legendre (order 2s) and Radau IIA (2s-1)")
     ax_ord.set_xlabel("dt")
+    readable_log_ticks(ax_ord.xaxis)
+    ax_ord.set_ylabel("|x_N - x(T)|")
     ax_ord.legend(fontsize=7)
     save_figure(fig, out / "convergence.png")
     finish(out, markdown)

@@ -45,29 +45,48 @@ Run: ``python -m experiments.dae_tikhonov [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from itertools import pairwise
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    progress,
+    save_figure,
+    write_table,
+)
+
+NAME = "dae_tikhonov"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, "Tikhonov convergence eps -> 0 (notes Theorem 8).")
+    parser.add_argument(
+        "--rtol",
+        type=float,
+        default=None,
+        help="solver rtol, atol = rtol/100 (default 1e-10, 1e-7 with --quick)",
+    )
+    return parser
+
+
+parse_early(__name__, build_parser)
 
 import numpy as np
 import torch
 from scipy.linalg import expm
 from torch import nn
 
-from experiments._common import (
-    experiment_parser,
-    finish,
-    output_dir,
-    plt,
-    progress,
-    save_figure,
-    write_table,
-)
+from experiments._common import plt
 from integrators import SemiExplicitDAE, Status, daeint, odeint
 from sysid.zoo import SingularlyPerturbedLinear, TwoMassSystem
 
-NAME = "dae_tikhonov"
 DT = torch.float64
 A_536 = 2.0  # a of eq. (5.36), Fig. 5.1
 K, RHO, M2 = 1e3, 1.0, 1.0  # two-mass parameters of Fig. 5.3
@@ -420,14 +439,7 @@ def run_all(args, rtol, atol, n_pieces, n_per_piece):
 
 
 def main(argv=None) -> list[dict]:
-    parser = experiment_parser(NAME, "Tikhonov convergence eps -> 0 (notes Theorem 8).")
-    parser.add_argument(
-        "--rtol",
-        type=float,
-        default=None,
-        help="solver rtol, atol = rtol/100 (default 1e-10, 1e-7 with --quick)",
-    )
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     rtol = args.rtol or (1e-7 if args.quick else 1e-10)
     atol = rtol / 100
@@ -452,6 +464,7 @@ def main(argv=None) -> list[dict]:
             label = (fam.slow_label, fam.fast_label)[k]
             row_axes[k].set_title(f"{fam.name}: {label}")
             row_axes[k].set_xlabel("t [s]")
+            row_axes[k].set_ylabel(label)
         row_axes[0].legend(fontsize=7)
         e = np.array([r["eps"] for r in fam_rows])
         row_axes[2].loglog(e, [r["dev_slow"] for r in fam_rows], "o", label="Radau IIA vs limit")
@@ -459,6 +472,7 @@ def main(argv=None) -> list[dict]:
         ref = fam_rows[-1]["dev_slow_exact"] * e / e[-1]
         row_axes[2].loglog(e, ref, "k:", label="slope 1")
         row_axes[2].set_xlabel("eps")
+        row_axes[2].set_ylabel("deviation from the limit")
         row_axes[2].set_title("max |x_eps - x_0| over slow states")
         row_axes[2].legend(fontsize=7)
     save_figure(fig, out / "tikhonov.png")

@@ -20,14 +20,36 @@ Run: ``python -m experiments.dopri5_steps [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+NAME = "dopri5_steps"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, "dopri5 step sizes on Van der Pol (Fig. 6.17-6.18).")
+    parser.add_argument("--t-end", type=float, default=30.0, help="simulated horizon [s]")
+    return parser
+
+
+parse_early(__name__, build_parser)
+
 import numpy as np
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import odeint, tableau
 from sysid.zoo import VanDerPol
 
-NAME = "dopri5_steps"
 X0 = (0.0, 2.0)
 RTOL = ATOL = 1e-6
 MUS = (1.0, 5.0)
@@ -122,9 +144,7 @@ def study(mu: float, t_end: float) -> tuple[dict, dict]:
 
 
 def main(argv=None) -> list[dict]:
-    parser = experiment_parser(NAME, "dopri5 step sizes on Van der Pol (Fig. 6.17-6.18).")
-    parser.add_argument("--t-end", type=float, default=30.0, help="simulated horizon [s]")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     t_end = min(args.t_end, 12.0) if args.quick else args.t_end
     rows, curves = [], {}
@@ -139,6 +159,7 @@ def main(argv=None) -> list[dict]:
         axes[0, col].plot(data["t"], data["x"][:, 1], "k", label="x2 (position)")
         axes[0, col].plot(data["t"], data["x"][:, 0], color="0.6", label="x1 = x2'")
         axes[0, col].set_title(f"Van der Pol, mu = {mu:g} (eq. 6.43)")
+        axes[0, col].set_ylabel("state")
         axes[0, col].legend(fontsize=8)
         axes[1, col].semilogy(data["t_k"], data["h_k"], ".-k", ms=3)
         axes[1, col].set_ylabel("dt chosen by dopri5")

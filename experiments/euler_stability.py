@@ -10,15 +10,36 @@ Run: ``python -m experiments.euler_stability [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
 import math
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+NAME = "euler_stability"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, "Stability limit dt = 2/lambda of explicit Euler (Fig. 6.6).")
+    parser.add_argument("--t-end", type=float, default=3.0, help="simulated horizon [s]")
+    return parser
+
+
+parse_early(__name__, build_parser)
 
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import odeint
 from sysid.zoo import LinearTestEquation
 
-NAME = "euler_stability"
 LAMBDA = 10.0
 DTS = (0.05, 0.1, 0.19, 0.2, 0.21, 0.3)
 PLOTTED = (0.05, 0.19, 0.21)
@@ -35,9 +56,7 @@ def simulate(dt: float, t_end: float) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def main(argv=None) -> list[dict]:
-    parser = experiment_parser(NAME, "Stability limit dt = 2/lambda of explicit Euler (Fig. 6.6).")
-    parser.add_argument("--t-end", type=float, default=3.0, help="simulated horizon [s]")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     t_end = min(args.t_end, 2.0) if args.quick else args.t_end
     rows, runs = [], {}

@@ -21,27 +21,55 @@ is the seconds-long variant the tests use.
 
 from __future__ import annotations
 
-import control
-import numpy as np
-import torch
-from torch.func import functional_call
+import argparse
 
 from experiments._common import (
     experiment_parser,
     finish,
     note,
     output_dir,
-    plt,
+    parse_early,
     save_figure,
     write_table,
 )
+
+NAME = "identify_mass_spring_damper"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument(
+        "--trials",
+        type=int,
+        default=None,
+        help="number of data sets (default 500, 24 with --quick)",
+    )
+    parser.add_argument(
+        "--samples",
+        type=int,
+        default=None,
+        help="samples per data set (default 1000, 200 with --quick)",
+    )
+    parser.add_argument("--noise", type=float, default=0.02, help="output noise std")
+    parser.add_argument("--seed", type=int, default=0, help="seed of inputs and noise")
+    return parser
+
+
+parse_early(__name__, build_parser)
+
+import control
+import numpy as np
+import torch
+from torch.func import functional_call
+
+from experiments._common import plt
 from integrators import odeint, sensitivities
 from integrators.newton import minimize
 from sysid import ARX, OE, IOData, fit, fit_percent, residual_test, zoh_discretize
 from sysid.montecarlo import input_signal
 from sysid.zoo import SpringMassDamper
 
-NAME = "identify_mass_spring_damper"
 TRUE_PHYSICAL = {"m": 1.0, "xi": 0.5, "K": 4.0}
 
 
@@ -127,22 +155,7 @@ def grey_box_fit(u: torch.Tensor, y: torch.Tensor, Ts: float, substeps: int):
 
 
 def main(argv=None):
-    parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument(
-        "--trials",
-        type=int,
-        default=None,
-        help="number of data sets (default 500, 24 with --quick)",
-    )
-    parser.add_argument(
-        "--samples",
-        type=int,
-        default=None,
-        help="samples per data set (default 1000, 200 with --quick)",
-    )
-    parser.add_argument("--noise", type=float, default=0.02, help="output noise std")
-    parser.add_argument("--seed", type=int, default=0, help="seed of inputs and noise")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     trials = args.trials or (24 if args.quick else 500)
     N = args.samples or (200 if args.quick else 1000)
@@ -193,6 +206,13 @@ def main(argv=None):
     ]
     markdown += "\n\n" + write_table(summary, out / "summary")
     _bode(model, truth, Ts, out)
+    normalised = {
+        "OE Gauss-Newton": _normalised_errors(oe.theta, oe.standard_errors, _OE, truth),
+        "grey-box (m, xi, K)": _normalised_errors(
+            grey.theta, grey_se, PHYSICAL_NAMES, TRUE_PHYSICAL
+        ),
+    }
+    _estimates_figure(rows, normalised, out)
     (out / f"{NAME}.md").write_text(markdown + "\n")
     finish(out, markdown)
     return rows, summary
@@ -223,6 +243,78 @@ def _bode(model, truth, Ts, out) -> None:
     ax_phase.set_xlabel("omega (rad/s)")
     ax_mag.legend()
     save_figure(fig, out / "bode.png")
+
+
+def _normalised_errors(theta, se, names, truth) -> np.ndarray:
+    """(estimate - truth) / reported SE of every data set and parameter, flattened; data sets
+    whose fit reported no finite SE are left out. Shapes: theta, se (trials, p)."""
+    true = torch.tensor([truth[n] for n in names], dtype=theta.dtype)
+    z = ((theta.detach() - true) / se.detach()).reshape(-1).numpy()
+    return z[np.isfinite(z)]
+
+
+#: Colour and short label of each estimator in the estimates figure.
+_ESTIMATOR_STYLE = {
+    "ARX least squares": ("C3", "ARX"),
+    "OE Gauss-Newton": ("C0", "OE"),
+    "grey-box (m, xi, K)": ("C2", "grey-box"),
+}
+
+
+def _estimates_figure(rows: list[dict], normalised: dict[str, np.ndarray], out) -> None:
+    """The study's story: top, per parameter, the mean estimate +- the mean reported standard
+    error against the truth (ARX biased, OE and grey-box on the truth); bottom, histograms of
+    the normalised errors (estimate - truth) / SE against the N(0, 1) density, which they
+    follow when the estimator is unbiased and its reported SE is right.
+
+    Args:
+        rows: the ``estimates`` table (keys estimator, parameter, true, mean,
+            mean_reported_se).
+        normalised: estimator -> normalised errors (1-D array), from :func:`_normalised_errors`.
+        out: results folder (writes ``estimates.png``).
+    """
+    parameters = list(dict.fromkeys(r["parameter"] for r in rows))
+    fig = plt.figure(figsize=(2.0 * len(parameters), 7.5))
+    grid = fig.add_gridspec(2, len(parameters), height_ratios=(1.0, 1.1), hspace=0.45, wspace=0.5)
+    fig.suptitle(
+        "Top: mean estimate +- mean reported standard error (SE); dashed: truth. "
+        "Bottom: normalised errors against N(0, 1)."
+    )
+    for j, name in enumerate(parameters):
+        ax = fig.add_subplot(grid[0, j])
+        sel = [r for r in rows if r["parameter"] == name]
+        for x, r in enumerate(sel):
+            color, short = _ESTIMATOR_STYLE[r["estimator"]]
+            ax.errorbar(x, r["mean"], yerr=r["mean_reported_se"], fmt="o", color=color, capsize=4)
+        ax.axhline(sel[0]["true"], color="k", ls="--", lw=1)
+        ax.set_xticks(range(len(sel)), [_ESTIMATOR_STYLE[r["estimator"]][1] for r in sel])
+        ax.set_xlim(-0.6, len(sel) - 0.4)
+        ax.set_title(name)
+        ax.set_xlabel("estimator", fontsize=8)
+        ax.tick_params(axis="y", labelsize=7)
+        if j == 0:
+            ax.set_ylabel("estimate")
+    z_grid = np.linspace(-4.0, 4.0, 200)
+    density = np.exp(-0.5 * z_grid**2) / np.sqrt(2.0 * np.pi)
+    half = len(parameters) // 2
+    spans = (slice(0, half), slice(len(parameters) - half, len(parameters)))
+    for span, (label, z) in zip(spans, normalised.items(), strict=True):
+        ax = fig.add_subplot(grid[1, span])
+        color, short = _ESTIMATOR_STYLE[label]
+        ax.hist(
+            z,
+            bins=np.linspace(-4.0, 4.0, 25),
+            density=True,
+            color=color,
+            alpha=0.6,
+            label=f"{short}: {z.size} estimates",
+        )
+        ax.plot(z_grid, density, "k", lw=1.5, label="N(0, 1) density")
+        ax.set_xlabel("(estimate - truth) / reported SE")
+        ax.set_ylabel("density")
+        ax.set_title(f"{label}: normalised errors", fontsize=9)
+        ax.legend(fontsize=7)
+    save_figure(fig, out / "estimates.png")
 
 
 if __name__ == "__main__":

@@ -24,16 +24,36 @@ Run: ``python -m experiments.implicit_euler_stiff [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
 import math
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+NAME = "implicit_euler_stiff"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, "Implicit Euler on the stiff system eq. 6.42 (Fig. 7.1).")
+    return parser
+
+
+parse_early(__name__, build_parser)
 
 import numpy as np
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import odeint, tableau
 from sysid.zoo import StiffLinear
 
-NAME = "implicit_euler_stiff"
 EPS = 5e-4
 
 
@@ -61,8 +81,7 @@ def simulate(plant, x0, t_end: float, dt: float, method: str):
 
 
 def main(argv=None) -> list[dict]:
-    parser = experiment_parser(NAME, "Implicit Euler on the stiff system eq. 6.42 (Fig. 7.1).")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     plant = StiffLinear(eps=EPS)
     x0 = initial_state()
@@ -108,7 +127,8 @@ def main(argv=None) -> list[dict]:
             every = max(1, len(t) // 40)
             ax.plot(t[::every], x[::every, i], marker, ms=3, mfc="none", label=f"{method} dt={dt}")
         ax.set_title(f"x{i + 1}")
-        ax.set_xlabel("t")
+        ax.set_xlabel("t [s]")
+        ax.set_ylabel(f"x{i + 1}")
     axes[0, 0].legend(fontsize=8)
     fig.suptitle("Implicit Euler on the stiff system (6.42) (Fig. 7.1)")
     save_figure(fig, out / "trajectories.png")

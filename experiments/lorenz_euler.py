@@ -14,15 +14,41 @@ Run: ``python -m experiments.lorenz_euler [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    note,
+    output_dir,
+    parse_early,
+    progress,
+    readable_log_ticks,
+    reference_slope,
+    save_figure,
+    write_table,
+)
+
+NAME = "lorenz_euler"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, "Explicit Euler on the Lorenz system (Fig. 6.2-6.5).")
+    parser.add_argument("--t-end", type=float, default=20.0, help="horizon of Fig. 6.2-6.4 [s]")
+    return parser
+
+
+parse_early(__name__, build_parser)
+
 import numpy as np
 import torch
 from scipy.integrate import solve_ivp
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import odeint
 from sysid.zoo import Lorenz
 
-NAME = "lorenz_euler"
 X0 = (1.0, 1.0, 1.0)
 FIGURE_DTS = (1e-2, 10**-2.5, 1e-3)
 DEPARTURE_FRACTION = 0.1
@@ -63,18 +89,17 @@ def departure_time(t: np.ndarray, error: np.ndarray, threshold: float) -> float:
 
 
 def main(argv=None) -> dict[str, list[dict]]:
-    parser = experiment_parser(NAME, "Explicit Euler on the Lorenz system (Fig. 6.2-6.5).")
-    parser.add_argument("--t-end", type=float, default=20.0, help="horizon of Fig. 6.2-6.4 [s]")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     t_end = min(args.t_end, 10.0) if args.quick else args.t_end
     plant = Lorenz(sigma=10.0, rho=28.0, beta=3.0)
+    note(f"DOP853 reference on [0, {t_end:g}] s")
     ref = reference(plant, t_end)
     amplitude = float(np.abs(ref(np.linspace(0.0, t_end, 20001))).max())
     threshold = DEPARTURE_FRACTION * amplitude
 
     departure_rows, runs = [], {}
-    for dt in FIGURE_DTS:
+    for dt in progress(FIGURE_DTS, "Euler runs of Fig. 6.2-6.4"):
         t, x = euler(plant, dt, t_end)
         error = np.abs(x - ref(t).T).max(axis=1)
         runs[dt] = (t, x, error)
@@ -92,7 +117,7 @@ def main(argv=None) -> dict[str, list[dict]]:
 
     exponents = np.arange(-2.5, -3.26, -0.25) if args.quick else np.arange(-2.0, -4.01, -0.25)
     error_rows = []
-    for log_dt in exponents:
+    for log_dt in progress(exponents, "step sizes (global error at t = 1)"):
         dt = 10.0**log_dt
         t, x = euler(plant, dt, 1.0)
         error_rows.append(
@@ -114,16 +139,28 @@ def main(argv=None) -> dict[str, list[dict]]:
     fig, axes = plt.subplots(len(FIGURE_DTS) + 1, 1, figsize=(9, 11))
     for ax, dt in zip(axes[:-1], FIGURE_DTS, strict=True):
         t, x, _ = runs[dt]
-        ax.plot(t, ref(t).T, color="0.7", lw=2)
-        ax.plot(t, x, color="k", lw=0.8)
-        ax.axvline(departure_rows[FIGURE_DTS.index(dt)]["departure_time"], color="r", ls="--")
-        ax.set_title(f"explicit Euler, dt = 10^{np.log10(dt):.1f} (grey: DOP853 reference)")
-        ax.set_ylabel("x1, x2, x3")
+        reference_states = ref(t)
+        for i, color in enumerate(("C0", "C1", "C2")):
+            ax.plot(t, reference_states[i], color=color, lw=2.5, alpha=0.3)
+            ax.plot(t, x[:, i], color=color, lw=0.8, label=f"x{i + 1}")
+        ax.plot([], [], color="0.5", lw=2.5, alpha=0.4, label="DOP853 reference (wide, pale)")
+        ax.axvline(
+            departure_rows[FIGURE_DTS.index(dt)]["departure_time"],
+            color="r",
+            ls="--",
+            label="departure time",
+        )
+        ax.set_title(f"explicit Euler, dt = 10^{np.log10(dt):.1f}")
+        ax.set_ylabel("state")
+    axes[0].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     axes[-2].set_xlabel("t [s]")
     dts = np.array([r["dt"] for r in error_rows])
-    axes[-1].loglog(dts, [r["global_error"] for r in error_rows], "o-k", label="Euler at t = 1")
-    axes[-1].loglog(dts, dts * fit[0]["global_error"] / fit[0]["dt"], ":", label="slope 1")
+    errors = [r["global_error"] for r in error_rows]
+    axes[-1].loglog(dts, errors, "o-k", label="Euler at t = 1")
+    reference_slope(axes[-1], dts, errors, 1.0, color="C0", label="reference slope dt^1")
     axes[-1].set_xlabel("dt")
+    readable_log_ticks(axes[-1].xaxis)
+    readable_log_ticks(axes[-1].yaxis)
     axes[-1].set_ylabel("global error")
     axes[-1].legend()
     fig.tight_layout()

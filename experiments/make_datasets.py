@@ -31,21 +31,62 @@ about 3 s together, nearly all of it the two eager RK4 simulations).
 
 from __future__ import annotations
 
+import argparse
 import pathlib
 from collections.abc import Callable
 from dataclasses import dataclass
+
+from experiments._common import (
+    DATASETS_DIR,
+    experiment_parser,
+    finish,
+    markdown_table,
+    output_dir,
+    parse_early,
+    progress,
+)
+
+NAME = "make_datasets"
+#: The names of ``DATASETS`` below, in their order (``--only`` choices, known before the imports).
+DATASET_NAMES = (
+    "msd_identification",
+    "msd_validation",
+    "vdp_reference",
+    "lorenz_reference",
+    "stiff_vdp_reference",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(
+        NAME, "Regenerate or check the versioned data sets of datasets/.", DATASETS_DIR
+    )
+    parser.add_argument(
+        "--check",
+        action="store_true",
+        help="regenerate in memory and compare with the files in --out (exit 1 on mismatch)",
+    )
+    parser.add_argument(
+        "--only",
+        nargs="+",
+        choices=DATASET_NAMES,
+        metavar="NAME",
+        help=f"data sets to write or check, of: {', '.join(DATASET_NAMES)} (default: all)",
+    )
+    return parser
+
+
+parse_early(__name__, build_parser)
 
 import numpy as np
 import torch
 from scipy.integrate import solve_ivp
 
 from experiments import identify_mass_spring_damper as job
-from experiments._common import experiment_parser, finish, markdown_table, output_dir, progress
-from experiments._datasets import DATASETS_DIR, load_csv
+from experiments._datasets import load_csv
 from integrators.errors import InputValidationError
 from sysid.montecarlo import input_signal, noise_signal
-
-NAME = "make_datasets"
 
 #: Identification experiments (as in the main job's ``main``).
 TS = 0.1  # sample time [s]
@@ -377,21 +418,7 @@ def _failure_message(row: dict, folder: pathlib.Path) -> str:
 
 
 def main(argv=None) -> list[dict]:
-    parser = experiment_parser(
-        NAME, "Regenerate or check the versioned data sets of datasets/.", DATASETS_DIR
-    )
-    parser.add_argument(
-        "--check",
-        action="store_true",
-        help="regenerate in memory and compare with the files in --out (exit 1 on mismatch)",
-    )
-    parser.add_argument(
-        "--only",
-        nargs="+",
-        choices=list(BY_NAME),
-        metavar="NAME",
-        help=f"data sets to write or check, of: {', '.join(BY_NAME)} (default: all)",
-    )
+    parser = build_parser()
     args = parser.parse_args(argv)
     selected = [BY_NAME[n] for n in args.only] if args.only else list(DATASETS)
     if args.quick:

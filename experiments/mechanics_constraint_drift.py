@@ -11,13 +11,36 @@ half of the run, max |cdot|) and ``constraint_drift.png`` (|c(t)|).
 
 from __future__ import annotations
 
+import argparse
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+NAME = "mechanics_constraint_drift"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument("--dt", type=float, default=0.05, help="RK4 step [s]")
+    parser.add_argument("--t-end", type=float, default=40.0, help="simulated horizon [s]")
+    return parser
+
+
+parse_early(__name__, build_parser)
+
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import odeint
 from sysid.zoo import Bowl, RigidCraneCartesian
 
-NAME = "mechanics_constraint_drift"
 DT = torch.float64
 
 
@@ -58,10 +81,7 @@ def run(plant_name, alphas, dt, t_end):
 
 
 def main(argv=None):
-    parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--dt", type=float, default=0.05, help="RK4 step [s]")
-    parser.add_argument("--t-end", type=float, default=40.0, help="simulated horizon [s]")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     if args.quick:
         args.dt, args.t_end = 0.1, 8.0
     out = output_dir(args, NAME)
@@ -76,6 +96,7 @@ def main(argv=None):
             ax.semilogy(t, c[i].clamp_min(1e-16), label=label)
         ax.set_title(f"{plant_name}: |c(q(t))|, RK4 dt={args.dt:g}")
         ax.set_xlabel("t [s]")
+        ax.set_ylabel("constraint residual |c(q)|")
         ax.legend(fontsize=8)
     save_figure(fig, out / "constraint_drift.png")
     finish(out, write_table(rows, out / "constraint_drift"))

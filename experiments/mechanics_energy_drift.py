@@ -11,13 +11,37 @@ run) and ``energy_drift.png`` (|E(t) - E0|).
 
 from __future__ import annotations
 
+import argparse
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+NAME = "mechanics_energy_drift"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument("--masses", type=int, default=10, help="masses of the hanging chain")
+    parser.add_argument("--t-end", type=float, default=40.0, help="simulated horizon [s]")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the chain initial state")
+    return parser
+
+
+parse_early(__name__, build_parser)
+
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import odeint
 from sysid.zoo import Crane, HangingChain
 
-NAME = "mechanics_energy_drift"
 DT = torch.float64
 
 
@@ -56,11 +80,7 @@ def run(plant, x0, dt, t_end, name):
 
 
 def main(argv=None):
-    parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--masses", type=int, default=10, help="masses of the hanging chain")
-    parser.add_argument("--t-end", type=float, default=40.0, help="simulated horizon [s]")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the chain initial state")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     cases = ["chain", "crane"]
     if args.quick:
         args.masses, args.t_end, cases = 3, 10.0, ["chain"]
@@ -81,6 +101,7 @@ def main(argv=None):
             ax.semilogy(t, err.clamp_min(1e-17), label=method)
         ax.set_title(f"{case}: |E(t) - E(0)|, dt={dt:g}")
         ax.set_xlabel("t [s]")
+        ax.set_ylabel("energy error |E(t) - E(0)| [J]")
         ax.legend(fontsize=8)
     save_figure(fig, out / "energy_drift.png")
     finish(out, write_table(rows, out / "energy_drift"))

@@ -12,15 +12,45 @@ time, and the constraint residual of the Cartesian model.
 
 from __future__ import annotations
 
+import argparse
 import time
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+NAME = "mechanics_two_pendulum"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument("--t-end", type=float, default=3.0, help="simulated horizon [s]")
+    parser.add_argument(
+        "--batch", type=int, default=256, help="states in the right-hand-side timing batch"
+    )
+    parser.add_argument(
+        "--alpha",
+        type=float,
+        default=5.0,
+        help="Baumgarte stabilisation gain of the Cartesian model",
+    )
+    return parser
+
+
+parse_early(__name__, build_parser)
 
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import odeint
 from sysid.zoo import TwoPendulumCraneCartesian, TwoPendulumCranePolar
 
-NAME = "mechanics_two_pendulum"
 DT = torch.float64
 
 
@@ -55,18 +85,7 @@ def _simulate(model, x0, t_end, dt):
 
 
 def main(argv=None):
-    parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--t-end", type=float, default=3.0, help="simulated horizon [s]")
-    parser.add_argument(
-        "--batch", type=int, default=256, help="states in the right-hand-side timing batch"
-    )
-    parser.add_argument(
-        "--alpha",
-        type=float,
-        default=5.0,
-        help="Baumgarte stabilisation gain of the Cartesian model",
-    )
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     steps = [0.04, 0.02, 0.01]
     if args.quick:
         args.t_end, args.batch, steps = 1.0, 16, [0.04, 0.02]

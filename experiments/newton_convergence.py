@@ -18,16 +18,38 @@ Run: ``python -m experiments.newton_convergence [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
 import math
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+NAME = "newton_convergence"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(
+        NAME, "Quadratic vs linear Newton convergence and damping (notes Fig. 3.2-3.5)."
+    )
+    return parser
+
+
+parse_early(__name__, build_parser)
 
 import numpy as np
 import torch
 from scipy.optimize import fsolve
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import batch_jacobian, newton
 
-NAME = "newton_convergence"
 F64 = torch.float64
 ERROR_FLOOR = 1e-14
 
@@ -85,10 +107,7 @@ def run_case(problem, phi, x0, x_star, label, max_iter, predicted=math.nan, **op
 
 
 def main(argv=None) -> list[dict]:
-    parser = experiment_parser(
-        NAME, "Quadratic vs linear Newton convergence and damping (notes Fig. 3.2-3.5)."
-    )
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     max_iter = 100 if args.quick else 200
     tol = 1e-14

@@ -12,13 +12,36 @@ Run: ``python -m experiments.stability_regions [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+NAME = "stability_regions"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(
+        NAME, "Stability regions of the explicit Runge-Kutta methods (notes Fig. 6.7, 6.14)."
+    )
+    return parser
+
+
+parse_early(__name__, build_parser)
+
 import numpy as np
 from scipy.optimize import brentq
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from integrators import TABLEAU_NAMES, ButcherTableau, tableau
 
-NAME = "stability_regions"
 EXPLICIT_METHODS = tuple(n for n in TABLEAU_NAMES if tableau(n).is_explicit)
 
 
@@ -74,6 +97,26 @@ def stability_table(methods=EXPLICIT_METHODS) -> list[dict]:
     return rows
 
 
+def same_region_groups(methods, Z) -> list[tuple[list[str], np.ndarray]]:
+    """The methods grouped by their stability function on the grid ``Z`` (complex array):
+    methods whose |R| agree at every point of ``Z`` (e.g. the two-stage second-order methods,
+    which all have R(z) = 1 + z + z^2/2) share one |R(z)| = 1 curve.
+
+    Returns:
+        ``[(names, |R| on Z), ...]`` in the order of ``methods``' first members.
+    """
+    groups: list[tuple[list[str], np.ndarray]] = []
+    for name in methods:
+        R = np.abs(tableau(name).stability_function(Z))
+        for names, R_group in groups:
+            if np.allclose(R, R_group, rtol=1e-10, atol=1e-12):
+                names.append(name)
+                break
+        else:
+            groups.append(([name], R))
+    return groups
+
+
 def plot_regions(methods, n_grid: int):
     """Figure: Euler's disc (Fig. 6.7) and the |R| = 1 contours of all methods (Fig. 6.14)."""
     x = np.linspace(-4.0, 1.5, n_grid)
@@ -84,13 +127,20 @@ def plot_regions(methods, n_grid: int):
     ax_euler.contourf(x, y, euler, levels=[0.0, 1.0], colors=["0.75"])
     ax_euler.contour(x, y, euler, levels=[1.0], colors="k")
     ax_euler.set_title("explicit Euler: |1 + z| <= 1 (Fig. 6.7)")
-    colors = plt.cm.viridis(np.linspace(0, 0.9, len(methods)))
-    for name, color in zip(methods, colors, strict=True):
-        R = np.abs(tableau(name).stability_function(Z))
-        ax_all.contour(x, y, R, levels=[1.0], colors=[color])
-        ax_all.plot([], [], color=color, label=name)
+    styles = ["-", "--", "-.", ":"]
+    groups = same_region_groups(methods, Z)
+    for k, (names, R) in enumerate(groups):
+        color, style = f"C{k}", styles[k % len(styles)]
+        ax_all.contour(x, y, R, levels=[1.0], colors=[color], linestyles=[style], linewidths=1.8)
+        ax_all.plot([], [], color=color, ls=style, lw=1.8, label=" = ".join(names))
     ax_all.set_title("|R(z)| = 1 of the explicit methods (Fig. 6.14)")
-    ax_all.legend(loc="upper left", fontsize=8)
+    ax_all.legend(
+        loc="upper left",
+        bbox_to_anchor=(1.02, 1.0),
+        fontsize=8,
+        title="one curve per R(z)",
+        title_fontsize=8,
+    )
     for ax in (ax_euler, ax_all):
         ax.axhline(0.0, color="0.5", lw=0.5)
         ax.axvline(0.0, color="0.5", lw=0.5)
@@ -101,10 +151,7 @@ def plot_regions(methods, n_grid: int):
 
 
 def main(argv=None) -> list[dict]:
-    parser = experiment_parser(
-        NAME, "Stability regions of the explicit Runge-Kutta methods (notes Fig. 6.7, 6.14)."
-    )
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     rows = stability_table()
     markdown = write_table(rows, out / "stability_intervals")

@@ -22,12 +22,35 @@ Run: ``python -m experiments.stability_regions_implicit [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
-import numpy as np
+import argparse
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
-from integrators import ButcherTableau, gauss_legendre, radau_iia, tableau
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
 
 NAME = "stability_regions_implicit"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(
+        NAME, "Stability regions, A- and L-stability of the implicit RK methods (notes §7.3)."
+    )
+    return parser
+
+
+parse_early(__name__, build_parser)
+
+import numpy as np
+
+from experiments._common import plt
+from integrators import ButcherTableau, gauss_legendre, radau_iia, tableau
+
 TOL = 1e-12
 
 
@@ -84,7 +107,7 @@ def plot_regions(methods: dict[str, ButcherTableau], n_grid: int):
     cols = 4
     rows = -(-len(methods) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 4 * rows))
-    for ax, (name, tab) in zip(axes.ravel(), methods.items(), strict=False):
+    for k, (ax, (name, tab)) in enumerate(zip(axes.ravel(), methods.items(), strict=False)):
         R = np.abs(tab.stability_function(Z))
         R = np.where(np.isfinite(R), R, 1e6)
         ax.contourf(x, y, R, levels=[0.0, 1.0], colors=["0.8"])
@@ -94,17 +117,15 @@ def plot_regions(methods: dict[str, ButcherTableau], n_grid: int):
         ax.set_title(f"{name} (grey: |R| <= 1)", fontsize=9)
         ax.set_aspect("equal")
         ax.set_xlabel("Re(lambda dt)")
-        ax.set_ylabel("Im(lambda dt)")
+        if k % cols == 0:  # one y-label per row: the panels' labels would overlap their neighbours
+            ax.set_ylabel("Im(lambda dt)")
     for ax in axes.ravel()[len(methods) :]:
         ax.axis("off")
     return fig
 
 
 def main(argv=None) -> list[dict]:
-    parser = experiment_parser(
-        NAME, "Stability regions, A- and L-stability of the implicit RK methods (notes §7.3)."
-    )
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     methods = implicit_methods()
     rows = stability_table(methods, 400 if args.quick else 2000)

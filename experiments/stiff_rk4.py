@@ -24,15 +24,37 @@ Run: ``python -m experiments.stiff_rk4 [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+NAME = "stiff_rk4"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, "RK4 at its stability limit on the stiff eq. (6.42).")
+    parser.add_argument("--t-end", type=float, default=1.0, help="simulated horizon [s]")
+    return parser
+
+
+parse_early(__name__, build_parser)
+
 import numpy as np
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from experiments.stability_regions import stability_radius
 from integrators import odeint, tableau
 from sysid.zoo import StiffLinear
 
-NAME = "stiff_rk4"
 EPS = 5e-4
 
 
@@ -68,9 +90,7 @@ def run(plant: StiffLinear, x0: torch.Tensor, dt: float, t_end: float):
 
 
 def main(argv=None) -> list[dict]:
-    parser = experiment_parser(NAME, "RK4 at its stability limit on the stiff eq. (6.42).")
-    parser.add_argument("--t-end", type=float, default=1.0, help="simulated horizon [s]")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     t_end = min(args.t_end, 0.5) if args.quick else args.t_end
 
@@ -114,17 +134,20 @@ def main(argv=None) -> list[dict]:
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
     t, x, exact = runs["0.95 dt*"]
     for i, ax in enumerate(axes[:2]):
-        for j in (2 * i, 2 * i + 1):
-            ax.plot(t, exact[:, j], color="0.6", lw=2)
-            ax.plot(t, x[:, j], ":", color="k", label=f"x{j + 1}, RK4 dt = {0.95 * dt_star:.3g}")
-        ax.set_title(("slow states x1, x2", "fast states x3, x4")[i] + " (grey: exact)")
+        for j, color in zip((2 * i, 2 * i + 1), ("C0", "C1"), strict=True):
+            ax.plot(t, exact[:, j], color=color, lw=2.5, alpha=0.3)
+            ax.plot(t, x[:, j], ":", color=color, label=f"x{j + 1}, RK4 dt = {0.95 * dt_star:.3g}")
+        ax.plot([], [], color="0.5", lw=2.5, alpha=0.4, label="exact (wide, pale)")
+        ax.set_title(("slow states x1, x2", "fast states x3, x4")[i])
         ax.set_xlabel("t [s]")
+        ax.set_ylabel("state")
         ax.legend(fontsize=8)
     for label, (t, x, exact) in runs.items():
         err = (x - exact).abs().amax(dim=-1).clamp_min(1e-17)
         axes[2].semilogy(t, err, label=label)
     axes[2].set_title(f"max-norm error (dt* = {dt_star:.4g})")
     axes[2].set_xlabel("t [s]")
+    axes[2].set_ylabel("max |x - x_exact|")
     axes[2].legend(fontsize=8)
     save_figure(fig, out / "stiff_rk4.png")
     finish(out, markdown)

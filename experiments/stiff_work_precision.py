@@ -22,25 +22,44 @@ Run: ``python -m experiments.stiff_work_precision [--quick] [--out DIR] [--repea
 
 from __future__ import annotations
 
+import argparse
 import time
-
-import numpy as np
-import torch
-from scipy.integrate import solve_ivp
 
 from experiments._common import (
     experiment_parser,
     finish,
     output_dir,
-    plt,
+    parse_early,
     progress,
     save_figure,
     write_table,
 )
+
+NAME = "stiff_work_precision"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, "Work-precision of implicit vs explicit RK (Fig. 7.3).")
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=None,
+        help="timings are the best of this many runs (default 3, 1 with --quick)",
+    )
+    return parser
+
+
+parse_early(__name__, build_parser)
+
+import numpy as np
+import torch
+from scipy.integrate import solve_ivp
+
+from experiments._common import plt
 from integrators import ButcherTableau, gauss_legendre, odeint, radau_iia, tableau
 from sysid.zoo import StiffVanDerPol, VanDerPol
 
-NAME = "stiff_work_precision"
 IMPLICIT_TOL = dict(rtol=1e-10, atol=1e-12)  # Newton tolerance of the fixed-step runs
 
 
@@ -146,14 +165,7 @@ def stiff_study(quick: bool, repeats: int) -> tuple[list[dict], float]:
 
 
 def main(argv=None) -> list[dict]:
-    parser = experiment_parser(NAME, "Work-precision of implicit vs explicit RK (Fig. 7.3).")
-    parser.add_argument(
-        "--repeats",
-        type=int,
-        default=None,
-        help="timings are the best of this many runs (default 3, 1 with --quick)",
-    )
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     repeats = args.repeats or (1 if args.quick else 3)
 

@@ -15,23 +15,44 @@ Run: ``python -m experiments.sysid_bode_residuals [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    progress,
+    save_figure,
+    write_table,
+)
+
+NAME = "sysid_bode_residuals"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=2000, help="samples of the data set")
+    parser.add_argument("--sigma", type=float, default=0.3, help="noise standard deviation")
+    return parser
+
+
+parse_early(__name__, build_parser)
+
 import numpy as np
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from sysid import ARX, BJ, OE, fit, fit_percent, residual_test
 from sysid.montecarlo import input_signal, simulate_data
 
-NAME = "sysid_bode_residuals"
 TH_OE = [0.5, 0.3, -1.2, 0.5]
 TH_BJ = [0.5, 0.3, 0.4, -0.6, -1.2, 0.5]
 
 
 def main(argv=None):
-    parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, default=2000, help="samples of the data set")
-    parser.add_argument("--sigma", type=float, default=0.3, help="noise standard deviation")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     N = 600 if args.quick else args.n
     g = torch.Generator().manual_seed(5)
@@ -43,11 +64,15 @@ def main(argv=None):
     oe_data = simulate_data(true, u, noise_std=args.sigma, generator=g)
     bj_data = simulate_data(bj_true, u, noise_std=args.sigma, noise="model", generator=g)
     validation = simulate_data(true, u_val)  # noise-free validation output
+    specs = [
+        ("ARX(2,2) LS", "OE data", ARX(2, 2, 1), oe_data),
+        ("OE(2,2) GN", "OE data", OE(2, 2, 1), oe_data),
+        ("OE(2,2) GN", "BJ data", OE(2, 2, 1), bj_data),
+        ("BJ(2,1,1,2) GN", "BJ data", BJ(2, 1, 1, 2, 1), bj_data),
+    ]
     cases = [
-        ("ARX(2,2) LS", "OE data", fit(ARX(2, 2, 1), oe_data), oe_data),
-        ("OE(2,2) GN", "OE data", fit(OE(2, 2, 1), oe_data), oe_data),
-        ("OE(2,2) GN", "BJ data", fit(OE(2, 2, 1), bj_data), bj_data),
-        ("BJ(2,1,1,2) GN", "BJ data", fit(BJ(2, 1, 1, 2, 1), bj_data), bj_data),
+        (name, on, fit(model, data), data)
+        for name, on, model, data in progress(specs, "model fits")
     ]
     omega = torch.logspace(-2, np.log10(np.pi), 200, dtype=torch.float64)
     G_true = true.frequency_response(omega)[:, 0]
@@ -90,9 +115,12 @@ def main(argv=None):
         axes[i, 0].stem(rt.lags[1:], rt.autocorrelation[1:], basefmt=" ")
         axes[i, 0].axhspan(-rt.bound, rt.bound, color="0.85")
         axes[i, 0].set_title(f"{label}: residual autocorrelation", fontsize=8)
+        axes[i, 0].set_ylabel("correlation")
         axes[i, 1].stem(rt.cross_lags, rt.cross_correlation[0], basefmt=" ")
         axes[i, 1].axhspan(-rt.bound, rt.bound, color="0.85")
         axes[i, 1].set_title("cross-correlation with input (lag > 0: past inputs)", fontsize=8)
+    axes[-1, 0].set_xlabel("lag [samples]")
+    axes[-1, 1].set_xlabel("lag [samples]")
     fig.tight_layout()
     save_figure(fig, out / "residuals.png")
     markdown = write_table(rows, out / "bode_residuals")

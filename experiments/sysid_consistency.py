@@ -22,26 +22,50 @@ Run: ``python -m experiments.sysid_consistency [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
 import csv
 import io
 import math
 
-import numpy as np
-import torch
-
 from experiments._common import (
     atomic_write_text,
     experiment_parser,
+    finish,
     output_dir,
-    plt,
+    parse_early,
     progress,
+    readable_log_ticks,
     save_figure,
     write_table,
 )
+
+NAME = "sysid_consistency"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument("--trials", type=int, default=200, help="Monte-Carlo data sets per N")
+    parser.add_argument("--sigma", type=float, default=0.5, help="noise standard deviation")
+    parser.add_argument(
+        "--ns",
+        type=int,
+        nargs="+",
+        default=[250, 500, 1000, 2000, 4000, 8000],
+        help="data lengths N",
+    )
+    return parser
+
+
+parse_early(__name__, build_parser)
+
+import numpy as np
+import torch
+
+from experiments._common import plt
 from sysid import ARX, OE, fit
 from sysid.montecarlo import input_signal, simulate_data, summarize_estimates
 
-NAME = "sysid_consistency"
 B_TRUE = [0.5, 0.3]
 F_TRUE = [-1.2, 0.5]
 FIELDS = [
@@ -151,26 +175,15 @@ def loglog_slope(ns, values) -> float:
 
 
 def main(argv=None):
-    parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--trials", type=int, default=200, help="Monte-Carlo data sets per N")
-    parser.add_argument("--sigma", type=float, default=0.5, help="noise standard deviation")
-    parser.add_argument(
-        "--ns",
-        type=int,
-        nargs="+",
-        default=[250, 500, 1000, 2000, 4000, 8000],
-        help="data lengths N",
-    )
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     trials = 60 if args.quick else args.trials
     ns = [200, 800] if args.quick else args.ns
     partial = out / "consistency.csv"
     done = _load(partial)
     have = {int(r["N"]) for r in done if int(r["trials"]) == trials and r["sigma"] == args.sigma}
-    for N in progress(
-        ns, "data lengths N"
-    ):  # resumable: the file holds every finished N, rewritten atomically
+    # resumable: the file holds every finished N, rewritten atomically
+    for N in progress(ns, "data lengths N"):
         if N in have:
             continue
         done += run_n(N, trials, args.sigma, seed=N)
@@ -208,14 +221,20 @@ def main(argv=None):
     axes[1].loglog(n_all, rows[0]["std_f1"] * np.sqrt(n_all[0] / n_all), "k:", label="1/sqrt(N)")
     axes[0].set_title("|bias| of a1 (ARX) / f1 (OE)")
     axes[1].set_title("standard deviation of a1 / f1")
+    axes[0].set_ylabel("|mean estimate - true value|")
+    axes[1].set_ylabel("standard deviation over the data sets")
     for ax in axes:
-        ax.set_xlabel("N")
+        ax.set_xlabel("N (samples)")
+        ax.set_xticks(n_all, [str(n) for n in n_all])  # one label per data length, no minor labels
+        ax.minorticks_off()
+        readable_log_ticks(ax.yaxis)
         ax.legend(fontsize=7)
     fig.tight_layout()
     save_figure(fig, out / "consistency.png")
     write_table(rows, out / "consistency_table")
     markdown = write_table(summary, out / "consistency_summary")
     (out / "README.md").write_text(f"# {NAME}\n\n{__doc__}\n\n{markdown}")
+    finish(out, markdown)
     return summary
 
 

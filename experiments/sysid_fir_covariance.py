@@ -10,30 +10,42 @@ Run: ``python -m experiments.sysid_fir_covariance [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
-import torch
+import argparse
 
 from experiments._common import (
     experiment_parser,
     finish,
     output_dir,
-    plt,
+    parse_early,
     progress,
     save_figure,
     write_table,
 )
-from experiments.sysid_fir_inputs import true_fir
-from sysid import lls
-from sysid.montecarlo import fir_regressor, input_signal, noise_signal, summarize_estimates
 
 NAME = "sysid_fir_covariance"
 
 
-def main(argv=None):
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
     parser = experiment_parser(NAME, __doc__.splitlines()[0])
     parser.add_argument("--trials", type=int, default=20_000, help="Monte-Carlo data sets")
     parser.add_argument("--n", type=int, default=1000, help="samples per data set")
     parser.add_argument("--sigma", type=float, default=0.5, help="noise standard deviation")
-    args = parser.parse_args(argv)
+    return parser
+
+
+parse_early(__name__, build_parser)
+
+import torch
+
+from experiments._common import plt
+from experiments.sysid_fir_inputs import true_fir
+from sysid import lls
+from sysid.montecarlo import fir_regressor, input_signal, noise_signal, summarize_estimates
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     trials = 2000 if args.quick else args.trials
     N = 300 if args.quick else args.n
@@ -84,9 +96,13 @@ def main(argv=None):
         axes[r, 0].set_title(f"{kind}: empirical covariance")
         axes[r, 1].imshow(pred, cmap="RdBu_r", vmin=-vmax, vmax=vmax)
         axes[r, 1].set_title("sigma^2 (U'U)^-1 (eq. 4.101)")
+        for ax in axes[r, :2]:
+            ax.set_xlabel("tap j")
+            ax.set_ylabel("tap i")
         axes[r, 2].plot(emp.diagonal() ** 0.5, "ko", label="empirical std")
         axes[r, 2].plot(pred.diagonal() ** 0.5, "-", color="0.5", label="predicted std")
         axes[r, 2].set_xlabel("tap")
+        axes[r, 2].set_ylabel("standard deviation")
         axes[r, 2].legend(fontsize=7)
     fig.tight_layout()
     save_figure(fig, out / "fir_covariance.png")

@@ -14,16 +14,37 @@ Run: ``python -m experiments.sysid_fir_inputs [--quick] [--out DIR]``.
 
 from __future__ import annotations
 
+import argparse
 import warnings
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    save_figure,
+    write_table,
+)
+
+NAME = "sysid_fir_inputs"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=200, help="samples per experiment")
+    parser.add_argument("--noise", type=float, default=0.01, help="measurement noise std")
+    return parser
+
+
+parse_early(__name__, build_parser)
 
 import torch
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from sysid import FIR, fit_percent, lls
 from sysid.errors import PoorExcitationWarning
 from sysid.montecarlo import INPUT_KINDS, fir_regressor, input_signal, simulate_data
-
-NAME = "sysid_fir_inputs"
 
 
 def true_fir(n_taps: int = 20) -> torch.Tensor:
@@ -33,10 +54,7 @@ def true_fir(n_taps: int = 20) -> torch.Tensor:
 
 
 def main(argv=None):
-    parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, default=200, help="samples per experiment")
-    parser.add_argument("--noise", type=float, default=0.01, help="measurement noise std")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     N = args.n  # the study is small; --quick changes nothing but is accepted
     n_taps = 20
@@ -73,7 +91,7 @@ def main(argv=None):
     for row, kind in enumerate(INPUT_KINDS):
         data, y_est, theta = fits[kind]
         axes[row, 0].plot(data.u[:, 0], color="k")
-        axes[row, 0].set_ylabel(kind)
+        axes[row, 0].set_ylabel(f"{kind} input")
         axes[row, 1].plot(data.y[:, 0], color="k", label="system")
         axes[row, 1].plot(y_est[:, 0], color="0.6", ls="--", label="model")
         axes[row, 2].plot(b, "ko-", ms=3, label="true")
@@ -81,6 +99,9 @@ def main(argv=None):
     axes[0, 0].set_title("input u")
     axes[0, 1].set_title("output y (estimation data)")
     axes[0, 2].set_title("FIR parameters")
+    for ax in axes[-1, :2]:
+        ax.set_xlabel("sample k")
+    axes[-1, 2].set_xlabel("tap")
     axes[0, 1].legend(fontsize=7)
     axes[0, 2].legend(fontsize=7)
     fig.tight_layout()

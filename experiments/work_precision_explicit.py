@@ -25,19 +25,41 @@ Run: ``python -m experiments.work_precision_explicit [--quick] [--out DIR] [--re
 
 from __future__ import annotations
 
+import argparse
 import math
 import time
+
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    progress,
+    save_figure,
+    write_table,
+)
+
+NAME = "work_precision_explicit"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, "Work-precision of the explicit RK methods (Fig. 6.13).")
+    parser.add_argument("--repeats", type=int, default=3, help="timing repeats (best kept)")
+    return parser
+
+
+parse_early(__name__, build_parser)
 
 import numpy as np
 import torch
 from scipy.integrate import solve_ivp
 
-from experiments._common import experiment_parser, finish, output_dir, plt, save_figure, write_table
+from experiments._common import plt
 from experiments.convergence_explicit import explicit_methods, fixed_step_tableau
 from integrators import odeint
 from sysid.zoo import LinearTestEquation, VanDerPol
 
-NAME = "work_precision_explicit"
 ROUND_OFF_FLOOR = 1e-12
 POINTS_IN_FIT = 4
 TARGETS = (1e-6, 1e-10)
@@ -110,9 +132,7 @@ def evals_for(target: float, n_evals, errors) -> float:
 
 
 def main(argv=None) -> dict[str, list[dict]]:
-    parser = experiment_parser(NAME, "Work-precision of the explicit RK methods (Fig. 6.13).")
-    parser.add_argument("--repeats", type=int, default=3, help="timing repeats (best kept)")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
     repeats = 1 if args.quick else max(1, args.repeats)
     steps = [round(8 * 2 ** (k / 2)) for k in range(11 if args.quick else 19)]
@@ -123,7 +143,7 @@ def main(argv=None) -> dict[str, list[dict]]:
     for problem, (plant, x0, t_end, exact) in cases.items():
         runs = {name: fixed_step_tableau(name) for name in explicit_methods()}
         runs["dopri5 adaptive"] = "dopri5"
-        for label, method in runs.items():
+        for label, method in progress(runs.items(), f"{problem}: methods", total=len(runs)):
             evals, errors = [], []
             adaptive = method == "dopri5"
             for setting in tolerances if adaptive else steps:

@@ -2,6 +2,8 @@
 dynamo's compile caches are reset before every test module."""
 
 import functools
+import math
+import os
 
 import numpy as np
 import pytest
@@ -110,3 +112,49 @@ def same_values_and_gradients():
     """``same_values_and_gradients(x_a, x_b, loss, params)``: values and gradients agree;
     returns the gradients of ``loss(x_b)``."""
     return _same_values_and_gradients
+
+
+@pytest.fixture
+def saved_figures(monkeypatch):
+    """Every matplotlib figure saved during the test, by file name (e.g. ``"regions.png"``),
+    for checks on its axes, lines and legends (``experiments._common.figure_defects``)."""
+    from matplotlib.figure import Figure
+
+    figures = {}
+    savefig = Figure.savefig
+
+    def recording(self, fname, *args, **kwargs):
+        figures[os.path.basename(str(fname))] = self
+        return savefig(self, fname, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", recording)
+    return figures
+
+
+def _reference_slope_mismatches(ax) -> list[str]:
+    """Curves of ``ax`` labelled ``"... (p = k)"`` without a dotted line of their colour and
+    log-log slope k (``experiments._common.reference_slope``)."""
+    import re
+
+    from matplotlib.colors import same_color
+
+    guides = [line for line in ax.lines if line.get_linestyle() == ":" and len(line.get_xdata())]
+    missing = []
+    for line in ax.lines:
+        match = re.search(r"\(p = (\d+)\)", line.get_label())
+        if not match:
+            continue
+        order = int(match.group(1))
+        slopes = []
+        for guide in guides:
+            if same_color(guide.get_color(), line.get_color()):
+                (x0, x1), (y0, y1) = guide.get_xdata(), guide.get_ydata()
+                slopes.append(math.log(y1 / y0) / math.log(x1 / x0))
+        if not any(abs(s - order) < 1e-9 for s in slopes):
+            missing.append(f"{line.get_label()}: guide slopes {slopes}")
+    return missing
+
+
+@pytest.fixture
+def reference_slope_mismatches():
+    return _reference_slope_mismatches

@@ -1,13 +1,17 @@
 """Console and file conventions shared by every experiment (``experiments/_common.py``):
 ``--quick`` writes to its own folder, ``make_datasets --quick`` leaves ``datasets/`` alone,
-the results folder is the last printed line, and ``--help`` states every option's default."""
+the results folder is the last printed line, and ``--help`` states every option's default
+without importing the heavy libraries."""
 
 from __future__ import annotations
 
 import argparse
 import hashlib
 import importlib
+import os
 import pathlib
+import subprocess
+import sys
 
 import pytest
 
@@ -99,3 +103,43 @@ def test_help_exits_zero_and_states_every_default(name, monkeypatch, capsys):
         elif action.default is None:
             assert "default" in action.help, (name, action.option_strings)
     assert "--quick" in text and f"experiments/out/{name}/quick" in text
+
+
+HEAVY = ("torch", "numpy", "scipy", "matplotlib", "control")
+
+
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_help_imports_no_heavy_library(name):
+    """``python -m experiments.<name> --help`` answers before torch, numpy, scipy, matplotlib
+    and ``control`` are imported (``-X importtime`` lists every module imported)."""
+    root = pathlib.Path(_common.__file__).parent.parent
+    done = subprocess.run(
+        [sys.executable, "-X", "importtime", "-m", f"experiments.{name}", "--help"],
+        cwd=root,
+        env={**os.environ, "PYTHONPATH": str(root)},
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    assert f"python -m experiments.{name}" in done.stdout
+    imported = {
+        line.rsplit("|", 1)[1].strip()
+        for line in done.stderr.splitlines()
+        if line.startswith("import time:")
+    }
+    assert imported, done.stderr  # -X importtime did report
+    assert not [m for m in imported if m.split(".")[0] in HEAVY]
+
+
+def test_make_datasets_names_known_before_imports():
+    """``--only`` choices (light constant) are the data sets ``make_datasets`` defines."""
+    from experiments import make_datasets
+
+    assert make_datasets.DATASET_NAMES == tuple(make_datasets.BY_NAME)
+
+
+def test_progress_bar_is_off_when_stderr_is_not_a_terminal(capsys):
+    """Under capture (not a TTY) the bar writes nothing and yields every item."""
+    assert list(_common.progress(range(5), "items")) == [0, 1, 2, 3, 4]
+    assert capsys.readouterr().err == ""

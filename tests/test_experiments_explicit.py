@@ -9,6 +9,8 @@ import math
 import numpy as np
 import pytest
 
+from experiments._common import figure_defects
+
 
 def read_csv(path) -> list[dict]:
     with open(path, newline="") as handle:
@@ -38,10 +40,16 @@ def test_common_helpers_write_csv_markdown_and_png(tmp_path):
 
 
 # ------------------------------------------------------------ stability regions
-def test_stability_regions_intervals_match_closed_forms(tmp_path):
+def test_stability_regions_intervals_match_closed_forms(tmp_path, saved_figures):
     from experiments import stability_regions
 
     stability_regions.main(["--quick", "--out", str(tmp_path)])
+    fig = saved_figures["regions.png"]
+    assert figure_defects(fig) == []
+    # one curve and one legend entry per stability function: the methods with the same R(z)
+    # (two-stage order 2; the two four-stage order-4 methods) share their curve
+    legend = [t.get_text() for t in fig.axes[1].get_legend().get_texts()]
+    assert legend == ["euler", "midpoint = heun = ralston", "kutta3", "rk4 = rk38", "dopri5"]
     assert (tmp_path / "regions.png").exists() and (tmp_path / "stability_intervals.md").exists()
     rows = by_key(read_csv(tmp_path / "stability_intervals.csv"), "method")
 
@@ -103,12 +111,15 @@ def test_euler_stability_grows_iff_dt_above_two_over_lambda(tmp_path):
 
 
 # ------------------------------------------------------------------ stiff RK4
-def test_stiff_rk4_bounded_below_limit_blows_up_above(tmp_path):
+def test_stiff_rk4_bounded_below_limit_blows_up_above(tmp_path, saved_figures):
     from experiments import stiff_rk4
     from integrators import tableau
     from sysid.zoo import StiffLinear
 
     stiff_rk4.main(["--quick", "--out", str(tmp_path)])
+    assert saved_figures
+    for name, fig in saved_figures.items():
+        assert figure_defects(fig) == [], name  # labelled axes, legible ticks
     rows = by_key(read_csv(tmp_path / "stiff_rk4.csv"), "case")
     # independent limit: |R_rk4(lambda dt)| = 1 on the fast eigenvalue, by bisection
     A = StiffLinear(eps=5e-4).matrix().detach().numpy()
@@ -134,10 +145,22 @@ def test_stiff_rk4_bounded_below_limit_blows_up_above(tmp_path):
 
 
 # -------------------------------------------------------------------- Lorenz
-def test_lorenz_euler_departs_later_for_smaller_dt(tmp_path):
+def test_lorenz_euler_departs_later_for_smaller_dt(
+    tmp_path, saved_figures, reference_slope_mismatches
+):
+    from matplotlib.colors import to_hex
+
     from experiments import lorenz_euler
 
     lorenz_euler.main(["--quick", "--out", str(tmp_path)])
+    fig = saved_figures["lorenz_euler.png"]
+    assert figure_defects(fig) == []
+    legend = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert legend[:3] == ["x1", "x2", "x3"] and "departure time" in legend
+    for ax in fig.axes[:3]:  # the three components in three colours, each as Euler + reference
+        colours = [to_hex(line.get_color()) for line in ax.lines if len(line.get_xdata()) > 2]
+        assert len(set(colours)) == 3 and len(colours) == 6
+    assert any(line.get_linestyle() == ":" for line in fig.axes[3].lines)  # slope-1 guide
     rows = read_csv(tmp_path / "departure.csv")
     rows.sort(key=lambda r: -float(r["dt"]))
     assert [float(r["dt"]) for r in rows] == pytest.approx([1e-2, 10**-2.5, 1e-3])
@@ -150,11 +173,16 @@ def test_lorenz_euler_departs_later_for_smaller_dt(tmp_path):
 
 
 # ---------------------------------------------------------------- convergence
-def test_convergence_slopes_equal_orders(tmp_path):
+def test_convergence_slopes_equal_orders(tmp_path, saved_figures, reference_slope_mismatches):
     from experiments import convergence_explicit
     from integrators import tableau
 
     convergence_explicit.main(["--quick", "--out", str(tmp_path)])
+    fig = saved_figures["convergence.png"]
+    assert figure_defects(fig) == []
+    for ax in fig.axes:  # every curve has its reference slope dt^p, p its order
+        assert len([line for line in ax.lines if "(p = " in line.get_label()]) == 8
+        assert reference_slope_mismatches(ax) == []
     rows = read_csv(tmp_path / "convergence.csv")
     methods = {r["method"] for r in rows}
     assert methods == {"euler", "midpoint", "heun", "ralston", "kutta3", "rk4", "rk38", "dopri5"}
@@ -171,10 +199,13 @@ def test_convergence_slopes_equal_orders(tmp_path):
 
 
 # ------------------------------------------------------------ dopri5 step sizes
-def test_dopri5_steps_shrink_where_the_solution_moves_fast(tmp_path):
+def test_dopri5_steps_shrink_where_the_solution_moves_fast(tmp_path, saved_figures):
     from experiments import dopri5_steps
 
     dopri5_steps.main(["--quick", "--out", str(tmp_path)])
+    assert saved_figures
+    for name, fig in saved_figures.items():
+        assert figure_defects(fig) == [], name  # labelled axes, legible ticks
     rows = {float(r["mu"]): r for r in read_csv(tmp_path / "dopri5_steps.csv")}
     relax = rows[5.0]  # relaxation oscillation: slow drift, then fast jumps (Fig. 6.17)
     assert float(relax["mean_dt_fast_quartile"]) < 0.5 * float(relax["mean_dt_slow_quartile"])

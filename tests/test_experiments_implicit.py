@@ -14,6 +14,8 @@ import math
 
 import numpy as np
 
+from experiments._common import figure_defects
+
 
 def read_csv(path) -> list[dict]:
     with open(path, newline="") as handle:
@@ -34,10 +36,13 @@ def stiff_linear_eigenvalues(eps: float = 5e-4) -> np.ndarray:
     return np.linalg.eigvals(a)
 
 
-def test_implicit_euler_stays_bounded_and_converges_linearly(tmp_path):
+def test_implicit_euler_stays_bounded_and_converges_linearly(tmp_path, saved_figures):
     from experiments import implicit_euler_stiff
 
     implicit_euler_stiff.main(["--quick", "--out", str(tmp_path)])
+    assert saved_figures
+    for name, fig in saved_figures.items():
+        assert figure_defects(fig) == [], name  # labelled axes, legible ticks
     assert (tmp_path / "trajectories.png").exists() and (tmp_path / "implicit_euler.md").exists()
     rows = read_csv(tmp_path / "implicit_euler.csv")
     implicit = {float(r["dt"]): r for r in rows if r["method"] == "implicit_euler"}
@@ -68,10 +73,16 @@ def test_implicit_euler_stays_bounded_and_converges_linearly(tmp_path):
 
 
 # ------------------------------------------------------- convergence orders, Fig. 7.2
-def test_collocation_orders_and_fig72(tmp_path):
+def test_collocation_orders_and_fig72(tmp_path, saved_figures, reference_slope_mismatches):
     from experiments import convergence_implicit
 
     convergence_implicit.main(["--quick", "--out", str(tmp_path)])
+    fig = saved_figures["convergence.png"]
+    assert figure_defects(fig) == []  # includes: no overlapping tick labels on the dt axis
+    ax72, ax_ord = fig.axes
+    assert len([line for line in ax72.lines if "(p = " in line.get_label()]) == 2
+    assert len([line for line in ax_ord.lines if "(p = " in line.get_label()]) == 6
+    assert reference_slope_mismatches(ax72) == [] and reference_slope_mismatches(ax_ord) == []
     assert (tmp_path / "convergence.png").exists()
     rows = read_csv(tmp_path / "orders.csv")
     seen = set()
@@ -136,10 +147,11 @@ def test_stiff_work_precision(tmp_path):
 
 
 # ---------------------------------------------------------- stability regions, §7.3
-def test_stability_regions_implicit(tmp_path):
+def test_stability_regions_implicit(tmp_path, saved_figures):
     from experiments import stability_regions_implicit
 
     stability_regions_implicit.main(["--quick", "--out", str(tmp_path)])
+    assert figure_defects(saved_figures["regions.png"]) == []
     assert (tmp_path / "regions.png").exists()
     rows = by_key(read_csv(tmp_path / "stability.csv"), "method")
     assert len(rows) == 8
@@ -168,10 +180,11 @@ def test_stability_regions_implicit(tmp_path):
 
 
 # ------------------------------------------------------------ sensitivities, §8
-def test_sensitivities_agree(tmp_path):
+def test_sensitivities_agree(tmp_path, saved_figures):
     from experiments import sensitivities_compare
 
     sensitivities_compare.main(["--quick", "--out", str(tmp_path)])
+    assert figure_defects(saved_figures["sensitivities.png"]) == []  # e.g. no bars on log axis
     assert (tmp_path / "sensitivities.png").exists()
     rows = {(r["method"], r["way"]): r for r in read_csv(tmp_path / "sensitivities.csv")}
 

@@ -7,10 +7,14 @@ from experiments import (
     mechanics_energy_drift,
     mechanics_two_pendulum,
 )
+from experiments._common import figure_defects
 
 
-def test_constraint_drift_baumgarte_vs_none(tmp_path):
+def test_constraint_drift_baumgarte_vs_none(tmp_path, saved_figures):
     rows = mechanics_constraint_drift.main(["--quick", "--out", str(tmp_path)])
+    assert saved_figures
+    for name, fig in saved_figures.items():
+        assert figure_defects(fig) == [], name  # labelled axes, legible ticks
     for plant in ("bowl", "crane"):
         runs = {r["alpha"]: r for r in rows if r["plant"] == plant}
         free = runs[0.0]
@@ -27,8 +31,11 @@ def test_constraint_drift_baumgarte_vs_none(tmp_path):
     assert (tmp_path / "constraint_drift.png").stat().st_size > 0
 
 
-def test_energy_drift_rk4_vs_gauss_legendre(tmp_path):
+def test_energy_drift_rk4_vs_gauss_legendre(tmp_path, saved_figures):
     rows = mechanics_energy_drift.main(["--quick", "--out", str(tmp_path)])
+    assert saved_figures
+    for name, fig in saved_figures.items():
+        assert figure_defects(fig) == [], name  # labelled axes, legible ticks
     by = {(r["plant"], r["method"]): r for r in rows}
     rk4, gl = by[("chain", "rk4")], by[("chain", "gauss_legendre")]
     # Gauss-Legendre conserves the quadratic energy of the linear chain to round-off

@@ -11,14 +11,18 @@ from experiments import (
     sysid_fir_covariance,
     sysid_fir_inputs,
 )
+from experiments._common import figure_defects
 
 
 def by(rows, **keys):
     return next(r for r in rows if all(r[k] == v for k, v in keys.items()))
 
 
-def test_fir_inputs_fig_4_1(tmp_path):
+def test_fir_inputs_fig_4_1(tmp_path, saved_figures):
     rows = sysid_fir_inputs.main(["--quick", "--out", str(tmp_path)])
+    assert saved_figures
+    for name, fig in saved_figures.items():
+        assert figure_defects(fig) == [], name  # labelled axes, legible ticks
     white, prbs = by(rows, input="white"), by(rows, input="prbs")
     step, sine = by(rows, input="step"), by(rows, input="sinusoid")
     # sinusoid and step excite few directions: U'U near singular, flagged, poor estimates
@@ -33,8 +37,11 @@ def test_fir_inputs_fig_4_1(tmp_path):
     assert (tmp_path / "fir_inputs.png").exists() and (tmp_path / "fir_inputs.csv").exists()
 
 
-def test_fir_covariance_eq_4_101(tmp_path):
+def test_fir_covariance_eq_4_101(tmp_path, saved_figures):
     rows = sysid_fir_covariance.main(["--quick", "--out", str(tmp_path)])
+    assert saved_figures
+    for name, fig in saved_figures.items():
+        assert figure_defects(fig) == [], name  # labelled axes, legible ticks
     for row in rows:
         assert row["trials"] >= 2000
         assert row["rel_frobenius_emp_vs_4.101"] < 0.15  # sampling error ~ sqrt(21/2000)
@@ -44,8 +51,13 @@ def test_fir_covariance_eq_4_101(tmp_path):
     assert (tmp_path / "fir_covariance.png").exists()
 
 
-def test_consistency_arx_biased_oe_consistent_and_resumes(tmp_path):
+def test_consistency_arx_biased_oe_consistent_and_resumes(tmp_path, saved_figures):
     summary = sysid_consistency.main(["--quick", "--out", str(tmp_path)])
+    fig = saved_figures["consistency.png"]
+    assert figure_defects(fig) == []
+    for ax in fig.axes:  # N labelled at the data lengths only, no minor-tick labels
+        assert [t.get_text() for t in ax.get_xticklabels()] == ["200", "800"]
+        assert [t.get_text() for t in ax.get_xticklabels(minor=True)] == []
     ls_out = by(summary, estimator="arx_ls", noise="output")
     ls_eq = by(summary, estimator="arx_ls", noise="equation")
     oe = by(summary, estimator="oe_gn", noise="output")
@@ -62,16 +74,19 @@ def test_consistency_arx_biased_oe_consistent_and_resumes(tmp_path):
     assert (tmp_path / "consistency.png").exists()
 
 
-def test_fat_tails_fair_beats_least_squares(tmp_path):
+def test_fat_tails_fair_beats_least_squares(tmp_path, saved_figures):
     rows = sysid_fat_tails.main(["--quick", "--out", str(tmp_path)])
+    assert figure_defects(saved_figures["fat_tails.png"]) == []  # points, not bars, on log axis
     assert by(rows, noise="student_t(df=2)")["fair_over_ls"] < 0.3
     assert by(rows, noise="contaminated")["fair_over_ls"] < 0.5
     assert by(rows, noise="gaussian")["fair_over_ls"] < 1.3  # little loss when LS is optimal
     assert (tmp_path / "fat_tails.png").exists()
 
 
-def test_bode_and_residual_tests(tmp_path):
+def test_bode_and_residual_tests(tmp_path, saved_figures):
     rows = sysid_bode_residuals.main(["--quick", "--out", str(tmp_path)])
+    assert figure_defects(saved_figures["bode.png"]) == []
+    assert figure_defects(saved_figures["residuals.png"]) == []
     arx = by(rows, model="ARX(2,2) LS", data="OE data")
     oe = by(rows, model="OE(2,2) GN", data="OE data")
     oe_bj = by(rows, model="OE(2,2) GN", data="BJ data")
