@@ -14,23 +14,24 @@ Speed: the tableau is turned into Python-float coefficients once, zero coefficie
 skipped, and stages that neither ``b`` nor a later needed stage uses are not evaluated (e.g.
 the FSAL stage of dopri5 at fixed step). The time loop runs in chunks of several steps; a
 chunk is a plain Python function that can be compiled with ``torch.compile`` (fusing the
-model ``f`` and the stage sums into one kernel). Compiled chunks are cached per model, so the
-one-off compile time is paid once per model and shape (reported in
-``stats.extra["compile_s"]``).
+model ``f`` and the stage sums into one kernel). Compiling, its cache per model (the one-off
+compile time is paid once per model and shape, reported in ``stats.extra["compile_s"]``) and
+its eager fallbacks live in ``_fast`` (``_fast.compiled_stepper``).
 
 Component-major layout: a model written component by component (``x1, x2 = x.unbind(-1)``
 ... ``torch.stack([...], -1)``, the zoo's plants) would make inductor write every stage into
 an interleaved (*batch, nx) buffer, one scalar loop per stage. Compiled runs without autograd
-of such a model (detected once by tracing it, ``_cat_forwarding.reads_only_components``) keep
-the state as a contiguous (nx, *batch) tensor, form each stage state component by component,
-and compile with a graph pass that reads the model's stacked pieces where they were computed
-(``_cat_forwarding``): all stages of a step then fuse into one vectorised loop over the batch
-(several times faster per step on large batches; timings in docs/benchmarks.md). Models
-that mix components in matrix products keep the interleaved layout, which suits them better.
+of such a model (detected once by tracing it, ``_fast.cat_forwarding.reads_only_components``)
+keep the state as a contiguous (nx, *batch) tensor, form each stage state component by
+component, and compile with a graph pass that reads the model's stacked pieces where they
+were computed (``_fast.cat_forwarding``): all stages of a step then fuse into one vectorised
+loop over the batch (several times faster per step on large batches; timings in
+docs/benchmarks.md). Models that mix components in matrix products keep the interleaved
+layout, which suits them better.
 
 Outputs are collected time-major (without autograd, in one preallocated buffer, on huge
-pages when it is large: see ``_buffers``) and returned as a (*batch, T, nx) view of it: no
-strided copy per output. Finiteness costs nothing per
+pages when it is large: see ``_fast.buffers``) and returned as a (*batch, T, nx) view of it:
+no strided copy per output. Finiteness costs nothing per
 step: a non-finite state stays non-finite under ``x_{k+1} = x_k + h sum_i b_i K_i``
 (inf + finite = inf, inf - inf = nan), so one check of the final state (the only host
 synchronisation) finds the failed samples, and only then are their outputs searched.
@@ -54,24 +55,20 @@ extrapolated before the remaining steps run; a run that would not fit raises
 
 from __future__ import annotations
 
+import functools
 import math
-import time
-import types
-import weakref
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from ._buffers import available_bytes, empty_buffer
+from ._fast import available_bytes, compiled_stepper, empty_buffer
+from ._fast import clear_compile_cache as clear_compile_cache
 from ._options import check_flag, check_int, raise_shape_change
 from .errors import GraphMemoryError, TableauError
 from .inputs import BoundRHS
 from .solution import Solution, SolverStats, Status
 
-#: ``compile="auto"`` compiles once this many steps were taken with the same model and
-#: configuration (over all calls): the one-off compile (seconds) then pays for itself.
-AUTO_COMPILE_MIN_STEPS = 50_000
 #: Steps per compiled chunk (the chunk is unrolled; more steps = longer compile).
 CHUNK_STEPS = 8
 #: Big states get fewer steps per compiled chunk, ``CHUNK_STATE_BYTES // state bytes``: an
@@ -83,12 +80,8 @@ CHUNK_STEPS = 8
 #: 0.30 s, four 0.37 s, eight 0.41 s; at 16 384 0.09-0.10 s for one to eight; at 1024 eight
 #: steps 0.012 s, one 0.040 s (call overhead).
 CHUNK_STATE_BYTES = 2**20
-#: Compiled runs of models with at most this many states keep the state component-major
-#: (``_make_chunk``): a (nx, *batch) tensor whose rows the cat-forwarding graph pass lets
-#: inductor read straight from the model's own expressions.
-COMPONENT_MAJOR_MAX_STATES = 8
 #: A run with autograd may plan to keep at most this fraction of the available memory
-#: (``_buffers.available_bytes``) for its graph and outputs (``_check_graph_memory``).
+#: (``_fast.buffers.available_bytes``) for its graph and outputs (``_check_graph_memory``).
 GRAPH_MEMORY_FRACTION = 0.9
 #: Bytes of autograd bookkeeping per graph node (the node, its saved-variable and tensor
 #: objects), besides the saved tensors' data. Fitted to the memory of eager RK4 steps of two
@@ -160,7 +153,7 @@ def _stage_state(x, hn, terms, component_major: bool):
 
     ``x`` is a (*batch, nx) tensor, or with ``component_major`` the list of its nx (*batch)
     components: each component is then combined on its own from the ``K[..., i]`` and the
-    result stacked, which the compiled chunk's graph pass (``_cat_forwarding``) turns into
+    result stacked, which the compiled chunk's graph pass (``_fast.cat_forwarding``) turns into
     reads of the pieces of ``f``'s own ``stack``: no interleaved stage buffers.
     """
     if not component_major:
@@ -256,89 +249,12 @@ def _make_chunk(
     return chunk
 
 
-def _with_own_code(fn):
-    """A copy of the closure ``fn`` with a code object of its own.
-
-    Dynamo keeps compiled graphs per code object and, past ``recompile_limit`` (8) graphs for
-    one code object, silently runs it eagerly. Every chunk shares ``chunk``'s code, so without
-    a copy the ninth model, configuration or state shape compiled in a process would not be
-    compiled.
-    """
-    code = fn.__code__.replace()
-    return types.FunctionType(code, fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
-
-
-def _backward_works(ys: torch.Tensor, x: torch.Tensor, f) -> bool:
-    """Whether the graph of a compiled chunk's outputs ``ys`` can be differentiated with respect
-    to the state ``x`` and ``f``'s parameters (one backward, graph kept, no ``.grad`` touched).
-
-    A model that calls autograd inside ``f`` (Lagrangian systems, energy-based networks) builds
-    a double-backward graph through the compiled region, which aot_autograd cannot
-    differentiate: the error would only surface in the caller's backward. Such a model runs
-    eagerly with autograd on (the probe counts as compile time, once per chunk signature).
-    """
-    params = f.parameters() if isinstance(f, torch.nn.Module) else ()
-    inputs = [v for v in (x, *params) if v.requires_grad]
-    if not ys.requires_grad or not inputs:
-        return True
-    try:
-        torch.autograd.grad(ys.sum(), inputs, retain_graph=True, allow_unused=True)
-    except RuntimeError:
-        return False
-    return True
-
-
-class _Entry:
-    """Compiled chunk functions for one model/configuration, and their usage counters."""
-
-    def __init__(self):
-        self.steps_seen = 0
-        self.compiled: dict = {}  # (outputs per chunk, component-major, shape...) -> chunk
-        self.failed = False
-        self.failure = ""  # why the compiled chunk was given up (reported in the stats)
-        self.backward_failed = False  # the compiled chunk's graph cannot be differentiated
-        self.signatures: set = set()
-        self.componentwise: bool | None = None  # see _is_componentwise
-
-
-_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
 def _outputs_per_chunk(x0: torch.Tensor, substeps: int) -> int:
     """Output intervals per compiled chunk: ``CHUNK_STEPS`` steps, fewer for big states
     (``CHUNK_STATE_BYTES``), at least one interval of ``substeps`` steps."""
     state_bytes = max(1, x0.numel() * x0.element_size())
     steps = min(CHUNK_STEPS, max(1, CHUNK_STATE_BYTES // state_bytes))
     return max(1, steps // substeps)
-
-
-def _is_componentwise(entry: _Entry, f, kind, u_fn, x0, t, u0) -> bool:
-    """Whether model ``f`` works component by component (``reads_only_components``), traced
-    once per cache entry at the first output time with its input there."""
-    if entry.componentwise is None:
-        from ._cat_forwarding import reads_only_components  # imports inductor (1 s): lazily
-
-        t0 = t[0].detach()
-
-        def call(x):
-            if kind == "none":
-                return f(t0, x)
-            return f(t0, x, u_fn(t0) if kind == "callable" else u0[..., 0, :])
-
-        entry.componentwise = reads_only_components(call, x0.detach())
-    return entry.componentwise
-
-
-def _cache_entry(f, config) -> _Entry:
-    """The cache entry of model ``f`` (bound methods are keyed by their instance)."""
-    owner = getattr(f, "__self__", None) if hasattr(f, "__func__") else None
-    key_obj = owner if owner is not None else f
-    key = (getattr(f, "__func__", None), config)
-    try:
-        per_model = _CACHE.setdefault(key_obj, {})
-    except TypeError:  # not weak-referenceable: nothing is kept between calls
-        return _Entry()
-    return per_model.setdefault(key, _Entry())
 
 
 def _count_saved(storages: dict):
@@ -433,11 +349,6 @@ def _check_graph_memory(data, nodes, n_left, seg_steps, state_bytes, T, device) 
     )
 
 
-def clear_compile_cache() -> None:
-    """Forget all compiled chunks (the next compiled run compiles again)."""
-    _CACHE.clear()
-
-
 def solve_explicit(
     rhs,
     x0: torch.Tensor,
@@ -458,8 +369,9 @@ def solve_explicit(
         tab: an explicit :class:`~integrators.tableau.ButcherTableau` (``b_err`` is ignored).
         substeps: integer number of equal steps per output interval (>= 1).
         compile: True (``torch.compile`` the chunked step, eager fallback if compilation
-            fails), False, or ``"auto"`` (compile once :data:`AUTO_COMPILE_MIN_STEPS` steps
-            were taken with this model over all calls).
+            fails), False, or ``"auto"`` (compile once
+            ``_fast.compiled.AUTO_COMPILE_MIN_STEPS`` steps were taken with this model over
+            all calls).
         checkpoint: with autograd, ``False`` keeps every step's graph; ``True`` runs the
             steps in segments of about ``sqrt(n_steps)`` steps under
             ``torch.utils.checkpoint`` (non-reentrant), whose saved tensors the backward pass
@@ -478,9 +390,9 @@ def solve_explicit(
         ``extra["compile_fallback"]`` why a requested compiled run went eager, else None,
         ``extra["compile_s"]`` the wall time of calls that triggered a compilation, else 0;
         ``extra["layout"]``: ``"component-major"`` for compiled runs without autograd of a
-        component-wise model with at most :data:`COMPONENT_MAJOR_MAX_STATES` states, else
-        ``"interleaved"``; ``extra["checkpoint_steps"]``: steps per checkpointed segment or
-        None).
+        component-wise model with at most ``_fast.compiled.COMPONENT_MAJOR_MAX_STATES``
+        states, else ``"interleaved"``; ``extra["checkpoint_steps"]``: steps per checkpointed
+        segment or None).
 
     A sample whose state becomes non-finite does not poison the gradient of the others: with
     autograd the steps from the interval of the first failure on are run again with every
@@ -538,37 +450,28 @@ def solve_explicit(
         if kind == "linear":
             du = rhs.samples[..., 1:, :] - u0
 
-    config = (id(tab), tab.A.tobytes(), tab.b.tobytes(), kind, id(u_fn), m)
-    entry = _cache_entry(f, config)
-    entry.steps_seen += n_steps
-    want = compile is True or (compile == "auto" and entry.steps_seen >= AUTO_COMPILE_MIN_STEPS)
+    t0 = t[0].detach()
+
+    def f_at_start(x):
+        """``f`` at the first output time with its input there (traced for the layout)."""
+        if kind == "none":
+            return f(t0, x)
+        return f(t0, x, u_fn(t0) if kind == "callable" else u0[..., 0, :])
+
+    fast = compiled_stepper(
+        f,
+        (id(tab), tab.A.tobytes(), tab.b.tobytes(), kind, id(u_fn), m),
+        compile=compile,
+        n_steps=n_steps,
+        x0=x0,
+        make_chunk=functools.partial(_make_chunk, f, kind, u_fn, scheme, m),
+        n_out=_outputs_per_chunk(x0, m),
+        f_at_start=f_at_start,
+    )
     grad_mode = torch.is_grad_enabled()
-    use_compiled = want and not entry.failed and not torch.compiler.is_compiling()
-    use_compiled = use_compiled and not (grad_mode and entry.backward_failed)
-    compile_s = 0.0
-    component_major = False
-    if use_compiled and not grad_mode and x0.shape[-1] <= COMPONENT_MAJOR_MAX_STATES:
-        first_check = entry.componentwise is None  # imports inductor, traces f: compile time
-        tic = time.perf_counter()
-        component_major = _is_componentwise(entry, f, kind, u_fn, x0, t, u0)
-        compile_s += time.perf_counter() - tic if first_check else 0.0
-    n_out_chunk = _outputs_per_chunk(x0, m) if use_compiled else 1
+    n_out_chunk, component_major = fast.n_out, fast.component_major
     chunk_eager = _make_chunk(f, kind, u_fn, scheme, m, n_out_chunk)
     tail_eager = chunk_eager if n_out_chunk == 1 else _make_chunk(f, kind, u_fn, scheme, m, 1)
-    # One compiled function (own code object, see _with_own_code) per chunk length, layout and
-    # state shape/dtype/device: dynamo's recompile limit never turns a new shape eager.
-    key = (n_out_chunk, component_major, tuple(x0.shape), x0.dtype, x0.device)
-    if use_compiled and key not in entry.compiled:
-        tic = time.perf_counter()  # the first torch.compile imports dynamo/inductor (seconds)
-        from ._cat_forwarding import CatForwardingPass
-
-        entry.compiled[key] = torch.compile(
-            _with_own_code(_make_chunk(f, kind, u_fn, scheme, m, n_out_chunk, component_major)),
-            dynamic=False,
-            options={"post_grad_custom_pre_pass": CatForwardingPass()} if component_major else {},
-        )
-        compile_s += time.perf_counter() - tic
-    compiled_chunk = entry.compiled.get(key)
     seg_steps = _segment_steps(checkpoint, n_steps, n_out_chunk * m) if grad_mode else None
 
     # Component-major runs keep the state as a contiguous (nx, *batch) tensor and the outputs
@@ -599,7 +502,6 @@ def solve_explicit(
         Returns (x, step reached, outputs (n, *batch, nx) or None when no output time was
         reached or a buffer receives them).
         """
-        nonlocal compile_s
         k, j = divmod(s, m)
         full = fail_interval is None and j == 0 and k + n_out_chunk <= n_int
         full = full and s + n_out_chunk * m <= s_end
@@ -618,24 +520,10 @@ def solve_explicit(
         us = None if u0 is None else u0[..., k:k_end, :]
         ds = None if du is None else du[..., k:k_end, :]
         out = None if buffer is None or n_y == 0 else buffer[k + 1 : k + 1 + n_y]
-        if full and compiled_ok and use_compiled and not entry.failed:
-            signature = (key, grad_mode, x.requires_grad)
-            fresh = signature not in entry.signatures
-            tic = time.perf_counter()
-            try:
-                x_new, ys = compiled_chunk(x, t_stage[s:s_new], h[s:s_new], None, us, ds, out)
-            except Exception as exc:  # compilation unavailable: fall back to eager, remember it
-                entry.failed = True
-                entry.failure = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
-            else:
-                if fresh and grad_mode and not _backward_works(ys, x, f):
-                    entry.backward_failed = True
-                    entry.failure = "the compiled graph cannot be differentiated (autograd in f)"
-                else:
-                    if fresh:
-                        compile_s += time.perf_counter() - tic
-                        entry.signatures.add(signature)
-                    return x_new, s_new, to_state(ys, 1)
+        if full and compiled_ok:
+            done = fast(x, t_stage[s:s_new], h[s:s_new], None, us, ds, out)
+            if done is not None:
+                return done[0], s_new, to_state(done[1], 1)
         hf = None if h_list is None else h_list[s:s_new]
         out_state = None if out is None else to_state(out, 1)
         frozen = None
@@ -734,15 +622,11 @@ def solve_explicit(
         messages = _failure_messages(failed, first, t)
     else:
         x_out = x_time_major.movedim(0, -2)  # (*batch, T, nx) view
-    compiled = bool(use_compiled and not entry.failed)
-    compiled = compiled and not (grad_mode and entry.backward_failed)
     stats = SolverStats(
         n_f_evals=n_steps * len(scheme.stages),
         n_steps=n_steps,
         extra={
-            "compiled": compiled,
-            "compile_fallback": (entry.failure or None) if want and not compiled else None,
-            "compile_s": compile_s,
+            **fast.stats(),
             "substeps": m,
             "layout": "component-major" if component_major else "interleaved",
             "checkpoint_steps": seg_steps,

@@ -1,4 +1,4 @@
-"""The cat-forwarding graph pass (integrators/_cat_forwarding.py) and its component-wise test.
+"""The cat-forwarding graph pass (integrators/_fast/cat_forwarding.py) and its component-wise test.
 
 The pass must only remove data movement: the rewritten graph computes bit-for-bit the values
 of the original, for every way a model may take its state apart (``unbind``, ``x[..., i]``,
@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from torch._inductor.decomposition import select_decomp_table
 from torch.fx.experimental.proxy_tensor import make_fx
 
-from integrators._cat_forwarding import forward_cat_reads, reads_only_components
+from integrators._fast.cat_forwarding import forward_cat_reads, reads_only_components
 
 DT = torch.float64
 

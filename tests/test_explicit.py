@@ -254,6 +254,7 @@ def test_big_states_take_fewer_steps_per_compiled_chunk(monkeypatch):
     """Chunk length follows the state size (cache budget ``CHUNK_STATE_BYTES``), at least one
     output interval; a model compiled at two chunk lengths keeps both and matches eager."""
     from integrators import explicit
+    from integrators._fast import compiled as compiled_cache
 
     def chunk_len(batch, substeps=1, dtype=torch.float64):
         return explicit._outputs_per_chunk(torch.zeros(batch, 2, dtype=dtype), substeps)
@@ -274,7 +275,7 @@ def test_big_states_take_fewer_steps_per_compiled_chunk(monkeypatch):
         monkeypatch.setattr(explicit, "CHUNK_STATE_BYTES", 48)  # 3 x 2 float64: one step
         short_chunks = odeint(f, x0, t, method="rk4", compile=True)
     if short_chunks.stats.extra["compiled"]:  # (compilation may be unavailable)
-        (entry,) = explicit._CACHE[f].values()
+        (entry,) = compiled_cache._CACHE[f].values()
         # keys: (outputs per chunk, component-major layout, state shape, ...); this model is
         # component-wise
         assert sorted(key[:3] for key in entry.compiled) == [(1, True, (3, 2)), (8, True, (2, 2))]
@@ -288,7 +289,7 @@ def test_huge_page_output_buffer_gives_the_same_solution(monkeypatch):
     failure search still works on it, and the tensor outlives every other reference."""
     import gc
 
-    from integrators import _buffers
+    from integrators._fast import buffers as _buffers
 
     def f(t, x):
         return x**2

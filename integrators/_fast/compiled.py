@@ -1,0 +1,205 @@
+"""The compiled chunk of a fixed-step explicit run: cache, layout choice and fallbacks.
+
+The solver (``integrators/explicit.py``) builds a chunk function that advances several steps
+and asks :func:`compiled_stepper` for a compiled version of it. Compiled chunks are cached per
+model (weakly: they go with the model) and configuration, so the one-off compile time is paid
+once per model and state shape. Compilation is given up, and the run continues with the
+solver's eager chunks, when ``torch.compile`` fails or when the compiled graph cannot be
+differentiated (a model that calls autograd inside ``f``); the reason is reported.
+
+Component-wise models (``cat_forwarding.reads_only_components``) run without autograd get a
+component-major chunk compiled with the cat-forwarding graph pass (``cat_forwarding``).
+"""
+
+from __future__ import annotations
+
+import time
+import types
+import weakref
+
+import torch
+
+#: ``compile="auto"`` compiles once this many steps were taken with the same model and
+#: configuration (over all calls): the one-off compile (seconds) then pays for itself.
+AUTO_COMPILE_MIN_STEPS = 50_000
+#: Compiled runs of models with at most this many states keep the state component-major
+#: (a (nx, *batch) tensor whose rows the cat-forwarding graph pass lets inductor read straight
+#: from the model's own expressions).
+COMPONENT_MAJOR_MAX_STATES = 8
+
+
+def _with_own_code(fn):
+    """A copy of the closure ``fn`` with a code object of its own.
+
+    Dynamo keeps compiled graphs per code object and, past ``recompile_limit`` (8) graphs for
+    one code object, silently runs it eagerly. Every chunk shares ``chunk``'s code, so without
+    a copy the ninth model, configuration or state shape compiled in a process would not be
+    compiled.
+    """
+    code = fn.__code__.replace()
+    return types.FunctionType(code, fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
+
+
+def _backward_works(ys: torch.Tensor, x: torch.Tensor, f) -> bool:
+    """Whether the graph of a compiled chunk's outputs ``ys`` can be differentiated with respect
+    to the state ``x`` and ``f``'s parameters (one backward, graph kept, no ``.grad`` touched).
+
+    A model that calls autograd inside ``f`` (Lagrangian systems, energy-based networks) builds
+    a double-backward graph through the compiled region, which aot_autograd cannot
+    differentiate: the error would only surface in the caller's backward. Such a model runs
+    eagerly with autograd on (the probe counts as compile time, once per chunk signature).
+    """
+    params = f.parameters() if isinstance(f, torch.nn.Module) else ()
+    inputs = [v for v in (x, *params) if v.requires_grad]
+    if not ys.requires_grad or not inputs:
+        return True
+    try:
+        torch.autograd.grad(ys.sum(), inputs, retain_graph=True, allow_unused=True)
+    except RuntimeError:
+        return False
+    return True
+
+
+class _Entry:
+    """Compiled chunk functions for one model/configuration, and their usage counters."""
+
+    def __init__(self):
+        self.steps_seen = 0
+        self.compiled: dict = {}  # (outputs per chunk, component-major, shape...) -> chunk
+        self.failed = False
+        self.failure = ""  # why the compiled chunk was given up (reported in the stats)
+        self.backward_failed = False  # the compiled chunk's graph cannot be differentiated
+        self.signatures: set = set()
+        self.componentwise: bool | None = None  # see _is_componentwise
+
+
+_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _is_componentwise(entry: _Entry, f_at_start, x0: torch.Tensor) -> bool:
+    """Whether the model works component by component (``reads_only_components``), traced
+    once per cache entry through ``f_at_start`` (the model at the first output time)."""
+    if entry.componentwise is None:
+        from .cat_forwarding import reads_only_components  # imports inductor (1 s): lazily
+
+        entry.componentwise = reads_only_components(f_at_start, x0.detach())
+    return entry.componentwise
+
+
+def _cache_entry(f, config) -> _Entry:
+    """The cache entry of model ``f`` (bound methods are keyed by their instance)."""
+    owner = getattr(f, "__self__", None) if hasattr(f, "__func__") else None
+    key_obj = owner if owner is not None else f
+    key = (getattr(f, "__func__", None), config)
+    try:
+        per_model = _CACHE.setdefault(key_obj, {})
+    except TypeError:  # not weak-referenceable: nothing is kept between calls
+        return _Entry()
+    return per_model.setdefault(key, _Entry())
+
+
+def clear_compile_cache() -> None:
+    """Forget all compiled chunks (the next compiled run compiles again)."""
+    _CACHE.clear()
+
+
+class Stepper:
+    """The compiled chunk of one run, or the reason there is none.
+
+    ``n_out``: output intervals per chunk the solver should use (1 where nothing is
+    compiled); ``component_major``: whether the compiled chunk takes and returns the state as
+    a (nx, *batch) tensor; ``compile_s``: wall time spent compiling during this run.
+    """
+
+    def __init__(self, f, entry: _Entry, want: bool, active: bool, key, compile_s: float):
+        self._f, self._entry, self._want, self._active = f, entry, want, active
+        self._key, self._chunk = key, entry.compiled.get(key)
+        self._grad_mode = torch.is_grad_enabled()
+        self.n_out, self.component_major = (key[0], key[1]) if active else (1, False)
+        self.compile_s = compile_s
+
+    def __call__(self, x: torch.Tensor, *args):
+        """The compiled chunk's ``(x_new, outputs)`` for ``chunk(x, *args)``, or None: nothing
+        is compiled, or the compiled chunk failed now or before (the caller then runs the
+        same chunk eagerly). The first call of each signature counts as compile time."""
+        entry = self._entry
+        if not self._active or entry.failed:
+            return None
+        signature = (self._key, self._grad_mode, x.requires_grad)
+        fresh = signature not in entry.signatures
+        tic = time.perf_counter()
+        try:
+            x_new, ys = self._chunk(x, *args)
+        except Exception as exc:  # compilation unavailable: fall back to eager, remember it
+            entry.failed = True
+            entry.failure = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
+            return None
+        if fresh and self._grad_mode and not _backward_works(ys, x, self._f):
+            entry.backward_failed = True
+            entry.failure = "the compiled graph cannot be differentiated (autograd in f)"
+            return None
+        if fresh:
+            self.compile_s += time.perf_counter() - tic
+            entry.signatures.add(signature)
+        return x_new, ys
+
+    def stats(self) -> dict:
+        """``compiled`` (every compiled chunk of the run ran compiled), ``compile_fallback``
+        (why a requested compiled run went eager, else None) and ``compile_s``."""
+        entry = self._entry
+        compiled = self._active and not entry.failed
+        compiled = compiled and not (self._grad_mode and entry.backward_failed)
+        fallback = (entry.failure or None) if self._want and not compiled else None
+        return {"compiled": compiled, "compile_fallback": fallback, "compile_s": self.compile_s}
+
+
+def compiled_stepper(
+    f, config, *, compile, n_steps: int, x0: torch.Tensor, make_chunk, n_out: int, f_at_start
+) -> Stepper:
+    """A compiled chunk function for a run of model ``f``, or the reason there is none.
+
+    Args:
+        f: the model, the cache key (bound methods: their instance).
+        config: a hashable description of everything else the chunk depends on.
+        compile: True, False or ``"auto"`` (compile once :data:`AUTO_COMPILE_MIN_STEPS` steps
+            were taken with this model and configuration over all calls).
+        n_steps: the steps of this run (counted towards ``"auto"``).
+        x0: (*batch, nx) initial state; the chunk is compiled for its shape, dtype and device.
+        make_chunk: ``make_chunk(n_out, component_major)``, the chunk function to compile
+            (interleaved (*batch, nx) or component-major (nx, *batch) state).
+        n_out: output intervals per compiled chunk.
+        f_at_start: ``x -> f`` at the first output time with the input there, traced once per
+            cache entry to decide the layout (runs without autograd, at most
+            :data:`COMPONENT_MAJOR_MAX_STATES` states).
+
+    Returns:
+        A :class:`Stepper`, called like the chunk; it returns None wherever the caller must run
+        the chunk eagerly, and reports ``compiled``, ``compile_fallback`` and ``compile_s``.
+    """
+    entry = _cache_entry(f, config)
+    entry.steps_seen += n_steps
+    want = compile is True or (compile == "auto" and entry.steps_seen >= AUTO_COMPILE_MIN_STEPS)
+    grad_mode = torch.is_grad_enabled()
+    active = want and not entry.failed and not torch.compiler.is_compiling()
+    active = active and not (grad_mode and entry.backward_failed)
+    compile_s = 0.0
+    component_major = False
+    if active and not grad_mode and x0.shape[-1] <= COMPONENT_MAJOR_MAX_STATES:
+        first_check = entry.componentwise is None  # imports inductor, traces f: compile time
+        tic = time.perf_counter()
+        component_major = _is_componentwise(entry, f_at_start, x0)
+        compile_s += time.perf_counter() - tic if first_check else 0.0
+    # One compiled function (own code object, see _with_own_code) per chunk length, layout and
+    # state shape/dtype/device: dynamo's recompile limit never turns a new shape eager.
+    key = (n_out, component_major, tuple(x0.shape), x0.dtype, x0.device)
+    if active and key not in entry.compiled:
+        tic = time.perf_counter()  # the first torch.compile imports dynamo/inductor (seconds)
+        from .cat_forwarding import CatForwardingPass
+
+        entry.compiled[key] = torch.compile(
+            _with_own_code(make_chunk(n_out, component_major)),
+            dynamic=False,
+            options={"post_grad_custom_pre_pass": CatForwardingPass()} if component_major else {},
+        )
+        compile_s += time.perf_counter() - tic
+    return Stepper(f, entry, want, active, key, compile_s)
