@@ -517,8 +517,9 @@ class Study:
             estimator: an estimator's name.
 
         Returns:
-            ``{"parameters": names, "trials": T, "empirical": (p, p), "reported": (p, p), "theory":
-            (p, p) or None}`` (float64 tensors; empirical about the sample mean).
+            A dict with ``"parameters"`` (names), ``"trials"`` (T), ``"empirical"`` (about
+            the sample mean), ``"reported"`` (mean of the reported covariances) and
+            ``"theory"`` (None without ``theory``): float64 tensors ``(p, p)``.
         """
         rows = self.results
         mask = rows["estimator"] == estimator
