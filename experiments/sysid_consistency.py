@@ -1,7 +1,8 @@
 """Bias and variance vs N: ARX least squares vs OE Gauss-Newton (notes §4.6.2-4.6.4).
 
 True system ``y = B/F u + v`` with ``B = 0.5 q^-1 + 0.3 q^-2``, ``F = 1 - 1.2 q^-1 + 0.5 q^-2``.
-Three Monte-Carlo studies per record length N (each one batched call over all trials):
+Two declared Monte-Carlo studies (:class:`sysid.studies.Study`, grid over the record length
+N, each chunk of trials one batched fit per estimator):
 
 * ``arx_ls / equation``: equation-error noise ``F y = B u + e`` (the ARX noise model,
   eq. 4.117-4.120): least squares (eq. 4.111-4.112) is consistent (no bias);
@@ -12,10 +13,11 @@ Three Monte-Carlo studies per record length N (each one batched call over all tr
   output-noise data: consistent, standard deviation falling like 1/sqrt(N);
 * ``arx_iv / output``: instrumental variables on the same data (consistent, less efficient).
 
-Results go to ``consistency.csv``, rewritten atomically after each N, so a rerun resumes
-where the last one stopped; on resume, rows that cannot be parsed and record lengths with
-fewer than all four estimator rows are dropped (with a message) and recomputed. The figure
-shows |bias| and std of the a1/f1 coefficient vs N with the fitted log-log slopes.
+Each study keeps its finished chunks in ``study_<noise>/`` (Parquet, written atomically), so
+a rerun resumes where the last one stopped; a rerun with other options (N values, trials,
+sigma) in the same folder is refused: use another ``--out``. The figure shows |bias| and std
+of the a1/f1 coefficient vs N with the fitted log-log slopes; ``report_<noise>/`` holds each
+study's full report (every parameter, coverage, covariance).
 
 Run: ``python -m experiments.sysid_consistency [--quick] [--out DIR]``.
 """
@@ -23,17 +25,13 @@ Run: ``python -m experiments.sysid_consistency [--quick] [--out DIR]``.
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import math
 
 from experiments._common import (
-    atomic_write_text,
     experiment_parser,
     finish,
     output_dir,
     parse_early,
-    progress,
     readable_log_ticks,
     save_figure,
     write_table,
@@ -64,109 +62,76 @@ import torch
 
 from experiments._common import plt
 from sysid import ARX, OE, fit
-from sysid.montecarlo import input_signal, simulate_data, summarize_estimates
+from sysid.montecarlo import input_signal, simulate_data
+from sysid.studies import Study
 
 B_TRUE = [0.5, 0.3]
 F_TRUE = [-1.2, 0.5]
-FIELDS = [
-    "N",
-    "trials",
-    "sigma",
-    "estimator",
-    "noise",
-    "bias_f1",
-    "std_f1",
-    "bias_se_f1",
-    "bias_norm",
-    "rms_std",
-    "mse",
-    "converged",
-]
+TRUTH = {"a1": F_TRUE[0], "a2": F_TRUE[1], "b1": B_TRUE[0], "b2": B_TRUE[1]}
+TRUTH |= {"f1": F_TRUE[0], "f2": F_TRUE[1]}
 CASES = [("arx_ls", "equation"), ("arx_ls", "output"), ("arx_iv", "output"), ("oe_gn", "output")]
+F1 = {"arx_ls": "a1", "arx_iv": "a1", "oe_gn": "f1"}  # the first denominator coefficient
+ESTIMATORS = {
+    "arx_ls": lambda data: fit(ARX(2, 2, 1), data),
+    "arx_iv": lambda data: fit(ARX(2, 2, 1), data, method="iv"),
+    "oe_gn": lambda data: fit(OE(2, 2, 1), data),
+}
+CHUNK = 50  # trials per batched fit, per checkpoint file and per simulate call
 
 
-def run_n(N: int, trials: int, sigma: float, seed: int) -> list[dict]:
-    """One record length: all estimators, each in one batched call."""
-    g = torch.Generator().manual_seed(seed)
-    th_oe = torch.tensor(B_TRUE + F_TRUE, dtype=torch.float64)
+def simulate(noise: str):
+    """``simulate(point, n, generator)`` of the study with ``noise`` ("equation": the ARX
+    model's own noise ``1/F e``; "output": white output noise)."""
     th_arx = torch.tensor(F_TRUE + B_TRUE, dtype=torch.float64)
-    u = input_signal("white", N, (trials,), generator=g)
-    eq_data = simulate_data(
-        ARX(2, 2, 1), u, theta=th_arx, noise_std=sigma, noise="model", generator=g
+
+    def draw(point, n, generator):
+        u = input_signal("white", point["N"], (n,), generator=generator)
+        kind = "model" if noise == "equation" else "output"
+        return simulate_data(
+            ARX(2, 2, 1), u, theta=th_arx, noise_std=point["sigma"], noise=kind, generator=generator
+        )
+
+    return draw
+
+
+def study(noise: str, ns: list[int], trials: int, sigma: float) -> Study:
+    """The declared study of one noise kind: the estimators of :data:`CASES` for it."""
+    names = [name for name, kind in CASES if kind == noise]
+    return Study(
+        simulate(noise),
+        {name: ESTIMATORS[name] for name in names},
+        grid={"N": ns, "sigma": [sigma]},
+        trials=trials,
+        seed=7,
+        chunk=min(CHUNK, trials),
+        block=min(CHUNK, trials),
+        truth=TRUTH,
     )
-    out_data = simulate_data(OE(2, 2, 1), u, theta=th_oe, noise_std=sigma, generator=g)
-    cases = [
-        ("arx_ls", "equation", fit(ARX(2, 2, 1), eq_data), th_arx, 0),
-        ("arx_ls", "output", fit(ARX(2, 2, 1), out_data), th_arx, 0),
-        ("arx_iv", "output", fit(ARX(2, 2, 1), out_data, method="iv"), th_arx, 0),
-        ("oe_gn", "output", fit(OE(2, 2, 1), out_data), th_oe, 2),
-    ]
+
+
+def rows_of(done: Study, noise: str) -> list[dict]:
+    """One row per N and estimator: the a1/f1 statistics and the overall spread."""
+    summary = done.summary()
     rows = []
-    for name, noise, res, truth, i_f1 in cases:
-        s = summarize_estimates(res.theta, truth)
+    for (N, name), group in summary.groupby(["N", "estimator"], sort=False):
+        f1 = group[group["parameter"] == F1[name]].iloc[0]
         rows.append(
             {
-                "N": N,
-                "trials": trials,
-                "sigma": sigma,
+                "N": int(N),
+                "trials": int(f1["trials"]),
+                "sigma": float(f1["sigma"]),
                 "estimator": name,
                 "noise": noise,
-                "bias_f1": s.bias[i_f1].item(),
-                "std_f1": s.std[i_f1].item(),
-                "bias_se_f1": s.bias_standard_error[i_f1].item(),
-                "bias_norm": torch.linalg.norm(s.bias).item(),
-                "rms_std": s.std.pow(2).mean().sqrt().item(),
-                "mse": s.mse.item(),
-                "converged": res.converged.double().mean().item(),
+                "bias_f1": float(f1["bias"]),
+                "std_f1": float(f1["std"]),
+                "bias_se_f1": float(f1["bias_se"]),
+                "bias_norm": float(np.linalg.norm(group["bias"])),
+                "rms_std": float(np.sqrt((group["std"] ** 2).mean())),
+                "mse": float((group["rmse"] ** 2).sum()),
+                "converged": float(f1["converged"]),
             }
         )
     return rows
-
-
-def _parse(row: dict) -> dict | None:
-    """A CSV row with its numbers converted, or None where a field is missing or unparsable
-    (e.g. the half-written last line of an interrupted run)."""
-    if None in row or any(row.get(k) in (None, "") for k in FIELDS):
-        return None
-    try:
-        out = {k: (row[k] if k in ("estimator", "noise") else float(row[k])) for k in FIELDS}
-        out["N"], out["trials"] = int(row["N"]), int(row["trials"])
-    except ValueError:
-        return None
-    return out if (out["estimator"], out["noise"]) in CASES else None
-
-
-def _load(path) -> list[dict]:
-    """The complete record lengths of ``path``: every row that parses, of every
-    ``(N, trials, sigma)`` that has exactly one row per estimator case; the rest is dropped
-    with a message (and recomputed by the caller)."""
-    if not path.exists():
-        return []
-    with open(path, newline="") as handle:
-        raw = list(csv.DictReader(handle))
-    rows = [r for r in map(_parse, raw) if r is not None]
-    groups: dict[tuple, list[dict]] = {}
-    for r in rows:
-        groups.setdefault((r["N"], r["trials"], r["sigma"]), []).append(r)
-    keep = []
-    for key, group in groups.items():
-        if sorted((r["estimator"], r["noise"]) for r in group) == sorted(CASES):
-            keep += group
-        else:
-            print(
-                f"{path}: N = {int(key[0])} has {len(group)} of {len(CASES)} rows; recomputing it"
-            )
-    if len(rows) < len(raw):
-        print(f"{path}: dropped {len(raw) - len(rows)} unreadable row(s) (interrupted write?)")
-    return keep
-
-
-def _save(path, rows: list[dict]) -> None:
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=FIELDS)
-    writer.writeheader()
-    writer.writerows(rows)
-    atomic_write_text(path, buffer.getvalue())
 
 
 def loglog_slope(ns, values) -> float:
@@ -179,28 +144,16 @@ def main(argv=None):
     out = output_dir(args, NAME)
     trials = 60 if args.quick else args.trials
     ns = [200, 800] if args.quick else args.ns
-    partial = out / "consistency.csv"
-    done = _load(partial)
-    have = {int(r["N"]) for r in done if int(r["trials"]) == trials and r["sigma"] == args.sigma}
-    # resumable: the file holds every finished N, rewritten atomically
-    for N in progress(ns, "data lengths N"):
-        if N in have:
-            continue
-        done += run_n(N, trials, args.sigma, seed=N)
-        _save(partial, done)
-    _save(partial, done)  # also clears rows dropped on loading
-    rows = [
-        r
-        for r in done
-        if int(r["trials"]) == trials and r["sigma"] == args.sigma and int(r["N"]) in ns
-    ]
+    rows = []
+    for noise in ("equation", "output"):
+        done = study(noise, ns, trials, args.sigma).run(out / f"study_{noise}")
+        done.report(out / f"report_{noise}")
+        rows += rows_of(done, noise)
     rows.sort(key=lambda r: (r["estimator"], r["noise"], r["N"]))
     summary = []
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for (name, noise), style in zip(CASES, ["o-", "s-", "^-", "d-"], strict=True):
         sel = [r for r in rows if r["estimator"] == name and r["noise"] == noise]
-        if not sel:
-            continue
         n = np.array([r["N"] for r in sel])
         bias = np.array([abs(r["bias_f1"]) for r in sel])
         std = np.array([r["std_f1"] for r in sel])

@@ -14,6 +14,7 @@ from .errors import (
     RKIdentError,
     RKIdentWarning,
     SingularMatrixError,
+    StudyDeclarationError,
     TableauError,
     UnstableModelWarning,
 )
@@ -91,6 +92,7 @@ __all__ = [
     "RKIdentError",
     "RKIdentWarning",
     "SingularMatrixError",
+    "StudyDeclarationError",
     "TableauError",
     "UnstableModelWarning",
 ]

@@ -30,6 +30,11 @@ class ConvergenceWarning(RKIdentWarning):
     errors); the per-data-set flags say which."""
 
 
+class StudyDeclarationError(InputValidationError):
+    """A Monte-Carlo study folder holds results of a different declaration (grid, trials,
+    seed, chunk, block, estimators or version) than the study asked to run in it."""
+
+
 class UnstableModelWarning(RKIdentWarning):
     """An estimated model is unstable: its free-run simulation diverges, so simulation
     errors, fit percentages and step responses computed from it are meaningless."""
@@ -47,6 +52,7 @@ __all__ = [
     "RKIdentError",
     "RKIdentWarning",
     "SingularMatrixError",
+    "StudyDeclarationError",
     "TableauError",
     "UnstableModelWarning",
 ]

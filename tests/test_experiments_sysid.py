@@ -1,7 +1,5 @@
 """Run each sysid experiment in --quick mode and check the numbers it reports."""
 
-import csv
-
 import pytest
 
 from experiments import (
@@ -12,6 +10,7 @@ from experiments import (
     sysid_fir_inputs,
 )
 from experiments._common import figure_defects
+from sysid.errors import RKIdentWarning, StudyDeclarationError
 
 
 def by(rows, **keys):
@@ -66,11 +65,15 @@ def test_consistency_arx_biased_oe_consistent_and_resumes(tmp_path, saved_figure
     assert ls_eq["bias_over_se_at_max_N"] < 4
     assert oe["bias_over_se_at_max_N"] < 4
     assert -0.8 < oe["std_slope"] < -0.25  # std ~ 1/sqrt(N)
-    with open(tmp_path / "consistency.csv") as handle:
-        n_rows = len(list(csv.DictReader(handle)))
+    chunks = sorted(tmp_path.glob("study_*/chunks/*.parquet"))
+    assert len(chunks) == 2 * 2 * 2  # 2 noise kinds x 2 N x 2 chunks of <= 50 trials
+    stamps = [path.stat().st_mtime_ns for path in chunks]
+    table = (tmp_path / "consistency_table.csv").read_text()
+    assert table.count("\n") == 1 + 8  # header, 4 cases x 2 N
     sysid_consistency.main(["--quick", "--out", str(tmp_path)])  # resumes: nothing recomputed
-    with open(tmp_path / "consistency.csv") as handle:
-        assert len(list(csv.DictReader(handle))) == n_rows == 8
+    assert [path.stat().st_mtime_ns for path in chunks] == stamps
+    assert (tmp_path / "consistency_table.csv").read_text() == table
+    assert (tmp_path / "report_output" / "report.md").exists()
     assert (tmp_path / "consistency.png").exists()
 
 
@@ -100,27 +103,20 @@ def test_bode_and_residual_tests(tmp_path, saved_figures):
     assert (tmp_path / "bode.png").exists() and (tmp_path / "residuals.png").exists()
 
 
-def test_consistency_recovers_from_a_corrupt_partial_file(tmp_path, capsys):
-    """A half-written last line used to crash every rerun (TypeError) and a partly written N
-    counted as done. Truncate the file mid-line, and separately drop rows of one N: the
-    rerun drops what is incomplete, says so, recomputes it and gives the clean run's numbers.
-    """
+def test_consistency_recovers_from_a_corrupt_chunk_and_refuses_other_options(tmp_path):
+    """A damaged checkpoint (a chunk file cut short, another deleted) is recomputed with a
+    warning and gives the clean run's numbers; other options in the same folder are refused
+    instead of mixing results."""
     clean_dir, dirty_dir = tmp_path / "clean", tmp_path / "dirty"
     sysid_consistency.main(["--quick", "--out", str(clean_dir)])
-    text = (clean_dir / "consistency.csv").read_text()
     clean = (clean_dir / "consistency_table.csv").read_text()
-    lines = text.splitlines(keepends=True)
-    assert len(lines) == 9 and not list(dirty_dir.glob("*"))
-    dirty_dir.mkdir()
-    for corrupt in (
-        text[: len(text) - len(lines[-1]) // 2],  # last row cut mid-line
-        "".join(lines[:2] + lines[3:6] + lines[7:]),  # one row of each N missing
-        "".join(lines[:-1]) + lines[-1][:-1] + ",1.0,2.0\n",  # a row with extra fields
-    ):
-        (dirty_dir / "consistency.csv").write_text(corrupt)
-        capsys.readouterr()
+    sysid_consistency.main(["--quick", "--out", str(dirty_dir)])
+    first, second = sorted((dirty_dir / "study_output" / "chunks").glob("*.parquet"))[:2]
+    first.write_bytes(first.read_bytes()[:200])
+    second.unlink()
+    with pytest.warns(RKIdentWarning, match="recomputing"):
         sysid_consistency.main(["--quick", "--out", str(dirty_dir)])
-        assert "recomputing" in capsys.readouterr().out
-        assert (dirty_dir / "consistency_table.csv").read_text() == clean
-        assert (dirty_dir / "consistency.csv").read_text().count("\n") == 9
-    assert not list(dirty_dir.glob(".*.tmp"))  # no temporary file left behind
+    assert (dirty_dir / "consistency_table.csv").read_text() == clean
+    assert not list(dirty_dir.glob("study_*/chunks/.*.tmp"))  # no temporary file left behind
+    with pytest.raises(StudyDeclarationError, match="sigma"):
+        sysid_consistency.main(["--quick", "--sigma", "0.3", "--out", str(dirty_dir)])

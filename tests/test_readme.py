@@ -106,3 +106,14 @@ def test_output_shown_in_the_readme_is_what_the_quick_start_prints(quick_start):
         for a, b in zip(NUMBER.findall(shown_line), NUMBER.findall(printed_line), strict=True):
             digits = len(a.split(".")[1])
             assert float(a) == pytest.approx(float(b), abs=1.01 * 10.0**-digits), printed_line
+
+
+def test_monte_carlo_study_example(quick_start):
+    """The study example: unbiased FIR least squares, std ~ N^(-1/2), 95 % coverage
+    (400 trials: binomial spread 0.011)."""
+    ns, _ = quick_start
+    table, slopes = ns["table"], ns["slopes"]
+    assert len(table) == 4 and (table["trials"] == 400).all()
+    assert (table["bias"].abs() < 4 * table["bias_se"]).all()
+    assert (table["coverage"] - 0.95).abs().max() < 0.05
+    assert (slopes["std_slope"] + 0.5).abs().max() < 0.15

@@ -1,0 +1,673 @@
+"""Declared Monte-Carlo studies: batched, resumable, reproducible, spread over Dask workers.
+
+A study is declared once::
+
+    study = Study(simulate, {"fir_ls": lambda d: fit(FIR(3, 1), d)},
+                  grid={"N": [100, 400]}, trials=6000, seed=11, chunk=500,
+                  truth={"b1": 1.0, "b2": 0.5, "b3": 0.2})
+    study.run("out/fir")            # resumable: finished chunks are kept
+    study.summary()                 # bias, std, RMSE, mean SE, coverage per parameter
+    study.report("out/fir/report")  # Markdown tables and figures
+
+and runs every grid point's ``trials`` data sets in chunks of ``chunk`` trials, one batched
+estimator call per chunk and estimator.
+
+Seeding. Trials are grouped in fixed blocks of ``block`` trials (``chunk`` is a multiple of
+``block``); block ``b`` of grid point ``i`` draws its data from a ``torch.Generator`` seeded by
+``numpy.random.SeedSequence(seed, spawn_key=(i, b))``, with ``simulate(point, n, generator)``
+called once per block. A trial's data therefore depend only on the seed, its grid point and
+its index, never on the chunk size or on the order in which chunks run. ``block=1`` (the
+default) calls ``simulate`` once per trial; a larger block draws many trials in one batched
+call (faster) and keeps that guarantee for every chunk size that is a multiple of it.
+
+Storage. ``run(out_dir)`` writes ``out_dir/manifest.json`` (the declaration and its hash) and
+one Parquet file per finished chunk under ``out_dir/chunks/``, each written to a temporary
+file and renamed into place (:func:`os.replace`, atomic), so an interrupted run leaves only
+complete chunks and a rerun computes only the missing ones. A folder whose manifest holds a
+different declaration is refused with :class:`~sysid.errors.StudyDeclarationError`.
+
+Results. :attr:`Study.results` is a tidy table, one row per grid point x estimator x trial x
+parameter, with columns ``<factors...>, estimator, trial, parameter, estimate, se, converged,
+loss, time, covariance_row`` (``time``: the chunk's estimator time divided by its trials, in
+seconds; ``covariance_row``: the parameter's row of the reported covariance, in the order of
+the parameters).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import math
+import os
+import pathlib
+import tempfile
+import time
+import warnings
+from collections.abc import Callable, Mapping
+
+import numpy as np
+import torch
+
+from .data import IOData
+from .errors import InputValidationError, RKIdentWarning, StudyDeclarationError
+from .montecarlo import summarize_estimates
+
+__all__ = ["Study"]
+
+FORMAT_VERSION = 1
+RESERVED_COLUMNS = (
+    "estimator",
+    "trial",
+    "parameter",
+    "estimate",
+    "se",
+    "converged",
+    "loss",
+    "time",
+    "covariance_row",
+)
+
+
+def _pandas():
+    import pandas
+
+    return pandas
+
+
+def _plain(value, where: str):
+    """A grid value as a JSON scalar (int, float, str, bool), or an error naming it."""
+    if hasattr(value, "item") and not isinstance(value, (str, bytes)):
+        value = value.item()
+    if isinstance(value, (bool, int, float, str)):
+        return value
+    raise InputValidationError(
+        f"{where} is {value!r} ({type(value).__name__}); grid values must be numbers, strings "
+        "or booleans (they are stored in the study's manifest and results table)."
+    )
+
+
+def _block_generator(seed: int, point: int, block: int) -> torch.Generator:
+    """The generator of block ``block`` of grid point ``point``: seeded from the master seed
+    and the block's coordinates only."""
+    state = np.random.SeedSequence(seed, spawn_key=(point, block)).generate_state(1, np.uint64)
+    return torch.Generator().manual_seed(int(state[0]))
+
+
+def _atomic_write_parquet(frame, path: pathlib.Path) -> None:
+    """Write ``frame`` to ``path`` through a temporary file in the same folder and
+    :func:`os.replace` (a reader sees the old file or the complete new one)."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        frame.to_parquet(tmp, index=False)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
+def _atomic_write_text(path: pathlib.Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as handle:
+            handle.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
+def _markdown(frame) -> str:
+    """``frame`` as a Markdown table, numbers to 4 significant digits."""
+
+    def cell(value) -> str:
+        if isinstance(value, float):
+            return f"{value:.4g}"
+        return str(value)
+
+    columns = list(frame.columns)
+    lines = ["| " + " | ".join(columns) + " |", "|" + "|".join("---" for _ in columns) + "|"]
+    for row in frame.itertuples(index=False):
+        lines.append("| " + " | ".join(cell(v) for v in row) + " |")
+    return "\n".join(lines) + "\n"
+
+
+class Study:
+    """A declared Monte-Carlo study of estimators over a grid of factors.
+
+    Args:
+        simulate: ``simulate(point, n, generator) -> IOData``: ``n`` data sets (batch shape
+            ``(n,)``) of grid point ``point`` (a dict factor -> value), all randomness drawn
+            from ``generator``.
+        estimators: name -> callable ``IOData -> FitResult`` (anything :func:`sysid.fit`
+            returns: ``theta`` ``(n, p)``, ``standard_errors``, ``covariance`` ``(n, p, p)``,
+            ``converged`` ``(n,)``, ``loss_history`` ``(iterations + 1, n)``,
+            ``parameter_names``), called once per chunk with the chunk's trials as a batch.
+        grid: factor name -> list of values (numbers, strings, booleans); the study runs every
+            combination (the first factor varies slowest). Default: one point, no factors.
+        trials: data sets per grid point (>= 2).
+        seed: master seed (>= 0).
+        chunk: trials per batched estimator call and per checkpoint file.
+        block: trials per ``simulate`` call and per derived generator; ``chunk`` must be a
+            multiple of it (see the module docstring: results do not depend on ``chunk``).
+        truth: true parameter values by name, a dict or ``truth(point) -> dict`` (for bias,
+            RMSE and coverage; parameters it does not name get NaN there).
+        theory: ``theory(point, estimator_name) -> (p, p)`` covariance or None: the
+            theoretical covariance where a closed form exists (e.g. ``sigma^2 (U'U)^-1`` of
+            FIR least squares with a fixed input, the course notes (Modelling and
+            Simulation) eq. 4.101).
+        version: a label of the study's code (simulate, estimators); changing it refuses
+            results computed by another version in the same folder.
+
+    Raises:
+        InputValidationError: an argument of the wrong kind or out of range.
+    """
+
+    def __init__(
+        self,
+        simulate: Callable[[dict, int, torch.Generator], IOData],
+        estimators: Mapping[str, Callable[[IOData], object]],
+        grid: Mapping[str, list] | None = None,
+        trials: int = 1000,
+        seed: int = 0,
+        chunk: int = 500,
+        *,
+        block: int = 1,
+        truth: Mapping[str, float] | Callable[[dict], Mapping[str, float]] | None = None,
+        theory: Callable[[dict, str], object] | None = None,
+        version: str = "",
+    ):
+        if not callable(simulate):
+            raise InputValidationError("simulate must be a callable (point, n, generator).")
+        if not isinstance(estimators, Mapping) or not estimators:
+            raise InputValidationError("estimators must be a non-empty dict name -> callable.")
+        for name, estimator in estimators.items():
+            if not isinstance(name, str) or not callable(estimator):
+                raise InputValidationError(
+                    f"estimator {name!r} must be a string name mapped to a callable "
+                    "IOData -> FitResult."
+                )
+        grid = {} if grid is None else dict(grid)
+        clean = {}
+        for factor, values in grid.items():
+            if not isinstance(factor, str) or factor in RESERVED_COLUMNS:
+                raise InputValidationError(
+                    f"grid factor {factor!r} must be a string other than {RESERVED_COLUMNS}."
+                )
+            values = list(values) if isinstance(values, (list, tuple, np.ndarray)) else [values]
+            if not values:
+                raise InputValidationError(f"grid factor {factor!r} has no values.")
+            clean[factor] = [_plain(v, f"grid[{factor!r}][{i}]") for i, v in enumerate(values)]
+        for label, value, low in (
+            ("trials", trials, 2),
+            ("seed", seed, 0),
+            ("chunk", chunk, 1),
+            ("block", block, 1),
+        ):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+                raise InputValidationError(f"{label} must be an integer >= {low}, got {value!r}.")
+        if chunk % block:
+            raise InputValidationError(
+                f"chunk = {chunk} is not a multiple of block = {block}; choose a chunk that is, "
+                "so that every chunk holds whole blocks."
+            )
+        self.simulate = simulate
+        self.estimators = dict(estimators)
+        self.grid = clean
+        self.trials, self.seed = int(trials), int(seed)
+        self.chunk, self.block = int(chunk), int(block)
+        self.truth = truth
+        self.theory = theory
+        self.version = str(version)
+        self.points: list[dict] = [
+            dict(zip(clean, combo, strict=True)) for combo in itertools.product(*clean.values())
+        ]
+        self._results = None
+
+    # ------------------------------------------------------------------ declaration
+    @property
+    def declaration(self) -> dict:
+        """What identifies the study's results: grid, trials, seed, chunk, block, estimator
+        names, version (stored in ``manifest.json``)."""
+        return {
+            "format": FORMAT_VERSION,
+            "grid": self.grid,
+            "trials": self.trials,
+            "seed": self.seed,
+            "chunk": self.chunk,
+            "block": self.block,
+            "estimators": list(self.estimators),
+            "version": self.version,
+        }
+
+    @property
+    def declaration_hash(self) -> str:
+        text = json.dumps(self.declaration, sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()
+
+    @property
+    def n_chunks(self) -> int:
+        """Chunks per grid point."""
+        return math.ceil(self.trials / self.chunk)
+
+    def _check_manifest(self, folder: pathlib.Path) -> None:
+        """Write the manifest into a new folder, or refuse a folder of another declaration."""
+        path = folder / "manifest.json"
+        mine = {"declaration": self.declaration, "hash": self.declaration_hash}
+        if not path.exists():
+            if (folder / "chunks").exists() and any((folder / "chunks").glob("*.parquet")):
+                raise StudyDeclarationError(
+                    f"{folder} holds chunk files but no manifest.json, so their declaration is "
+                    "unknown; run the study in a new folder or delete that one."
+                )
+            _atomic_write_text(path, json.dumps(mine, indent=2, sort_keys=True) + "\n")
+            return
+        try:
+            stored = json.loads(path.read_text())
+            theirs = stored["declaration"]
+        except (ValueError, KeyError, TypeError) as err:
+            raise StudyDeclarationError(
+                f"{path} cannot be read ({err}); the folder's declaration is unknown: run the "
+                "study in a new folder or delete that one."
+            ) from err
+        if stored.get("hash") != self.declaration_hash or theirs != self.declaration:
+            changed = sorted(
+                key
+                for key in set(theirs) | set(self.declaration)
+                if theirs.get(key) != self.declaration.get(key)
+            )
+            details = "; ".join(
+                f"{key}: stored {theirs.get(key)!r}, now {self.declaration.get(key)!r}"
+                for key in changed
+            )
+            raise StudyDeclarationError(
+                f"{folder} holds results of a different study declaration ({details}). Results "
+                "of different declarations are never mixed: run this study in a new folder, "
+                "delete the old one, or restore the stored declaration."
+            )
+
+    # ------------------------------------------------------------------ one chunk
+    def _chunk_path(self, folder: pathlib.Path, point: int, chunk: int) -> pathlib.Path:
+        return folder / "chunks" / f"point{point:04d}-chunk{chunk:06d}.parquet"
+
+    def _chunk_trials(self, chunk: int) -> range:
+        return range(chunk * self.chunk, min((chunk + 1) * self.chunk, self.trials))
+
+    def _simulate_chunk(self, point: int, chunk: int) -> IOData:
+        """The chunk's data sets, one ``simulate`` call per block, batch shape ``(n,)``."""
+        trials = self._chunk_trials(chunk)
+        parts = []
+        for start in range(trials.start, trials.stop, self.block):
+            n = min(self.block, trials.stop - start)
+            generator = _block_generator(self.seed, point, start // self.block)
+            data = self.simulate(dict(self.points[point]), n, generator)
+            if not isinstance(data, IOData) or tuple(data.batch_shape) != (n,):
+                raise InputValidationError(
+                    f"simulate(point={self.points[point]}, n={n}, generator) returned "
+                    f"{data!r}; it must return an IOData of batch shape ({n},)."
+                )
+            parts.append(data)
+        if len(parts) == 1:
+            return parts[0]
+        return IOData(torch.cat([p.u for p in parts]), torch.cat([p.y for p in parts]), parts[0].Ts)
+
+    def _compute_chunk(self, point: int, chunk: int):
+        """The results rows of one chunk (all estimators), as a DataFrame."""
+        pd = _pandas()
+        data = self._simulate_chunk(point, chunk)
+        trials = np.asarray(self._chunk_trials(chunk))
+        n = len(trials)
+        frames = []
+        for name, estimator in self.estimators.items():
+            start = time.perf_counter()
+            result = estimator(data)
+            elapsed = time.perf_counter() - start
+            theta = result.theta.detach()
+            names = list(result.parameter_names)
+            p = len(names)
+            if tuple(theta.shape) != (n, p):
+                raise InputValidationError(
+                    f"estimator {name!r} returned theta of shape {tuple(theta.shape)} for a "
+                    f"chunk of {n} data sets and {p} parameter names; expected ({n}, {p})."
+                )
+            theta = theta.double().cpu().numpy()
+            se = result.standard_errors.detach().double().cpu().numpy().reshape(n, p)
+            cov = result.covariance.detach().double().cpu().numpy().reshape(n, p, p)
+            converged = result.converged.detach().cpu().numpy().reshape(n).astype(bool)
+            loss = result.loss_history.detach()[-1].double().cpu().numpy().reshape(n)
+            frame = pd.DataFrame(
+                {
+                    "estimator": name,
+                    "trial": np.repeat(trials, p),
+                    "parameter": np.tile(names, n),
+                    "estimate": theta.reshape(-1),
+                    "se": se.reshape(-1),
+                    "converged": np.repeat(converged, p),
+                    "loss": np.repeat(loss, p),
+                    "time": elapsed / n,
+                    "covariance_row": list(cov.reshape(n * p, p)),
+                }
+            )
+            frames.append(frame)
+        out = pd.concat(frames, ignore_index=True)
+        for position, (factor, value) in enumerate(self.points[point].items()):
+            out.insert(position, factor, value)
+        return out
+
+    def _read_chunk(self, path: pathlib.Path, chunk: int):
+        """A finished chunk's rows, or None (with a warning) when its file is unreadable or
+        does not hold the chunk's trials of every estimator."""
+        pd = _pandas()
+        try:
+            frame = pd.read_parquet(path)
+            expected = set(self._chunk_trials(chunk))
+            ok = set(frame["estimator"]) == set(self.estimators) and all(
+                set(group["trial"]) == expected for _, group in frame.groupby("estimator")
+            )
+        except Exception as err:  # any unreadable file (truncated, not Parquet, ...)
+            reason = f"{type(err).__name__}: {err}"
+        else:
+            if ok:
+                return frame
+            reason = "it does not hold this chunk's trials of every estimator"
+        warnings.warn(
+            f"chunk file {path} cannot be used ({reason}); recomputing that chunk.",
+            RKIdentWarning,
+            stacklevel=3,
+        )
+        return None
+
+    # ------------------------------------------------------------------ running
+    def run(self, out_dir, client=None, progress: bool | None = None) -> Study:
+        """Run (or resume) the study in ``out_dir``.
+
+        Args:
+            out_dir: the study's folder (created): ``manifest.json`` and ``chunks/*.parquet``.
+            client: a ``dask.distributed.Client``: each missing chunk becomes one task on its
+                workers, whose rows come back to this process to be written. None: chunks
+                run here, one after the other.
+            progress: progress bar over chunks (tqdm, with ETA): None shows it when stderr is
+                a terminal, True always, False never.
+
+        Returns:
+            ``self``, with :attr:`results` loaded.
+
+        Raises:
+            StudyDeclarationError: ``out_dir`` holds results of another declaration.
+            ImportError: ``client`` given but ``dask.distributed`` is not installed.
+            Whatever ``simulate`` or an estimator raises: the chunks finished before it are
+            kept, and a rerun starts from them.
+        """
+        from ._progress import progress_bar
+
+        folder = pathlib.Path(out_dir)
+        (folder / "chunks").mkdir(parents=True, exist_ok=True)
+        self._check_manifest(folder)
+        coordinates = [(i, c) for i in range(len(self.points)) for c in range(self.n_chunks)]
+        done = {}
+        for i, c in coordinates:
+            path = self._chunk_path(folder, i, c)
+            if path.exists():
+                frame = self._read_chunk(path, c)
+                if frame is not None:
+                    done[i, c] = frame
+        pending = [key for key in coordinates if key not in done]
+
+        def finish(key, frame):
+            _atomic_write_parquet(frame, self._chunk_path(folder, *key))
+            done[key] = frame
+
+        with progress_bar(len(coordinates), "study chunks", progress, unit="chunk") as bar:
+            bar.update(len(done))
+            if client is None:
+                for key in pending:
+                    finish(key, self._compute_chunk(*key))
+                    bar.update(1)
+            else:
+                self._run_dask(client, pending, finish, bar)
+        self._results = _pandas().concat([done[key] for key in coordinates], ignore_index=True)
+        return self
+
+    def _run_dask(self, client, pending, finish, bar) -> None:
+        try:
+            from dask.distributed import as_completed
+        except ImportError as err:
+            raise ImportError(
+                "Study.run(client=...) needs dask.distributed: pip install 'rkident[dask]' "
+                "(or run without a client, in this process)."
+            ) from err
+        futures = {client.submit(self._compute_chunk, *key, pure=False): key for key in pending}
+        try:
+            for future in as_completed(futures):
+                finish(futures[future], future.result())
+                bar.update(1)
+        finally:
+            client.cancel(list(futures))
+
+    # ------------------------------------------------------------------ results
+    @property
+    def results(self):
+        """The tidy results table (pandas DataFrame; see the module docstring)."""
+        if self._results is None:
+            raise InputValidationError(
+                "the study has no results yet: call study.run(out_dir) first (it loads "
+                "finished chunks and computes the missing ones)."
+            )
+        return self._results
+
+    @property
+    def factors(self) -> list[str]:
+        return list(self.grid)
+
+    def _truth_table(self):
+        """Rows factor values..., parameter, truth (empty when no truth was declared)."""
+        pd = _pandas()
+        rows = []
+        for point in self.points:
+            values = self.truth(dict(point)) if callable(self.truth) else (self.truth or {})
+            for parameter, value in dict(values).items():
+                rows.append({**point, "parameter": parameter, "truth": float(value)})
+        return pd.DataFrame(rows, columns=[*self.factors, "parameter", "truth"])
+
+    def summary(self, level: float = 0.95):
+        """Statistics per grid point x estimator x parameter.
+
+        Columns: the factors, ``estimator``, ``parameter``, ``trials``, ``truth``, ``mean``,
+        ``bias`` (mean - truth), ``bias_se`` (std / sqrt(trials): is the bias significant?),
+        ``std`` (sample standard deviation), ``rmse`` (sqrt of the mean squared error),
+        ``mean_se`` (mean reported standard error), ``se_over_std``, ``coverage`` (fraction
+        of trials with ``|estimate - truth| <= z se``, ``z`` the normal quantile of
+        ``level``), ``converged`` (fraction). Without truth: NaN in bias, rmse, coverage.
+        """
+        from scipy.stats import norm
+
+        pd = _pandas()
+        z = float(norm.ppf(0.5 + level / 2))
+        keys = [*self.factors, "estimator", "parameter"]
+        frame = self.results.drop(columns="covariance_row").merge(
+            self._truth_table(), on=[*self.factors, "parameter"], how="left"
+        )
+        frame["error2"] = (frame["estimate"] - frame["truth"]) ** 2
+        frame["inside"] = ((frame["estimate"] - frame["truth"]).abs() <= z * frame["se"]).where(
+            frame["truth"].notna()
+        )
+        grouped = frame.groupby(keys, sort=False)
+        out = grouped.agg(
+            trials=("trial", "size"),
+            truth=("truth", "first"),
+            mean=("estimate", "mean"),
+            std=("estimate", "std"),
+            mse=("error2", "mean"),
+            mean_se=("se", "mean"),
+            coverage=("inside", "mean"),
+            converged=("converged", "mean"),
+        ).reset_index()
+        out.insert(len(keys) + 3, "bias", out["mean"] - out["truth"])
+        out.insert(len(keys) + 4, "bias_se", out["std"] / np.sqrt(out["trials"]))
+        out.insert(len(keys) + 6, "rmse", np.sqrt(out.pop("mse")))
+        out.insert(out.columns.get_loc("mean_se") + 1, "se_over_std", out["mean_se"] / out["std"])
+        return pd.DataFrame(out)
+
+    def covariances(self, point: int, estimator: str) -> dict[str, torch.Tensor | None]:
+        """Empirical, mean reported and theoretical covariance of one grid point's estimates.
+
+        Args:
+            point: index into :attr:`points`.
+            estimator: an estimator's name.
+
+        Returns:
+            A dict with ``"parameters"`` (names), ``"trials"`` (T), ``"empirical"`` (about
+            the sample mean), ``"reported"`` (mean of the reported covariances) and
+            ``"theory"`` (None without ``theory``): float64 tensors ``(p, p)``.
+        """
+        rows = self.results
+        mask = rows["estimator"] == estimator
+        for factor, value in self.points[point].items():
+            mask &= rows[factor] == value
+        rows = rows[mask]
+        names = list(dict.fromkeys(rows["parameter"]))
+        p = len(names)
+        estimates = torch.as_tensor(rows["estimate"].to_numpy().reshape(-1, p))
+        reported = np.stack(rows["covariance_row"].to_numpy()).reshape(-1, p, p).mean(0)
+        empirical = summarize_estimates(estimates, estimates.mean(0)).covariance
+        theory = None if self.theory is None else self.theory(dict(self.points[point]), estimator)
+        return {
+            "parameters": names,
+            "trials": estimates.shape[0],
+            "empirical": empirical,
+            "reported": torch.as_tensor(reported),
+            "theory": None if theory is None else torch.as_tensor(theory, dtype=torch.float64),
+        }
+
+    def covariance_summary(self):
+        """Empirical vs reported (and theoretical) covariance per grid point x estimator.
+
+        Columns: the factors, ``estimator``, ``trials``, ``rel_frobenius_reported``
+        (``||C_emp - mean C_reported||_F / ||mean C_reported||_F``) and, where ``theory``
+        gives a covariance, ``rel_frobenius_theory`` (``||C_emp - C_theory||_F /
+        ||C_theory||_F``) and ``rel_frobenius_reported_vs_theory``.
+        """
+        pd = _pandas()
+        rows = []
+        for i, point in enumerate(self.points):
+            for name in self.estimators:
+                c = self.covariances(i, name)
+                est = c["empirical"]
+                row = {**point, "estimator": name, "trials": c["trials"]}
+                row["rel_frobenius_reported"] = _relative_frobenius(est, c["reported"])
+                theory = c["theory"]
+                row["rel_frobenius_theory"] = (
+                    math.nan if theory is None else _relative_frobenius(est, theory)
+                )
+                row["rel_frobenius_reported_vs_theory"] = (
+                    math.nan if theory is None else _relative_frobenius(c["reported"], theory)
+                )
+                rows.append(row)
+        return pd.DataFrame(rows)
+
+    def consistency(self, factor: str = "N"):
+        """Fitted log-log slopes of ``|bias|`` and ``std`` against ``factor``.
+
+        For a consistent estimator with the usual rate, ``std`` falls like ``N^(-1/2)``
+        (slope -1/2) and ``|bias|`` falls at least as fast; a bias that does not shrink
+        (slope near 0, with ``|bias|`` well above ``bias_se``) marks an inconsistent one.
+
+        Returns:
+            One row per combination of the other factors x estimator x parameter: those
+            columns, ``points`` (values of ``factor`` used), ``bias_slope``, ``std_slope``.
+
+        Raises:
+            InputValidationError: ``factor`` is not a numeric grid factor with >= 2 values.
+        """
+        pd = _pandas()
+        values = self.grid.get(factor)
+        if values is None or len(set(values)) < 2 or isinstance(values[0], (str, bool)):
+            raise InputValidationError(
+                f"consistency(factor={factor!r}) needs a numeric grid factor with at least 2 "
+                f"values; the grid is {self.grid}."
+            )
+        summary = self.summary()
+        others = [f for f in self.factors if f != factor]
+        rows = []
+        for key, group in summary.groupby([*others, "estimator", "parameter"], sort=False):
+            x = np.log(group[factor].to_numpy(dtype=float))
+            row = dict(zip([*others, "estimator", "parameter"], key, strict=True))
+            row["points"] = len(group)
+            bias = group["bias"].abs().to_numpy()
+            row["bias_slope"] = (
+                float(np.polyfit(x, np.log(bias), 1)[0]) if np.all(bias > 0) else math.nan
+            )
+            row["std_slope"] = float(np.polyfit(x, np.log(group["std"].to_numpy()), 1)[0])
+            rows.append(row)
+        return pd.DataFrame(rows)
+
+    # ------------------------------------------------------------------ report
+    def report(self, out_dir, factor: str = "N") -> pathlib.Path:
+        """Write ``report.md`` with the summary tables (also as CSV) and figures.
+
+        Figures: ``bias_std_vs_<factor>.png`` (``|bias|`` and ``std`` against ``factor`` on
+        log-log axes with the ``factor^(-1/2)`` reference, when ``factor`` is a numeric grid
+        factor with >= 2 values) and ``se_vs_std.png`` (mean reported standard error against
+        the empirical standard deviation, with the line of equality).
+
+        Returns:
+            The path of ``report.md``.
+        """
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        folder = pathlib.Path(out_dir)
+        folder.mkdir(parents=True, exist_ok=True)
+        tables = {"summary": self.summary(), "covariance": self.covariance_summary()}
+        values = self.grid.get(factor)
+        by_factor = values is not None and len(set(values)) > 1
+        by_factor = by_factor and not isinstance(values[0], (str, bool))
+        if by_factor:
+            tables["consistency"] = self.consistency(factor)
+        text = [f"# Monte-Carlo study\n\n{self.trials} trials per grid point, seed {self.seed}.\n"]
+        for name, table in tables.items():
+            table.to_csv(folder / f"{name}.csv", index=False)
+            text.append(f"## {name}\n\n{_markdown(table)}")
+        summary = tables["summary"]
+        others = [f for f in self.factors if f != factor]
+        if by_factor:
+            fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+            for key, group in summary.groupby([*others, "estimator", "parameter"], sort=False):
+                label = " ".join(str(k) for k in key)
+                axes[0].loglog(group[factor], group["bias"].abs(), "o-", label=label)
+                axes[1].loglog(group[factor], group["std"], "o-", label=label)
+            n = np.array(sorted(set(values)), dtype=float)
+            first = summary[summary[factor] == n[0]]["std"].max()
+            axes[1].loglog(n, first * np.sqrt(n[0] / n), "k:", label=f"{factor}^(-1/2)")
+            axes[0].set_title("|bias|")
+            axes[1].set_title("standard deviation")
+            for ax in axes:
+                ax.set_xlabel(factor)
+                ax.legend(fontsize=6)
+            fig.tight_layout()
+            fig.savefig(folder / f"bias_std_vs_{factor}.png", dpi=150)
+            plt.close(fig)
+            text.append(f"![bias and std vs {factor}](bias_std_vs_{factor}.png)\n")
+        fig, ax = plt.subplots(figsize=(5, 4))
+        for name, group in summary.groupby("estimator", sort=False):
+            ax.loglog(group["std"], group["mean_se"], "o", label=name)
+        ends = [summary[["std", "mean_se"]].min().min(), summary[["std", "mean_se"]].max().max()]
+        ax.loglog(ends, ends, "k:", label="equality")
+        ax.set_xlabel("empirical standard deviation")
+        ax.set_ylabel("mean reported standard error")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(folder / "se_vs_std.png", dpi=150)
+        plt.close(fig)
+        text.append("![reported SE vs empirical std](se_vs_std.png)\n")
+        path = folder / "report.md"
+        path.write_text("\n".join(text))
+        return path
+
+
+def _relative_frobenius(a: torch.Tensor, b: torch.Tensor) -> float:
+    """``||a - b||_F / ||b||_F``."""
+    return float(torch.linalg.matrix_norm(a - b) / torch.linalg.matrix_norm(b))
