@@ -1,19 +1,17 @@
-"""Adaptive Radau IIA with the per-step arithmetic on the host (numpy), for small CPU problems.
+"""The numpy kernel of adaptive Radau IIA, for small CPU problems, and the driver choice.
 
-The algorithm is the one of :func:`integrators.radau.integrate_adaptive` (notes §7.4,
-simplified Newton eq. 7.14-7.16, step eq. 7.18; see that module for the error estimate and
-the step-size rule), step for step and counter for counter: the same initial step, stage
-guess by extrapolation of the previous collocation polynomial, theta-controlled simplified
-Newton, Jacobian and factorisation reuse, filtered embedded error estimate with its retry,
-Gustafsson step control and the same statuses and messages. Only the user's model runs in
-torch (on ``torch.from_numpy`` views of the host arrays, all stages in one call when the model
-allows it); its Jacobian comes from :meth:`IRKCore.frozen_blocks` (autograd). A batch of a few
+:class:`NumpyKernel` does the per-step work of :func:`integrators.radau.adaptive_loop` (notes
+§7.4, simplified Newton eq. 7.14-7.16, step eq. 7.18; see :mod:`integrators.radau` for the
+error estimate and the step-size rule) on host (numpy) arrays, so the steps, counters,
+statuses and messages are those of the torch kernel. Only the user's model runs in torch (on
+``torch.from_numpy`` views of the host arrays, all stages in one call when the model allows
+it); its Jacobian comes from :meth:`IRKCore.frozen_blocks` (autograd). A batch of a few
 samples spends 1-2 us per numpy operation instead of 3-8 us per tiny torch kernel.
 
-Gradients: the host loop finds the accepted steps ``(t_k, h_k)`` and converged stages ``W_k``
-without autograd; when anything requires grad, those steps are replayed in torch with the
+Gradients: the numpy kernel finds the accepted steps ``(t_k, h_k)`` and converged stages
+``W_k`` without autograd; when anything requires grad, those steps are replayed in torch with the
 implicit-function-theorem stages ``core.ift`` and ``x_{k+1} = x_k + h_k sum_i b_i K_i``
-(eq. 7.18), exactly as the torch driver builds them, so gradients are the same.
+(eq. 7.18), exactly as the torch kernel builds them, so gradients are the same.
 
 Only explicit ODEs whose Newton matrix is inverted explicitly (``s n <= 24``) take this path
 (:func:`host_loop_supported`); everything else stays on the torch driver.
@@ -369,7 +367,8 @@ class NumpyKernel:
             self.rms_newton,
             self.tiny,
         )
-        return tuple(v.reshape(shape) for v in (conv, iters, theta, nonfin))
+        out = conv, iters, theta, nonfin
+        return out if len(shape) == 1 else tuple(v.reshape(shape) for v in out)
 
     def error(self, ok, retry):
         shape, W, x = ok.shape, self.W, self.x
@@ -391,7 +390,7 @@ class NumpyKernel:
     def advance(self, accept, tcur, h):
         accept = accept.reshape(-1)
         t_start = np.where(accept, tcur.reshape(-1), np.inf).astype(self.npdt)
-        self.accepted.append((t_start, self.h, accept, self.W, self.host, self.Wg, self.x))
+        self.accepted.append((t_start, h.reshape(-1), accept, self.W, self.host, self.Wg, self.x))
         xdot_new = self.model.f(self.host[1], self.x_new, self.z)
         self.x = _pick(accept, self.x_new, self.x)
         self.xdot = _pick(accept, xdot_new, self.xdot)

@@ -3,6 +3,19 @@
 Every member of the batch has its own time, step size, Newton matrix, accept/reject decision
 and status; a stiff member only makes the loop longer, never changes another member's steps.
 
+Structure: :func:`adaptive_loop` is the algorithm (initial step, step-size control,
+accept / reject, Jacobian and factorisation reuse, statuses, dense-output bookkeeping) on
+host arrays; the per-step work (Jacobian, factorisation of the Newton matrix, simplified
+Newton on the stages, error estimate, moving the states) sits behind the small
+:class:`RadauKernel` interface, implemented on torch tensors by :class:`TorchKernel` (every
+system kind, any device) and on numpy arrays by :class:`integrators._radau_host.NumpyKernel`
+(small explicit ODEs on the CPU). ``integrators.implicit`` chooses the kernel by
+:func:`integrators._radau_host.use_host_loop` and reports it in ``stats.extra["driver"]``.
+A single float64 trajectory on the numpy side runs
+:func:`integrators._radau_single.integrate_single_host`, the same algorithm with the step
+control in Python floats (about 1.7 times faster than the numpy kernel at batch 1, which
+spends its time in per-operation overhead of one-element arrays).
+
 Error estimate (derived for any odd ``s``). With ``gamma`` the real eigenvalue of ``A^{-1}``
 and ``gamma_0 = 1 / gamma``, the embedded solution
 ``x_hat = x_k + h (gamma_0 x'_k + sum_i b_hat_i K_i)`` uses the nodes ``{0, c_1..c_s}`` and is
@@ -195,15 +208,16 @@ def adaptive_loop(
                     "of index > 1, or blow up there — loosen the tolerances or check the model",
                 )
             over = active & (attempts >= max_steps)
-            stop_samples(
-                over,
-                Status.MAX_STEPS,
-                status,
-                active,
-                messages,
-                tcur,
-                f"max_steps = {max_steps} step attempts were used; raise max_steps",
-            )
+            if _any(over):
+                stop_samples(
+                    over,
+                    Status.MAX_STEPS,
+                    status,
+                    active,
+                    messages,
+                    tcur,
+                    f"max_steps = {max_steps} step attempts were used; raise max_steps",
+                )
             if not _any(active):
                 break
             h_step = h
