@@ -1,19 +1,17 @@
-"""Adaptive Radau IIA with the per-step arithmetic on the host (numpy), for small CPU problems.
+"""The numpy kernel of adaptive Radau IIA, for small CPU problems, and the driver choice.
 
-The algorithm is the one of :func:`integrators.radau.integrate_adaptive` (notes §7.4,
-simplified Newton eq. 7.14-7.16, step eq. 7.18; see that module for the error estimate and
-the step-size rule), step for step and counter for counter: the same initial step, stage
-guess by extrapolation of the previous collocation polynomial, theta-controlled simplified
-Newton, Jacobian and factorisation reuse, filtered embedded error estimate with its retry,
-Gustafsson step control and the same statuses and messages. Only the user's model runs in
-torch (on ``torch.from_numpy`` views of the host arrays, all stages in one call when the model
-allows it); its Jacobian comes from :meth:`IRKCore.frozen_blocks` (autograd). A batch of a few
+:class:`NumpyKernel` does the per-step work of :func:`integrators.radau.adaptive_loop` (notes
+§7.4, simplified Newton eq. 7.14-7.16, step eq. 7.18; see :mod:`integrators.radau` for the
+error estimate and the step-size rule) on host (numpy) arrays, so the steps, counters,
+statuses and messages are those of the torch kernel. Only the user's model runs in torch (on
+``torch.from_numpy`` views of the host arrays, all stages in one call when the model allows
+it); its Jacobian comes from :meth:`IRKCore.frozen_blocks` (autograd). A batch of a few
 samples spends 1-2 us per numpy operation instead of 3-8 us per tiny torch kernel.
 
-Gradients: the host loop finds the accepted steps ``(t_k, h_k)`` and converged stages ``W_k``
-without autograd; when anything requires grad, those steps are replayed in torch with the
+Gradients: the numpy kernel finds the accepted steps ``(t_k, h_k)`` and converged stages
+``W_k`` without autograd; when anything requires grad, those steps are replayed in torch with the
 implicit-function-theorem stages ``core.ift`` and ``x_{k+1} = x_k + h_k sum_i b_i K_i``
-(eq. 7.18), exactly as the torch driver builds them, so gradients are the same.
+(eq. 7.18), exactly as the torch kernel builds them, so gradients are the same.
 
 Only explicit ODEs whose Newton matrix is inverted explicitly (``s n <= 24``) take this path
 (:func:`host_loop_supported`); everything else stays on the torch driver.
@@ -21,6 +19,7 @@ Only explicit ODEs whose Newton matrix is inverted explicitly (``s n <= 24``) ta
 
 from __future__ import annotations
 
+import contextlib
 import functools
 
 import numpy as np
@@ -28,11 +27,10 @@ import torch
 from scipy.linalg import get_lapack_funcs
 
 from ._irk_core import IRKCore, host_shape, masked_update
-from ._irk_dense import StepRecords, stop_times
+from ._irk_dense import StepRecords
 from .controllers import GustafssonController
 from .errors import InputValidationError
-from .radau import embedded_weights, initial_step, stop_samples
-from .solution import Status
+from .radau import _any, adaptive_loop, embedded_weights
 
 #: The step-size rule of the host drivers (they run only with the default controller).
 _RULE = GustafssonController()
@@ -183,14 +181,8 @@ def _identity(q: int, dtype: str) -> np.ndarray:
     return eye
 
 
-def _any(mask: np.ndarray) -> bool:
-    """``mask.any()`` for a host bool array, without the method's Python-level wrapper (the
-    step loop asks this some 25 times per step)."""
-    return np.count_nonzero(mask) > 0
-
-
 def _all(mask: np.ndarray) -> bool:
-    """``mask.all()`` for a host bool array (see :func:`_any`)."""
+    """``mask.all()`` for a host bool array, without the method's Python-level wrapper."""
     return np.count_nonzero(mask) == mask.size
 
 
@@ -260,8 +252,8 @@ def integrate_adaptive_host(
     newton_tol,
     dt0=None,
 ):
-    """Run adaptive Radau IIA with a host loop; same arguments (less the DAE index options)
-    and the same returned dict as :func:`integrators.radau.integrate_adaptive`.
+    """Run adaptive Radau IIA with the numpy kernel; same arguments (less the DAE index
+    options) and the same returned dict as :func:`integrators.radau.integrate_adaptive`.
 
     Args:
         core: :class:`IRKCore` of an explicit ODE with ``core.solver.dense(n)``.
@@ -269,201 +261,152 @@ def integrate_adaptive_host(
         t: (T,) output times.
         rtol, atol, max_steps, max_iter, newton_tol, dt0: as in ``integrate_adaptive``.
     """
-    batch = x0.shape[:-1]
-    hshape = host_shape(batch)
-    dtype = x0.dtype
-    npdt = np.float64 if dtype == torch.float64 else np.float32
-    n, s = core.system.n, core.s
-    model = _HostModel(core, batch, npdt)
-    B = model.B
-    (gamma_e, filt, A, b, c_np, lagrange, powers, rms, rms_newton, expo) = _method_constants(
-        core, npdt
+    kernel = NumpyKernel(core, x0, z0, xdot0, t, rtol, atol, newton_tol, max_iter)
+    return adaptive_loop(
+        kernel,
+        core,
+        x0,
+        z0,
+        xdot0,
+        t,
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
+        max_iter=max_iter,
+        dt0=dt0,
+        controller=_RULE,
     )
-    c_col = c_np[:, None]
-    t_host, t_end, t_snap, span, min_step, tiny, atol_, rtol_ = _run_constants(
-        core, t, atol, rtol, npdt
-    )
 
-    def flags(value=False):
-        return np.full(B, value, dtype=bool)
 
-    def counts():
-        return np.zeros(B, dtype=np.int64)
+class NumpyKernel:
+    """:class:`~integrators.radau.RadauKernel` on host (numpy) arrays with the flattened batch
+    ``B`` as one axis: explicit ODEs on the CPU whose Newton matrix is inverted explicitly
+    (:func:`host_loop_supported`). Only the user's model runs in torch (:class:`_HostModel`);
+    the Newton matrix is inverted (:func:`_factorize`) and the simplified Newton iteration
+    (:func:`_newton`) is one matrix product per iteration. The records of the accepted steps
+    are replayed in torch for gradients at the end (:func:`_records`)."""
 
-    tcur = np.full(B, t_host[0], dtype=npdt)
-    x = x0.detach().numpy().astype(npdt).reshape(B, n)
-    xdot = xdot0.detach().numpy().astype(npdt).reshape(B, n)
-    z = z0.detach()
-    status = np.zeros(B, dtype=np.int8)
-    active, need_jac, need_lu, first = flags(True), flags(True), flags(True), flags(True)
-    fresh, rejected_last, nonfinite_last, have_prev = flags(), flags(), flags(), flags()
-    h_fact = np.zeros(B, dtype=npdt)
-    G = J_inv = real_inv = prev_W = None
-    prev_h = np.ones(B, dtype=npdt)
-    err_old = np.ones(B)
-    h_old = np.zeros(B)
-    n_steps, n_rej, n_newton, attempts = counts(), counts(), counts(), counts()
-    n_jac = n_lu = 0
-    messages: list[str] = []
-    accepted: list[tuple] = []  # per advancing iteration: what the records / replay need
+    def __init__(self, core, x0, z0, xdot0, t, rtol, atol, newton_tol, max_iter):
+        self.core, self.x0, self.z0 = core, x0, z0
+        npdt = np.float64 if x0.dtype == torch.float64 else np.float32
+        self.model = model = _HostModel(core, x0.shape[:-1], npdt)
+        B, n = model.B, core.system.n
+        (
+            self.gamma_e,
+            self.filt,
+            self.A,
+            self.b,
+            self.c,
+            self.lagrange,
+            self.powers,
+            self.rms,
+            self.rms_newton,
+            _,
+        ) = _method_constants(core, npdt)
+        self.c_col = self.c[:, None]
+        self.t0, *_, self.tiny, self.atol, self.rtol = _run_constants(core, t, atol, rtol, npdt)
+        self.t0 = self.t0[0]
+        self.npdt, self.newton_tol, self.max_iter = npdt, newton_tol, max_iter
+        self.x = x0.detach().numpy().astype(npdt).reshape(B, n)
+        self.xdot = xdot0.detach().numpy().astype(npdt).reshape(B, n)
+        self.z = z0.detach()
+        self.G = self.J_inv = self.real_inv = self.prev_W = None
+        self.n_jac = self.n_lu = 0
+        self.accepted: list[tuple] = []  # per advancing iteration: what the records need
 
-    def stop(mask, code, why):
-        stop_samples(
-            mask.reshape(hshape),
-            np.broadcast_to(code, (B,)).reshape(hshape),
-            status.reshape(hshape),
-            active.reshape(hshape),
-            messages,
-            tcur.reshape(hshape),
-            why,
+    def begin_step(self, tcur, h):
+        B, s = self.model.B, self.core.s
+        self.h = h.reshape(B)
+        # t_k, t_k + h and the stage times t_k + c_i h, rounded as the torch kernel does
+        host = np.empty((2 + s, B), dtype=self.npdt)
+        tk = tcur.reshape(B)
+        host[0], host[1], host[2:] = tk, tk + self.h, tk + self.c_col * self.h
+        self.host = host
+
+    def jacobian(self, mask):
+        mask = mask.reshape(-1)
+        self.G = _jacobian(self.core, self.model, self.host[0], self.x, self.z, self.xdot,
+                           mask, self.G)  # fmt: skip
+        self.n_jac += 1
+        return None
+
+    def factorize(self, mask, h, h_fact):
+        shape, mask, h, h_fact = mask.shape, mask.reshape(-1), h.reshape(-1), h_fact.reshape(-1)
+        if self.J_inv is None or _all(mask):
+            h_lu = np.where(mask, h, np.where(h_fact > 0, h_fact, h))
+            self.J_inv, self.real_inv, sing = _factorize(self.A, self.filt, self.G, h_lu)
+            singular = mask & sing
+        else:  # only the members that need it (finished members never do)
+            idx = np.flatnonzero(mask)
+            singular = np.zeros_like(mask)
+            self.J_inv[idx], self.real_inv[idx], singular[idx] = _factorize(
+                self.A, self.filt, self.G[idx], h[idx]
+            )
+        self.n_lu += 1
+        return singular.reshape(shape)
+
+    def newton(self, live, have_prev, ratio):
+        shape, model = live.shape, self.model
+        self.sc_x = self.atol + self.rtol * np.abs(self.x)
+        W0 = _stage_guess(self.lagrange, self.powers, self.c, self.prev_W,
+                          have_prev.reshape(-1), ratio.reshape(-1), self.xdot)  # fmt: skip
+        self.W, conv, iters, theta, nonfin = _newton(
+            model,
+            self.A,
+            model.times(self.host[2:]),
+            self.host[0],
+            self.h,
+            self.x,
+            self.z,
+            W0,
+            self.J_inv,
+            self.sc_x,
+            self.newton_tol,
+            self.max_iter,
+            live.reshape(-1),
+            self.rms_newton,
+            self.tiny,
         )
+        out = conv, iters, theta, nonfin
+        return out if len(shape) == 1 else tuple(v.reshape(shape) for v in out)
 
-    h = initial_step(core, x0, z0, xdot0, t[0], span, rtol, atol, expo, dt0)
-    h = h.detach().numpy().reshape(B).astype(npdt)
+    def error(self, ok, retry):
+        shape, W, x = ok.shape, self.W, self.x
+        self.Wg = W if np.isfinite(W.sum()) else np.nan_to_num(W)
+        self.x_new = x_new = x + self.h[:, None] * (self.b @ self.Wg)  # eq. 7.18
+        # filtered embedded error estimate (see integrators.radau), refined after rejections
+        eK = self.gamma_e @ W
+        err_x = (self.real_inv @ (self.xdot + eK)[:, :, None])[:, :, 0]
+        retry = retry.reshape(-1)
+        if _any(retry):
+            f_err = self.model.f(self.host[0], x + err_x, self.z)
+            err_retry = (self.real_inv @ (f_err + eK)[:, :, None])[:, :, 0]
+            err_x = _pick(retry, err_retry, err_x)
+        sc = np.maximum(self.sc_x, self.atol + self.rtol * np.abs(x_new))
+        err = np.sqrt(np.square(err_x / sc).sum(-1)).astype(np.float64, copy=False) * self.rms
+        finite = np.isfinite(x_new).all(-1) & np.isfinite(err)
+        return np.where(finite, err, np.inf).reshape(shape), finite.reshape(shape)
 
-    # the model runs without gradient recording, not in inference mode: models that call
-    # autograd inside ``f`` (Lagrangian systems, energy-based networks) need ``enable_grad``
-    # to work there
-    with np.errstate(all="ignore"), torch.no_grad():
-        while _any(active):
-            h = np.where(active & (tcur + h >= t_end), t_end - tcur, h)
-            tiny_h = active & (h <= min_step * np.maximum(np.abs(tcur), 1.0))
-            if _any(tiny_h):
-                code = np.where(nonfinite_last, Status.NON_FINITE, Status.STEP_TOO_SMALL)
-                stop(
-                    tiny_h,
-                    code.astype(np.int8),
-                    "the step size fell below the time resolution; the problem may be "
-                    "non-smooth, of index > 1, or blow up there — loosen the tolerances or "
-                    "check the model",
-                )
-            over = active & (attempts >= max_steps)
-            if _any(over):
-                stop(
-                    over,
-                    np.int8(Status.MAX_STEPS),
-                    f"max_steps = {max_steps} step attempts were used; raise max_steps",
-                )
-            if not _any(active):
-                break
-            h_step = h
-            # t_k, t_k + h and the stage times t_k + c_i h, rounded as the torch driver does
-            host = np.empty((2 + s, B), dtype=npdt)
-            host[0], host[1], host[2:] = tcur, tcur + h, tcur + c_col * h
-            if _any(need_jac) and _any(active & need_jac):
-                jac_mask = active & need_jac
-                G = _jacobian(core, model, host[0], x, z, xdot, jac_mask, G)
-                n_jac += 1
-                fresh |= jac_mask
-                need_lu |= jac_mask
-                need_jac &= ~jac_mask
-            lu_mask = active & (need_lu | (h != h_fact))
-            singular = flags()
-            if _any(lu_mask):
-                if J_inv is None or _all(lu_mask):
-                    h_lu = np.where(lu_mask, h, np.where(h_fact > 0, h_fact, h))
-                    J_inv, real_inv, sing = _factorize(A, filt, G, h_lu)
-                    singular = lu_mask & sing
-                else:  # only the members that need it (finished members never do)
-                    idx = np.flatnonzero(lu_mask)
-                    J_inv[idx], real_inv[idx], singular[idx] = _factorize(A, filt, G[idx], h[idx])
-                n_lu += 1
-                h_fact = np.where(lu_mask, h, h_fact)
-                need_lu &= ~lu_mask
-            sc_x = atol_ + rtol_ * np.abs(x)
-            W0 = _stage_guess(lagrange, powers, c_np, prev_W, have_prev, h / prev_h, xdot)
-            W, conv, iters, theta, nonfin = _newton(
-                model,
-                A,
-                model.times(host[2:]),
-                host[0],
-                h,
-                x,
-                z,
-                W0,
-                J_inv,
-                sc_x,
-                newton_tol,
-                max_iter,
-                active & ~singular,
-                rms_newton,
-                tiny,
-            )
-            n_newton += iters
-            attempts += active
-            failed = active & (~conv | singular)
-            if _any(failed):  # refresh a stale Jacobian at the same step, else halve the step
-                need_jac |= failed & ~fresh
-                h = np.where(failed & fresh, 0.5 * h, h)
-                nonfinite_last = np.where(failed, nonfin, nonfinite_last)
-                rejected_last |= failed
-                n_rej += failed
+    def advance(self, accept, tcur, h):
+        accept = accept.reshape(-1)
+        t_start = np.where(accept, tcur.reshape(-1), np.inf).astype(self.npdt)
+        self.accepted.append((t_start, h.reshape(-1), accept, self.W, self.host, self.Wg, self.x))
+        xdot_new = self.model.f(self.host[1], self.x_new, self.z)
+        self.x = _pick(accept, self.x_new, self.x)
+        self.xdot = _pick(accept, xdot_new, self.xdot)
+        self.prev_W = self.W if self.prev_W is None else _pick(accept, self.W, self.prev_W)
 
-            ok = active & conv & ~singular
-            Wg = W if np.isfinite(W.sum()) else np.nan_to_num(W)
-            x_new = x + h_step[:, None] * (b @ Wg)  # eq. 7.18
-            # filtered embedded error estimate (see integrators.radau), refined after rejections
-            eK = gamma_e @ W
-            err_x = (real_inv @ (xdot + eK)[:, :, None])[:, :, 0]
-            retry = ok & (first | rejected_last)
-            if _any(retry):
-                f_err = model.f(host[0], x + err_x, z)
-                err_retry = (real_inv @ (f_err + eK)[:, :, None])[:, :, 0]
-                err_x = _pick(retry, err_retry, err_x)
-            sc = np.maximum(sc_x, atol_ + rtol_ * np.abs(x_new))
-            err = np.sqrt(np.square(err_x / sc).sum(-1)).astype(np.float64, copy=False) * rms
-            finite = np.isfinite(x_new).all(-1) & np.isfinite(err)
-            err = np.where(finite, err, np.inf)
-            accept = ok & (err < 1.0)
-            reject = ok & ~accept
-            n_rej += reject
+    def records(self):
+        return _records(self.core, self.model, self.x0, self.z0, self.t0, self.accepted)
 
-            hh = h_step.astype(np.float64, copy=False)
-            err_c, h_acc, h_rej, slow = _RULE.radau_step_sizes(
-                hh, err, finite, err_old, h_old, first, iters, theta, max_iter, expo
-            )
-
-            if _any(accept):  # accepted samples advance
-                t_start = np.where(accept, tcur, np.inf).astype(npdt)
-                accepted.append((t_start, h_step, accept, W, host, Wg, x))
-                xdot_new = model.f(host[1], x_new, z)
-                x = _pick(accept, x_new, x)
-                xdot = _pick(accept, xdot_new, xdot)
-                prev_W = W if prev_W is None else _pick(accept, W, prev_W)
-                tcur = _pick(accept, tcur + h_step, tcur)
-                tcur = np.where(accept & (tcur >= t_snap), t_end, tcur)
-                prev_h = _pick(accept, h_step, prev_h)
-                have_prev |= accept
-                h_old = _pick(accept, hh, h_old)
-                err_old = _pick(accept, np.maximum(err_c, 1e-2), err_old)
-                need_jac |= accept & slow
-                fresh &= ~accept
-                first &= ~accept
-                n_steps += accept
-            rejected_last = ~accept & (rejected_last | reject)
-            h = np.where(accept, h_acc, np.where(reject, h_rej, h)).astype(npdt)
-            active &= ~(accept & (tcur >= t_end))
-
-    records = _records(core, model, x0, z0, t_host[0], accepted)
-    records.stop = stop_times(status, tcur).reshape(hshape)
-    x_out, z_out = records.evaluate(t)
-
-    def dev(a):
-        return torch.from_numpy(a).reshape(batch)
-
-    return dict(
-        x=x_out,
-        z=z_out,
-        status=dev(status),
-        messages=messages,
-        n_steps=dev(n_steps),
-        n_rejected=dev(n_rej),
-        n_newton=dev(n_newton),
-        n_jac=n_jac,
-        n_lu=n_lu,
-        n_f=core.n_f_evals,
-        records=records,
-    )
+    def step_mode(self):
+        """No gradient recording (the records replay the steps for gradients), and not
+        inference mode: models that call autograd inside ``f`` (Lagrangian systems,
+        energy-based networks) need ``enable_grad`` to work there."""
+        stack = contextlib.ExitStack()
+        stack.enter_context(np.errstate(all="ignore"))
+        stack.enter_context(torch.no_grad())
+        return stack
 
 
 def _jacobian(core, model, tk, x, z, xdot, mask, G_old):

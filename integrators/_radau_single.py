@@ -1,15 +1,16 @@
 """Adaptive Radau IIA for one trajectory: the host loop with the step control in Python floats.
 
-The algorithm is the one of :func:`integrators.radau.integrate_adaptive` and of the batched
-host loop :func:`integrators._radau_host.integrate_adaptive_host` (notes §7.4, simplified
-Newton eq. 7.14-7.16, step eq. 7.18): the same initial step, stage guess, theta-controlled
-simplified Newton, Jacobian and factorisation reuse, filtered embedded error estimate with its
-retry, step-size rule, statuses and messages, so it takes the same steps. With one trajectory
+The algorithm is the one of :func:`integrators.radau.adaptive_loop` with the numpy kernel
+:class:`integrators._radau_host.NumpyKernel` (notes §7.4, simplified Newton eq. 7.14-7.16,
+step eq. 7.18): the same initial step, stage guess, theta-controlled simplified Newton,
+Jacobian and factorisation reuse, filtered embedded error estimate with its retry, step-size
+rule, statuses and messages, so it takes the same steps. With one trajectory
 every per-sample quantity (time, step size, flags, error norm, contraction rate) is a Python
-float or bool, whose operations cost far less than those on a one-element numpy array (see
-docs/benchmarks.md, ``bench_implicit``); the stage vectors and the small Newton algebra stay
-numpy arrays shaped (1, ...) and go through the batched loop's helpers (factorisation, error
-filter, model wrapper, dense-output records and the gradient replay).
+float or bool, whose operations cost far less than those on a one-element numpy array: on the
+stiff Van der Pol oscillator of ``bench_implicit`` this loop takes about 0.6 times the time of
+the shared loop with the numpy kernel at batch 1. The stage vectors and the small Newton
+algebra stay numpy arrays shaped (1, ...) and go through the numpy kernel's helpers
+(factorisation, error filter, model wrapper, dense-output records and the gradient replay).
 
 Only float64 states take this path (:func:`single_loop_supported`): Python floats are float64,
 so its step control rounds as the batched loop's does (up to a bit of ``**``, and the summation

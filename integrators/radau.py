@@ -3,6 +3,19 @@
 Every member of the batch has its own time, step size, Newton matrix, accept/reject decision
 and status; a stiff member only makes the loop longer, never changes another member's steps.
 
+Structure: :func:`adaptive_loop` is the algorithm (initial step, step-size control,
+accept / reject, Jacobian and factorisation reuse, statuses, dense-output bookkeeping) on
+host arrays; the per-step work (Jacobian, factorisation of the Newton matrix, simplified
+Newton on the stages, error estimate, moving the states) sits behind the small
+:class:`RadauKernel` interface, implemented on torch tensors by :class:`TorchKernel` (every
+system kind, any device) and on numpy arrays by :class:`integrators._radau_host.NumpyKernel`
+(small explicit ODEs on the CPU). ``integrators.implicit`` chooses the kernel by
+:func:`integrators._radau_host.use_host_loop` and reports it in ``stats.extra["driver"]``.
+A single float64 trajectory on the numpy side runs
+:func:`integrators._radau_single.integrate_single_host`, the same algorithm with the step
+control in Python floats (about 1.7 times faster than the numpy kernel at batch 1, which
+spends its time in per-operation overhead of one-element arrays).
+
 Error estimate (derived for any odd ``s``). With ``gamma`` the real eigenvalue of ``A^{-1}``
 and ``gamma_0 = 1 / gamma``, the embedded solution
 ``x_hat = x_k + h (gamma_0 x'_k + sum_i b_hat_i K_i)`` uses the nodes ``{0, c_1..c_s}`` and is
@@ -26,6 +39,9 @@ when the step would grow by < 20 %.
 """
 
 from __future__ import annotations
+
+import contextlib
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -51,6 +67,251 @@ def embedded_weights(tab) -> tuple[float, np.ndarray]:
     return gamma, np.linalg.solve(V, rhs)
 
 
+class RadauKernel(Protocol):
+    """The per-step work of :func:`adaptive_loop` on one representation of the states.
+
+    The loop owns every per-sample scalar as a host (numpy) array shaped
+    :func:`host_shape` ``(*batch,)``: times, step sizes, flags, counters, statuses, the
+    controller's history. A kernel owns the states ``x, z, x'`` and the stages, the frozen
+    Jacobian and the Newton matrices, and the dense-output records; it receives host masks
+    and host step sizes and returns host masks and numbers. :class:`TorchKernel` (any device,
+    any system kind) and :class:`integrators._radau_host.NumpyKernel` (explicit ODEs on the
+    CPU) implement it; ``integrators.implicit`` picks one by the rule of
+    :func:`integrators._radau_host.use_host_loop`. Attributes ``n_jac`` and ``n_lu`` count
+    Jacobian evaluations and factorisations.
+    """
+
+    n_jac: int
+    n_lu: int
+
+    def begin_step(self, tcur: np.ndarray, h: np.ndarray) -> None:
+        """Prepare a step attempt from the step starts ``tcur`` and sizes ``h``."""
+
+    def jacobian(self, mask: np.ndarray) -> np.ndarray | None:
+        """Re-evaluate the frozen Jacobian at the step start for the ``mask`` samples; return
+        the samples whose DAE index check failed (None: no check)."""
+
+    def factorize(self, mask: np.ndarray, h: np.ndarray, h_fact: np.ndarray) -> np.ndarray:
+        """Factorise the Newton matrix (eq. 7.16) at step ``h`` for the ``mask`` samples (the
+        others keep theirs, made at ``h_fact``); return the singular samples."""
+
+    def newton(self, live, have_prev, ratio) -> tuple:
+        """Simplified Newton (eq. 7.14-7.16) on the ``live`` samples, started at the previous
+        stage polynomial extrapolated by the step ratio ``ratio`` where ``have_prev``; return
+        ``(converged, iterations, theta, non_finite)``."""
+
+    def error(self, ok: np.ndarray, retry: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Step ends of the ``ok`` samples and their scaled error norms (float64, inf where not
+        finite; ``retry`` samples refine the estimate once); return ``(err, finite)``."""
+
+    def advance(self, accept: np.ndarray, tcur: np.ndarray, h: np.ndarray) -> None:
+        """Move the ``accept`` samples to their step ends and record the steps ``[tcur, tcur
+        + h]`` for dense output."""
+
+    def escaping(self) -> np.ndarray:
+        """:func:`escaping` at the current states (called for DAEs and implicit ODEs only)."""
+
+    def records(self) -> StepRecords:
+        """The dense-output records of the accepted steps."""
+
+    def step_mode(self) -> contextlib.AbstractContextManager:
+        """The context the step loop runs in (the records and outputs are made outside it)."""
+
+
+def adaptive_loop(
+    kernel: RadauKernel,
+    core: IRKCore,
+    x0,
+    z0,
+    xdot0,
+    t,
+    *,
+    rtol,
+    atol,
+    max_steps,
+    max_iter,
+    index_check_every=10,
+    dt0=None,
+    controller=None,
+):
+    """Run adaptive Radau IIA with ``kernel``'s per-step work; returns a dict of outputs,
+    status, counters and messages.
+
+    The loop is the algorithm of the module docstring: step-size control by ``controller``
+    (default :class:`~integrators.controllers.GustafssonController`), Jacobian and
+    factorisation reuse, accept / reject, statuses (``STEP_TOO_SMALL``, ``NON_FINITE``,
+    ``MAX_STEPS``, ``HIGH_INDEX``) and their messages, all on host arrays (*batch,); the
+    kernel carries out each step. Arguments as :func:`integrate_adaptive`.
+    """
+    batch = x0.shape[:-1]
+    hdt = np.float64 if x0.dtype == torch.float64 else np.float32
+    s = core.s
+    ode = core.system.kind == "ode"
+    controller = GustafssonController() if controller is None else controller
+    expo = 1.0 / (s + 1)
+    t_host = to_host(t).astype(hdt)
+    t_end = t_host[-1]
+    t_snap = t_end - 1e-14 * abs(float(t_end))  # a step ending this close lands on t_end
+    span = float(t_host[-1] - t_host[0])
+    min_step = 16 * core.eps
+    hshape = host_shape(batch)
+
+    def flags(value=False):
+        return np.full(hshape, value, dtype=bool)
+
+    def counts():
+        return np.zeros(hshape, dtype=np.int64)
+
+    tcur = np.full(hshape, t_host[0], dtype=hdt)
+    status = np.zeros(hshape, dtype=np.int8)
+    active, need_jac, need_lu, first = flags(True), flags(True), flags(True), flags(True)
+    fresh, rejected_last, nonfinite_last, have_prev = flags(), flags(), flags(), flags()
+    h_fact = np.zeros(hshape, dtype=hdt)
+    prev_h = np.ones(hshape, dtype=hdt)
+    err_old = np.ones(hshape)
+    h_old = np.zeros(hshape)
+    n_steps, n_rej, n_newton, attempts = counts(), counts(), counts(), counts()
+    messages: list[str] = []
+
+    h = initial_step(core, x0, z0, xdot0, t[0], span, rtol, atol, expo, dt0)
+    h = to_host(h, hshape).astype(hdt)
+
+    with kernel.step_mode():
+        while _any(active):
+            h = np.where(active & (tcur + h >= t_end), t_end - tcur, h)
+            tiny = active & (h <= min_step * np.maximum(np.abs(tcur), 1.0))
+            if _any(tiny):
+                escape = tiny & ~nonfinite_last
+                if not ode and _any(escape):
+                    escape &= kernel.escaping()
+                    stop_samples(
+                        escape,
+                        Status.NON_FINITE,
+                        status,
+                        active,
+                        messages,
+                        tcur,
+                        "the step size fell below the time resolution while the states grew "
+                        f"beyond {ESCAPE_GROWTH:.1e} times their initial size: the solution "
+                        "escapes to infinity there (finite escape time, like x' = x^2, x(0) = 1 "
+                        "at t = 1, notes eq. 1.44); its outputs from there on are not defined",
+                    )
+                    tiny &= ~escape
+                stop_samples(
+                    tiny,
+                    np.where(nonfinite_last, Status.NON_FINITE, Status.STEP_TOO_SMALL),
+                    status,
+                    active,
+                    messages,
+                    tcur,
+                    "the step size fell below the time resolution; the problem may be non-smooth, "
+                    "of index > 1, or blow up there — loosen the tolerances or check the model",
+                )
+            over = active & (attempts >= max_steps)
+            if _any(over):
+                stop_samples(
+                    over,
+                    Status.MAX_STEPS,
+                    status,
+                    active,
+                    messages,
+                    tcur,
+                    f"max_steps = {max_steps} step attempts were used; raise max_steps",
+                )
+            if not _any(active):
+                break
+            h_step = h
+            kernel.begin_step(tcur, h)
+            jac_mask = active & need_jac
+            if _any(jac_mask):
+                high = kernel.jacobian(jac_mask)
+                if high is not None:
+                    _flag_high_index(high & active, status, active, messages, tcur)
+                fresh |= jac_mask
+                need_lu |= jac_mask
+                need_jac &= ~jac_mask
+            lu_mask = active & (need_lu | (h != h_fact))
+            singular = flags()
+            if _any(lu_mask):
+                singular = kernel.factorize(lu_mask, h, h_fact)
+                h_fact = np.where(lu_mask, h, h_fact)
+                need_lu &= ~lu_mask
+            conv, iters, theta, nonfin = kernel.newton(active & ~singular, have_prev, h / prev_h)
+            n_newton += iters
+            attempts += active
+            failed = active & (~conv | singular)
+            if _any(failed):  # refresh a stale Jacobian at the same step, else halve the step
+                need_jac |= failed & ~fresh
+                h = np.where(failed & fresh, 0.5 * h, h)
+                nonfinite_last = np.where(failed, nonfin, nonfinite_last)
+                rejected_last |= failed
+                n_rej += failed
+
+            ok = active & conv & ~singular
+            err, finite = kernel.error(ok, ok & (first | rejected_last))
+            accept = ok & (err < 1.0)
+            reject = ok & ~accept
+            n_rej += reject
+
+            hh = h_step.astype(np.float64, copy=False)
+            err_c, h_acc, h_rej, slow = controller.radau_step_sizes(
+                hh, err, finite, err_old, h_old, first, iters, theta, max_iter, expo
+            )
+
+            if _any(accept):  # accepted samples advance
+                kernel.advance(accept, tcur, h_step)
+                tcur = _pick(accept, tcur + h_step, tcur)
+                tcur = np.where(accept & (tcur >= t_snap), t_end, tcur)
+                prev_h = _pick(accept, h_step, prev_h)
+                have_prev |= accept
+                h_old = _pick(accept, hh, h_old)
+                err_old = _pick(accept, np.maximum(err_c, 1e-2), err_old)
+                need_jac |= accept & slow
+                fresh &= ~accept
+                first &= ~accept
+                n_steps += accept
+                if not ode:  # periodic index check (Theorem 9) with a fresh Jacobian
+                    need_jac |= accept & (n_steps % index_check_every == 0)
+            rejected_last = ~accept & (rejected_last | reject)
+            h = np.where(accept, h_acc, np.where(reject, h_rej, h)).astype(hdt)
+            active &= ~(accept & (tcur >= t_end))
+
+    records = kernel.records()
+    records.stop = stop_times(status, tcur)
+    x_out, z_out = records.evaluate(t)
+
+    def dev(a):
+        return torch.from_numpy(a).to(x0.device).reshape(batch)
+
+    return dict(
+        x=x_out,
+        z=z_out,
+        status=dev(status),
+        messages=messages,
+        n_steps=dev(n_steps),
+        n_rejected=dev(n_rej),
+        n_newton=dev(n_newton),
+        n_jac=kernel.n_jac,
+        n_lu=kernel.n_lu,
+        n_f=core.n_f_evals,
+        records=records,
+    )
+
+
+def _any(mask: np.ndarray) -> bool:
+    """``mask.any()`` for a host bool array, without the method's Python-level wrapper (the
+    loop asks this some 10 times per step)."""
+    return np.count_nonzero(mask) > 0
+
+
+def _pick(mask: np.ndarray, new: np.ndarray, old: np.ndarray) -> np.ndarray:
+    """``new`` where the host bool ``mask`` holds, else ``old`` (same shapes); ``new`` itself
+    when every member moves (the common case, one check instead of a select)."""
+    if np.count_nonzero(mask) == mask.size:
+        return new
+    return np.where(mask, new, old)
+
+
 def integrate_adaptive(
     core: IRKCore,
     x0,
@@ -68,7 +329,8 @@ def integrate_adaptive(
     dt0=None,
     controller=None,
 ):
-    """Run adaptive Radau IIA; returns a dict of outputs, status, counters and messages.
+    """Run adaptive Radau IIA with the torch kernel; returns a dict of outputs, status,
+    counters and messages (:func:`adaptive_loop`).
 
     ``controller``: the step-size controller (default
     :class:`~integrators.controllers.GustafssonController`).
@@ -77,224 +339,151 @@ def integrate_adaptive(
     arrays: the step-size control costs no device kernels, and each step needs one
     device-to-host transfer of the error norms (plus one per Newton iteration).
     """
-    batch = x0.shape[:-1]
-    dtype = x0.dtype
-    hdt = np.float64 if dtype == torch.float64 else np.float32
-    n, m, s = core.system.n, core.system.m, core.s
-    controller = GustafssonController() if controller is None else controller
-    gamma, e_np = embedded_weights(core.tab)
-    gamma_e = torch.as_tensor(gamma * e_np, dtype=dtype, device=x0.device)
-    rms = 1.0 / (n + m) ** 0.5
-    c_np = np.array(core.c)
-    c_col = c_np.reshape(s, *([1] * max(len(batch), 1)))
-    expo = 1.0 / (s + 1)
-    t_host = to_host(t).astype(hdt)
-    t_end = t_host[-1]
-    span = float(t_host[-1] - t_host[0])
-    min_step = 16 * core.eps
+    kernel = TorchKernel(core, x0, z0, xdot0, t, rtol, atol, newton_tol, max_iter, index_tol)
+    return adaptive_loop(
+        kernel,
+        core,
+        x0,
+        z0,
+        xdot0,
+        t,
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
+        max_iter=max_iter,
+        index_check_every=index_check_every,
+        dt0=dt0,
+        controller=controller,
+    )
 
-    hshape = host_shape(batch)
 
-    def flags(value=False):
-        return np.full(hshape, value, dtype=bool)
+class TorchKernel:
+    """:class:`RadauKernel` on torch tensors (*batch, ...) on the device of ``x0``: every
+    system kind (explicit and implicit ODEs, semi-explicit DAEs with their index check), the
+    Newton solve of :meth:`IRKCore.newton` and the factorisations of
+    :class:`~integrators._irk_core.IterationMatrix`. The stages of each step that moves a
+    sample carry the implicit-function-theorem gradient (:meth:`IRKCore.ift`)."""
 
-    def counts():
-        return np.zeros(hshape, dtype=np.int64)
+    def __init__(self, core, x0, z0, xdot0, t, rtol, atol, newton_tol, max_iter, index_tol):
+        self.core, self.x0, self.z0 = core, x0, z0
+        self.batch = x0.shape[:-1]
+        self.hshape = host_shape(self.batch)
+        self.dtype = x0.dtype
+        self.hdt = np.float64 if x0.dtype == torch.float64 else np.float32
+        n, m, s = core.system.n, core.system.m, core.s
+        self.gamma, e_np = embedded_weights(core.tab)
+        self.gamma_e = torch.as_tensor(self.gamma * e_np, dtype=x0.dtype, device=x0.device)
+        self.rms = 1.0 / (n + m) ** 0.5
+        self.c = np.array(core.c)
+        self.c_col = self.c.reshape(s, *([1] * max(len(self.batch), 1)))
+        self.rtol, self.atol, self.newton_tol, self.max_iter = rtol, atol, newton_tol, max_iter
+        self.x, self.z, self.xdot = x0, z0, xdot0
+        self.prev_W = None
+        self.mat = IterationMatrix(core, index_tol)
+        core.solver.want_real_block = True  # the error filter solves with the real block
+        self.rec = StepRecords(core.tab, n)
+        dummy_W = torch.cat([torch.zeros_like(x0), z0], -1)[..., None, :]
+        dummy_W = dummy_W.expand(*self.batch, s, n + m)
+        t0 = np.full(self.batch, to_host(t[0]), dtype=self.hdt)
+        self.rec.append(t0, np.ones(self.batch, dtype=self.hdt), x0, dummy_W, z0)
 
-    tcur = np.full(hshape, t_host[0], dtype=hdt)
-    x, z, xdot = x0, z0, xdot0
-    status = np.zeros(hshape, dtype=np.int8)
-    active, need_jac, need_lu, first = flags(True), flags(True), flags(True), flags(True)
-    fresh, rejected_last, nonfinite_last, have_prev = flags(), flags(), flags(), flags()
-    h_fact = np.zeros(hshape, dtype=hdt)
-    prev_W = None
-    prev_h = np.ones(hshape, dtype=hdt)
-    err_old = np.ones(hshape)
-    h_old = np.zeros(hshape)
-    n_steps, n_rej, n_newton, attempts = counts(), counts(), counts(), counts()
-    messages: list[str] = []
-    mat = IterationMatrix(core, index_tol)
-    core.solver.want_real_block = True  # the error filter solves with the real block
-    records = StepRecords(core.tab, n)
-    dummy_W = torch.cat([torch.zeros_like(x0), z0], -1)[..., None, :].expand(*batch, s, n + m)
-    records.append(tcur.reshape(batch), np.ones(batch, dtype=hdt), x0, dummy_W, z0)
+    @property
+    def n_jac(self) -> int:
+        return self.mat.n_jac
 
-    h = initial_step(core, x0, z0, xdot0, t[0], span, rtol, atol, expo, dt0)
-    h = to_host(h, hshape).astype(hdt)
+    @property
+    def n_lu(self) -> int:
+        return self.mat.n_lu
 
-    while active.any():
-        h = np.where(active & (tcur + h >= t_end), t_end - tcur, h)
-        tiny = active & (h <= min_step * np.maximum(np.abs(tcur), 1.0))
-        if tiny.any():
-            escape = tiny & ~nonfinite_last & (core.system.kind != "ode")
-            escape &= escaping(x, z, x0, z0, hshape) if escape.any() else escape
-            stop_samples(
-                escape,
-                Status.NON_FINITE,
-                status,
-                active,
-                messages,
-                tcur,
-                "the step size fell below the time resolution while the states grew beyond "
-                f"{ESCAPE_GROWTH:.1e} times their initial size: the solution escapes to "
-                "infinity there (finite escape time, like x' = x^2, x(0) = 1 at t = 1, notes "
-                "eq. 1.44); its outputs from there on are not defined",
-            )
-            tiny &= ~escape
-            stop_samples(
-                tiny,
-                np.where(nonfinite_last, Status.NON_FINITE, Status.STEP_TOO_SMALL),
-                status,
-                active,
-                messages,
-                tcur,
-                "the step size fell below the time resolution; the problem may be non-smooth, "
-                "of index > 1, or blow up there — loosen the tolerances or check the model",
-            )
-        over = active & (attempts >= max_steps)
-        stop_samples(
-            over,
-            Status.MAX_STEPS,
-            status,
-            active,
-            messages,
-            tcur,
-            f"max_steps = {max_steps} step attempts were used; raise max_steps",
-        )
-        if not active.any():
-            break
-        h_step = h
+    def begin_step(self, tcur, h):
+        core, s, batch = self.core, self.core.s, self.batch
         # one transfer: t_k, h, t_k + h and the stage times t_k + c_i h, each (*batch,)
-        host = np.empty((3 + s, *hshape), dtype=hdt)
-        host[0], host[1], host[2], host[3:] = tcur, h, tcur + h, tcur + c_col * h
-        on_dev = to_device(host, x0, dtype, shape=(3 + s, *batch))[..., None]
-        tcol, h_t, t_next = on_dev[0], on_dev[1, ..., 0], on_dev[2]
-        xd, zd = x.detach(), z.detach()
-        jac_mask = active & need_jac
-        if jac_mask.any():
-            high = mat.update_jacobian(jac_mask, tcol, xd, zd, xdot.detach())
-            _flag_high_index(high & active, status, active, messages, tcur)
-            fresh |= jac_mask
-            need_lu |= jac_mask
-            need_jac &= ~jac_mask
-        lu_mask = active & (need_lu | (h != h_fact))
-        singular = flags()
-        if lu_mask.any():
-            h_lu = (
-                h_t
-                if lu_mask.all()
-                else to_device(
-                    np.where(lu_mask, h, np.where(h_fact > 0, h_fact, h)), x0, dtype, batch
-                )
-            )
-            singular = mat.update_factors(lu_mask, h_lu)
-            h_fact = np.where(lu_mask, h, h_fact)
-            need_lu &= ~lu_mask
-        times = core.stage_times(tcol, h_t[..., None], len(batch), stacked=on_dev[3:])
-        inputs = core.stage_inputs(times, tcol, fixed=False)
-        sc_x = atol + rtol * xd.abs()
-        sc_z = atol + rtol * zd.abs() if m else zd
-        W0 = _stage_guess(c_np, prev_W, have_prev, h / prev_h, xdot.detach(), zd, s)
-        W, conv, iters, theta, nonfin = core.newton(
-            times,
-            inputs,
-            h_t,
-            xd,
-            W0,
-            mat.factors,
-            sc_x,
-            sc_z,
-            newton_tol,
-            max_iter,
-            active & ~singular,
+        host = np.empty((3 + s, *self.hshape), dtype=self.hdt)
+        host[0], host[1], host[2], host[3:] = tcur, h, tcur + h, tcur + self.c_col * h
+        on_dev = to_device(host, self.x0, self.dtype, shape=(3 + s, *batch))[..., None]
+        self.tcol, self.h_t, self.t_next = on_dev[0], on_dev[1, ..., 0], on_dev[2]
+        self.xd, self.zd = self.x.detach(), self.z.detach()
+        self.times = core.stage_times(
+            self.tcol, self.h_t[..., None], len(batch), stacked=on_dev[3:]
         )
-        n_newton += iters
-        attempts += active
-        failed = active & (~conv | singular)
-        # Newton failure: refresh a stale Jacobian at the same step, else halve the step.
-        need_jac |= failed & ~fresh
-        h = np.where(failed & fresh, 0.5 * h, h)
-        nonfinite_last = np.where(failed, nonfin, nonfinite_last)
-        rejected_last |= failed
-        n_rej += failed
+        self.inputs = core.stage_inputs(self.times, self.tcol, fixed=False)
+        self.sc_x = self.atol + self.rtol * self.xd.abs()
+        self.sc_z = self.atol + self.rtol * self.zd.abs() if core.system.m else self.zd
 
-        ok = active & conv & ~singular
-        Wg = core.ift(times, inputs, h_t, x, W, valid=ok)
-        x_new = core.step_end(x, h_t, Wg)
+    def jacobian(self, mask):
+        return self.mat.update_jacobian(mask, self.tcol, self.xd, self.zd, self.xdot.detach())
+
+    def factorize(self, mask, h, h_fact):
+        if np.count_nonzero(mask) == mask.size:
+            h_lu = self.h_t
+        else:
+            h_lu = np.where(mask, h, np.where(h_fact > 0, h_fact, h))
+            h_lu = to_device(h_lu, self.x0, self.dtype, self.batch)
+        return self.mat.update_factors(mask, h_lu)
+
+    def newton(self, live, have_prev, ratio):
+        s = self.core.s
+        W0 = _stage_guess(self.c, self.prev_W, have_prev, ratio, self.xdot.detach(), self.zd, s)
+        self.W, conv, iters, theta, nonfin = self.core.newton(
+            self.times,
+            self.inputs,
+            self.h_t,
+            self.xd,
+            W0,
+            self.mat.factors,
+            self.sc_x,
+            self.sc_z,
+            self.newton_tol,
+            self.max_iter,
+            live,
+        )
+        return conv, iters, theta, nonfin
+
+    def error(self, ok, retry):
+        core = self.core
+        self.Wg = core.ift(self.times, self.inputs, self.h_t, self.x, self.W, valid=ok)
+        self.x_new = core.step_end(self.x, self.h_t, self.Wg)
         err = _error_norm(
             core,
-            mat,
-            x_new,
-            xdot,
-            W,
-            h_t,
-            gamma_e,
-            gamma,
-            tcol,
-            xd,
-            sc_x,
-            (atol, rtol),
-            z=zd,
-            retry=ok & (first | rejected_last),
+            self.mat,
+            self.x_new,
+            self.xdot,
+            self.W,
+            self.h_t,
+            self.gamma_e,
+            self.gamma,
+            self.tcol,
+            self.xd,
+            self.sc_x,
+            (self.atol, self.rtol),
+            z=self.zd,
+            retry=retry,
         )
-        finite_x = torch.isfinite(x_new.detach()).all(-1).to(err.dtype)
-        err, finite_x = to_host(torch.stack([err, finite_x]), (2, *hshape)).astype(np.float64)
-        err *= rms
+        finite_x = torch.isfinite(self.x_new.detach()).all(-1).to(err.dtype)
+        both = to_host(torch.stack([err, finite_x]), (2, *self.hshape)).astype(np.float64)
+        err, finite_x = both[0] * self.rms, both[1]
         finite = (finite_x > 0) & np.isfinite(err)
-        err = np.where(finite, err, np.inf)
-        accept = ok & (err < 1.0)
-        reject = ok & ~accept
-        n_rej += reject
+        return np.where(finite, err, np.inf), finite
 
-        hh = h_step.astype(np.float64)
-        err_c, h_acc, h_rej, slow = controller.radau_step_sizes(
-            hh, err, finite, err_old, h_old, first, iters, theta, max_iter, expo
-        )
+    def advance(self, accept, tcur, h):
+        core, n, m = self.core, self.core.system.n, self.core.system.m
+        t0 = np.where(accept, tcur, np.inf).astype(self.hdt)
+        self.rec.append(t0.reshape(self.batch), h.reshape(self.batch), self.x, self.Wg, self.z)
+        z_new = self.W[..., -1, n:] if m else self.z
+        xdot_new = _derivative(core, self.t_next, self.x_new.detach(), z_new, self.W)
+        self.x = masked_update(accept, self.x_new, self.x)
+        self.z = masked_update(accept, self.Wg[..., -1, n:], self.z) if m else self.z
+        self.xdot = masked_update(accept, xdot_new, self.xdot)
+        self.prev_W = self.W if self.prev_W is None else masked_update(accept, self.W, self.prev_W)
 
-        if accept.any():  # accepted samples advance
-            t0 = np.where(accept, tcur, np.inf).astype(hdt)
-            records.append(t0.reshape(batch), h_step.reshape(batch), x, Wg, z)
-            z_new = W[..., -1, n:] if m else z
-            xdot_new = _derivative(core, t_next, x_new.detach(), z_new, W)
-            x = masked_update(accept, x_new, x)
-            z = masked_update(accept, Wg[..., -1, n:], z) if m else z
-            xdot = masked_update(accept, xdot_new, xdot)
-            prev_W = W if prev_W is None else masked_update(accept, W, prev_W)
-        tcur = np.where(accept, tcur + h_step, tcur)
-        tcur = np.where(accept & (tcur >= t_end - 1e-14 * abs(float(t_end))), t_end, tcur)
-        prev_h = np.where(accept, h_step, prev_h)
-        have_prev |= accept
-        h_old = np.where(accept, hh, h_old)
-        err_old = np.where(accept, np.maximum(err_c, 1e-2), err_old)
-        need_jac |= accept & slow
-        fresh &= ~accept
-        first &= ~accept
-        rejected_last = ~accept & (rejected_last | reject)
-        n_steps += accept
-        if core.system.kind != "ode":  # periodic index check (Theorem 9) with a fresh Jacobian
-            need_jac |= accept & (n_steps % index_check_every == 0)
-        h = np.where(accept, h_acc, np.where(reject, h_rej, h)).astype(hdt)
-        active &= ~(accept & (tcur >= t_end))
+    def escaping(self):
+        return escaping(self.x, self.z, self.x0, self.z0, self.hshape)
 
-    records.stop = stop_times(status, tcur)
-    x_out, z_out = records.evaluate(t)
+    def records(self):
+        return self.rec
 
-    def dev(a):
-        return torch.from_numpy(a).to(x0.device).reshape(batch)
-
-    return dict(
-        x=x_out,
-        z=z_out,
-        status=dev(status),
-        messages=messages,
-        n_steps=dev(n_steps),
-        n_rejected=dev(n_rej),
-        n_newton=dev(n_newton),
-        n_jac=mat.n_jac,
-        n_lu=mat.n_lu,
-        n_f=core.n_f_evals,
-        records=records,
-    )
+    def step_mode(self):
+        return contextlib.nullcontext()  # the stages carry the IFT gradient
 
 
 def _stage_guess(c, prev_W, have_prev, ratio, xdot, z, s):
