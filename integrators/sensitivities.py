@@ -184,9 +184,11 @@ class _InputParameters:
     Args:
         u: None, a callable, samples (*batch, T, nu) or a CollocationInput (already prepared).
         tab: the tableau (its nodes ``c``); substeps: steps per output interval.
+        differentiated: False keeps the stage inputs but adds no columns (``size`` 0 in ``q``).
     """
 
-    def __init__(self, u, tab: ButcherTableau, substeps: int):
+    def __init__(self, u, tab: ButcherTableau, substeps: int, differentiated: bool = True):
+        self.differentiated = differentiated
         self.kind, self.size, self.shape, self.batch = "callable", 0, (), ()
         self.values = self.weights = None
         if u is None:
@@ -205,7 +207,8 @@ class _InputParameters:
 
     @property
     def parameterised(self) -> bool:
-        return self.kind in ("zoh", "collocation")
+        """Whether the input values are columns of ``q`` (differentiated)."""
+        return self.differentiated and self.kind in ("zoh", "collocation")
 
     def interval(self, k: int, batch) -> torch.Tensor:
         """``w_k``: (*batch, size)."""
@@ -371,6 +374,7 @@ def sensitivities(
     substeps: int = 1,
     stages: int | None = None,
     newton_tol: float | None = None,
+    input_sensitivities: bool = True,
 ) -> SensitivityResult:
     """Exact sensitivities of a fixed-step Runge-Kutta simulation (notes eq. 8.13-8.34).
 
@@ -407,6 +411,10 @@ def sensitivities(
         newton_tol: implicit methods: the stage equations are solved to
             ``||r(K)||_inf <= newton_tol`` (units of ``dx/dt``) before the last correction;
             default ``max(1e-10, 100 eps)`` of the dtype.
+        input_sensitivities: False skips ``C`` for sampled and collocation inputs: the stage
+            inputs are the same, only the input columns are not propagated (``C`` is None).
+            Use it when only ``dx/dx0`` and ``dx/dp`` are wanted: ``C`` has
+            ``T * T * nx * nu`` entries per batch member, quadratic in the record length.
 
     Returns:
         :class:`SensitivityResult` with ``x``, ``A = dx_k/dx_0``, ``B = dx_k/dp``, ``C`` (the
@@ -426,13 +434,13 @@ def sensitivities(
             f"sensitivities: substeps must be an integer >= 1, got {substeps!r}."
         )
     substeps = int(substeps)
-    inputs = _InputParameters(u, tab, substeps)
+    inputs = _InputParameters(u, tab, substeps, differentiated=bool(input_sensitivities))
     g = _model(f, u is not None, p is not None)
     nx, n_p = x0.shape[-1], (0 if p is None else p.shape[-1])
     batch = torch.broadcast_shapes(x0.shape[:-1], () if p is None else p.shape[:-1], inputs.batch)
     x = x0.expand(*batch, nx).clone()
     eye = torch.eye(nx, dtype=x.dtype, device=x.device)
-    T, nw = t.shape[0], inputs.size
+    T, nw = t.shape[0], (inputs.size if inputs.parameterised else 0)
     nq = n_p + nw
     A = eye.expand(*batch, nx, nx).clone()
     B = x.new_zeros(*batch, nx, n_p)
@@ -453,6 +461,7 @@ def sensitivities(
             + [x.new_zeros(*batch, 0)],
             -1,
         )
+        held = inputs.interval(k, batch) if inputs.kind in ("zoh", "collocation") else None
         h = (t[k + 1] - t[k]) / substeps
         for m in range(substeps):
             tk = t[k] + m * h
@@ -466,6 +475,8 @@ def sensitivities(
                     zu = u_call
                     if inputs.parameterised:
                         zu = inputs.stage_input(z[..., nx + n_p :], m, i)
+                    elif held is not None:
+                        zu = inputs.stage_input(held, m, i)
                     return g(ti, z[..., :nx], zu, zp)
 
                 return stage
