@@ -35,22 +35,13 @@ import warnings
 import numpy as np
 import torch
 
-from integrators.errors import (
-    ConvergenceWarning,
-    InputValidationError,
-    PoorExcitationWarning,
-)
+from integrators.errors import InputValidationError
+from integrators.newton import NewtonStatus, minimize
 
 from ..data import IOData
-from ..estimation import (
-    STATIONARY_TOL,
-    FitResult,
-    _covariance,
-    _levenberg_marquardt,
-    _Loss,
-    _remaining_step,
-    _robust_scale,
-)
+from ..errors import ConvergenceWarning, PoorExcitationWarning
+from ..estimation.losses import LOSSES, GaussianLoss, make_loss
+from ..estimation.results import STATIONARY_TOL, FitResult, covariance, remaining_step
 from .greybox import GreyBoxModel, Segments
 
 __all__ = ["CRITERIA", "fit_greybox"]
@@ -335,12 +326,14 @@ def _scatter_columns(
     Jt.scatter_add_(-1, index, d_dnode * free)
 
 
-def _minimise(problem: _Problem, z0: torch.Tensor, loss: _Loss, max_iter, xtol, ftol):
-    return _levenberg_marquardt(
+def _minimise(problem: _Problem, z0: torch.Tensor, loss, max_iter, xtol, ftol):
+    """Levenberg-Marquardt on ``sum rho(r(z))`` with the sensitivity Jacobian."""
+    return minimize(
         problem.residuals,
         z0,
-        loss,
-        jacobian_fn=problem.residuals_and_jacobian,
+        method="levenberg_marquardt",
+        jacobian=problem.residuals_and_jacobian,
+        loss=None if loss.name == "gaussian" else loss,
         max_iter=max_iter,
         xtol=xtol,
         ftol=ftol,
@@ -386,12 +379,10 @@ def fit_greybox(
     if method not in (None, "gauss_newton", "mle"):
         raise InputValidationError(
             f"method {method!r} does not apply to a grey-box model: use 'gauss_newton' "
-            "(least squares) or 'mle' with loss='gaussian' | 'fair' | 'laplace'."
+            f"(least squares) or 'mle' with a loss in {LOSSES}."
         )
-    if loss not in ("gaussian", "fair", "laplace"):
-        raise InputValidationError(
-            f"loss must be 'gaussian', 'fair' or 'laplace', got {loss!r}."
-        )
+    if loss not in LOSSES:
+        raise InputValidationError(f"loss must be one of {LOSSES}, got {loss!r}.")
     if method == "gauss_newton" and loss != "gaussian":
         raise InputValidationError(
             f"method 'gauss_newton' minimises squared errors; use method='mle' for loss={loss!r}."
@@ -410,7 +401,7 @@ def fit_greybox(
     integrator, reason = _integrator(model, data, x0)
     problem = _Problem(model, data, criterion, x0, segment_length, integrator)
     z0 = problem.initial_z()
-    gauss = _Loss("gaussian")
+    gauss = GaussianLoss()
     if criterion == "multiple_shooting":
         z, history, iterations = _multiple_shooting(problem, z0, gauss, max_iter, xtol, ftol)
         # polish by the simulation criterion from the fitted parameters and first node
@@ -422,21 +413,14 @@ def fit_greybox(
         z_sim, history, iterations = z0, [], 0
     _check_start(problem, z_sim)
     lm = _minimise(problem, z_sim, gauss, max_iter, xtol, ftol)
-    history = history + [lm.history]
+    history = history + [lm.loss_history]
     iterations = iterations + lm.iterations
     the_loss = gauss
     if loss != "gaussian":
-        scale = _robust_scale(lm.residuals).clamp_min(torch.finfo(data.dtype).tiny)
-        if loss == "fair":
-            a = (1.0 / scale) if alpha is None else torch.as_tensor(alpha, dtype=data.dtype)
-            the_loss = _Loss("fair", alpha=a.unsqueeze(-1) if a.dim() else a)
-        else:
-            the_loss = _Loss("laplace", eps=(1e-4 * scale).unsqueeze(-1))
-        lm = _minimise(
-            problem, lm.theta, the_loss, max(max_iter, 500) if loss == "laplace" else max_iter,
-            xtol, ftol,
-        )
-        history.append(lm.history)
+        the_loss = make_loss(loss, lm.residual, alpha)
+        budget = max(max_iter, 500) if loss == "laplace" else max_iter
+        lm = _minimise(problem, lm.theta, the_loss, budget, xtol, ftol)
+        history.append(lm.loss_history)
         iterations = iterations + lm.iterations
     return _result(problem, lm, the_loss, method, loss, history, iterations, integrator, reason)
 
@@ -470,7 +454,7 @@ def _multiple_shooting(problem: _Problem, z0, loss, max_iter, xtol, ftol):
         _check_start(problem, z)
         lm = _minimise(problem, z, loss, max_iter, xtol, ftol)
         z = lm.theta
-        history.append(lm.history)
+        history.append(lm.loss_history)
         iterations = iterations + lm.iterations
     return z, history, iterations
 
@@ -485,7 +469,8 @@ def _carry_over(ms: _Problem, sim: _Problem, z: torch.Tensor) -> torch.Tensor:
 
 
 def _result(problem, lm, the_loss, method, loss, history, iterations, integrator, reason):
-    J, r, z = lm.jacobian, lm.residuals, lm.theta
+    J, r, z = lm.J, lm.residual, lm.theta
+    failed = lm.status == NewtonStatus.LINE_SEARCH_FAILED
     # columns of J in physical units: divide each parameter column by dp/dz
     factor_cols = torch.ones_like(z)
     phys = torch.empty_like(z)
@@ -499,11 +484,11 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
                 phys[..., c] = P[..., j]
     J_phys = J / factor_cols.unsqueeze(-2)
     keep = problem.reported
-    cov_all, sigma2, factor = _covariance(J_phys, r, the_loss)
+    cov_all, sigma2, factor = covariance(J_phys, r, the_loss)
     cov = cov_all[..., keep, :][..., :, keep]
     theta = phys[..., keep]
     se = torch.diagonal(cov, dim1=-2, dim2=-1).clamp_min(0).sqrt()
-    d, zstat = _remaining_step(J, r, the_loss, factor)
+    d, zstat = remaining_step(J, r, the_loss, factor)
     tiny = d.norm(dim=-1) <= math.sqrt(torch.finfo(d.dtype).eps) * (1 + z.norm(dim=-1))
     converged = (zstat <= STATIONARY_TOL) | tiny
     names = [problem.column_names[c] for c in keep]
@@ -528,7 +513,7 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
         key = idx if converged.dim() else ()
         why = (
             "the line search found no decrease"
-            if bool(lm.failed[key])
+            if bool(failed[key])
             else "the iteration limit was reached or it stopped away from a stationary point"
         )
         messages.append(
@@ -570,7 +555,7 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
             "n_f_evals": sum(s.n_f_evals for s in stats),
             "damping": lm.damping,
             "step_in_standard_errors": zstat,
-            "line_search_failed": lm.failed,
+            "line_search_failed": failed,
         },
         stable=None,
         messages=messages,
