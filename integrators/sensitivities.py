@@ -221,8 +221,9 @@ class _InputParameters:
         return self.weights[m, i] @ w.unflatten(-1, (self.q, self.nu))
 
 
-def _explicit_stages(stage_at, tab, h, x, q, seed):
-    """Stages and their derivatives of an explicit step by the recursion of eq. 8.17."""
+def _explicit_stages(stage_at, tab, h, x, q, seed, derivatives=True):
+    """Stages and their derivatives of an explicit step by the recursion of eq. 8.17 (only
+    the stages, with ``dKs`` None, when ``derivatives`` is False)."""
     nx = x.shape[-1]
     Ks, dKs = [], []
     for i in range(tab.stages):
@@ -230,7 +231,12 @@ def _explicit_stages(stage_at, tab, h, x, q, seed):
         for j in range(i):
             if tab.A[i, j] != 0.0:
                 xs = xs + h * float(tab.A[i, j]) * Ks[j]
-                dxs = dxs + h * float(tab.A[i, j]) * dKs[j]
+                if derivatives:
+                    dxs = dxs + h * float(tab.A[i, j]) * dKs[j]
+        if not derivatives:
+            Ks.append(stage_at(i)(torch.cat([xs, q], -1)).detach())
+            dKs.append(None)
+            continue
         K, J = batch_jacobian(stage_at(i), torch.cat([xs, q], -1))
         dK = J[..., :nx] @ dxs  # chain through the stage state ...
         dK[..., nx:] += J[..., nx:]  # ... plus the direct parameter/input dependence
@@ -375,6 +381,7 @@ def sensitivities(
     stages: int | None = None,
     newton_tol: float | None = None,
     input_sensitivities: bool = True,
+    derivatives: bool = True,
 ) -> SensitivityResult:
     """Exact sensitivities of a fixed-step Runge-Kutta simulation (notes eq. 8.13-8.34).
 
@@ -415,6 +422,10 @@ def sensitivities(
             inputs are the same, only the input columns are not propagated (``C`` is None).
             Use it when only ``dx/dx0`` and ``dx/dp`` are wanted: ``C`` has
             ``T * T * nx * nu`` entries per batch member, quadratic in the record length.
+        derivatives: False returns only the states (``A``, ``B``, ``C`` None): the same
+            discrete simulation, arithmetic for arithmetic, without the derivative work for an
+            explicit tableau (an implicit one still needs the Newton matrix), e.g. for the
+            trial points of a line search whose Jacobians come from this function.
 
     Returns:
         :class:`SensitivityResult` with ``x``, ``A = dx_k/dx_0``, ``B = dx_k/dp``, ``C`` (the
@@ -482,7 +493,7 @@ def sensitivities(
                 return stage
 
             if solver is None:
-                Ks, dKs = _explicit_stages(stage_at, tab, h, x, q, seed)
+                Ks, dKs = _explicit_stages(stage_at, tab, h, x, q, seed, derivatives)
                 n_f += tab.stages
                 n_jac += tab.stages
             else:
@@ -493,7 +504,10 @@ def sensitivities(
             for i in range(tab.stages):
                 if tab.b[i] != 0.0:
                     x = x + h * float(tab.b[i]) * Ks[i]
-                    step = step + h * float(tab.b[i]) * dKs[i]
+                    if derivatives:
+                        step = step + h * float(tab.b[i]) * dKs[i]
+            if not derivatives:
+                continue
             Phi, Psi = step[..., :nx], step[..., nx:]  # eq. 8.18b-c / 8.28b-c
             A = Phi @ A
             B = Phi @ B + Psi[..., :n_p]
@@ -513,8 +527,8 @@ def sensitivities(
     return SensitivityResult(
         t=t,
         x=torch.stack(xs_out, -2),
-        A=torch.stack(As_out, -3),
-        B=None if p is None else torch.stack(Bs_out, -3),
+        A=torch.stack(As_out, -3) if derivatives else None,
+        B=None if p is None or not derivatives else torch.stack(Bs_out, -3),
         C=None if C is None else torch.stack(Cs_out, -3).unflatten(-1, inputs.shape),
         stats=stats,
     )

@@ -234,21 +234,24 @@ class _Problem:
 
     def residuals_and_jacobian(self, z: torch.Tensor):
         """``r`` (*batch, M) and ``J = dr/dz`` (*batch, M, n_columns)."""
-        rs, Js = [], []
         self.stats = []
-        for e, part in enumerate(self.parts):
-            r, J = self._experiment(z, e, part)
-            rs.append(r)
-            Js.append(J)
-        return torch.cat(rs, -1), torch.cat(Js, -2)
+        pieces = [self._experiment(z, e, part, True) for e, part in enumerate(self.parts)]
+        return torch.cat([r for r, _ in pieces], -1), torch.cat([J for _, J in pieces], -2)
 
-    def _experiment(self, z, e, part):
+    def residuals(self, z: torch.Tensor) -> torch.Tensor:
+        """``r`` (*batch, M) alone (the same simulation without its derivatives)."""
+        self.stats = []
+        return torch.cat(
+            [self._experiment(z, e, part, False) for e, part in enumerate(self.parts)], -1
+        )
+
+    def _experiment(self, z, e, part, derivatives):
         model, nx, ny = self.model, self.model.nx, self.ny
         P, chain = self.physical(z, e)
         nodes = self.nodes(z, e)
         seg = self.segments[e]
         out = model.simulate_segments(
-            P, nodes, part.u, part.Ts, part.intersample, seg, ny, self.method
+            P, nodes, part.u, part.Ts, part.intersample, seg, ny, self.method, derivatives
         )
         self.stats.append(out["stats"])
         S, L = seg.starts.shape[0], seg.length
@@ -267,6 +270,12 @@ class _Problem:
             valid &= (torch.arange(L + 1)[None, :] < L) | last
         rows = valid[..., None].expand(S, L + 1, ny).reshape(-1)
         r = err.reshape(*err.shape[:-3], -1)[..., rows]
+        if not derivatives:
+            if self.criterion != "multiple_shooting" or S == 1:
+                return r
+            w = self.defect_weight.to(z)
+            defect = (out["x_end"][..., :-1, :] - nodes[..., 1:, :]) * w[..., None, :]
+            return torch.cat([r, defect.reshape(*defect.shape[:-2], -1)], -1)
         Jy = torch.zeros(*err.shape, self.n_columns, dtype=z.dtype, device=z.device)
         for j, link in enumerate(chain):
             if link is not None:
@@ -306,8 +315,6 @@ class _Problem:
             table[1:] = torch.tensor(self.node_columns[e]).reshape(S - 1, nx)
         return table
 
-    def residuals(self, z: torch.Tensor) -> torch.Tensor:
-        return self.residuals_and_jacobian(z)[0]
 
 
 def _scatter_columns(

@@ -354,6 +354,7 @@ class GreyBoxModel:
         segments: Segments,
         ny: int,
         method,
+        derivatives: bool = True,
     ) -> dict:
         """Outputs and sensitivities of the segments of one experiment.
 
@@ -364,6 +365,7 @@ class GreyBoxModel:
             Ts: sample time; intersample: the input between samples.
             segments: the segments (S starts, ``length`` intervals each).
             ny: number of outputs; method: the fixed-step method.
+            derivatives: False computes only ``y`` and ``x_end`` (the same simulation).
 
         Returns:
             dict with ``y`` (*batch, S, L+1, ny), ``dy_dP`` (*batch, S, L+1, ny, n_params),
@@ -396,10 +398,15 @@ class GreyBoxModel:
             method=tab,
             substeps=self.substeps,
             input_sensitivities=False,
+            derivatives=derivatives,
         )
         x = sens.x  # (*batch, S, L+1, nx)
-        A, B = sens.A, sens.B
         h = self.output_map(ny)
+        if not derivatives:
+            Pb = P[..., None, None, :].expand(*x.shape[:-1], P.shape[-1])
+            y = h(x, u_seg, Pb)
+            return {"y": y, "x_end": x[..., -1, :], "x": x, "stats": sens.stats}
+        A, B = sens.A, sens.B
         n_p = P.shape[-1]
         idx_out = self.output_indices(ny)
         Pb = P[..., None, None, :].expand(*x.shape[:-1], n_p)
