@@ -477,7 +477,7 @@ def sensitivities(
         for m in range(substeps):
             tk = t[k] + m * h
 
-            def stage_at(i, tk=tk, h=h, m=m):
+            def stage_at(i, tk=tk, h=h, m=m, held=held):
                 ti = tk + float(tab.c[i]) * h
                 u_call = u(ti) if inputs.kind == "callable" else None
 

@@ -202,9 +202,7 @@ class IOData:
 
     def _map(self, fn) -> IOData:
         """Apply ``fn(u, y) -> (u, y)`` to every experiment and recombine."""
-        parts = [
-            IOData._trusted(*fn(p.u, p.y), p.Ts, p.intersample) for p in self.experiment_list
-        ]
+        parts = [IOData._trusted(*fn(p.u, p.y), p.Ts, p.intersample) for p in self.experiment_list]
         return parts[0] if len(parts) == 1 else IOData.experiments(parts)
 
     # ------------------------------------------------------------------ properties

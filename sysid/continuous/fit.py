@@ -147,7 +147,9 @@ class _Problem:
                 names = model.state_names or tuple(str(i) for i in range(nx))
                 self.column_names += [f"x0{suffix}.{s}" for s in names]
                 self.reported += list(range(col, col + nx))
-                self.starts_z.append(self._node_guess(part, torch.zeros(1, dtype=torch.int64))[..., 0, :])
+                self.starts_z.append(
+                    self._node_guess(part, torch.zeros(1, dtype=torch.int64))[..., 0, :]
+                )
                 col += nx
                 self.known_x0.append(None)
             else:
@@ -176,9 +178,7 @@ class _Problem:
         if value is None or (isinstance(value, str) and value == "zero"):
             return torch.zeros(self.model.nx, dtype=self.dtype, device=self.device)
         if isinstance(value, str):
-            raise InputValidationError(
-                f"x0 must be 'zero', 'estimate' or a tensor, got {value!r}."
-            )
+            raise InputValidationError(f"x0 must be 'zero', 'estimate' or a tensor, got {value!r}.")
         t = torch.as_tensor(value, dtype=self.dtype, device=self.device)
         if t.dim() < 1 or t.shape[-1] != self.model.nx:
             raise InputValidationError(
@@ -191,7 +191,9 @@ class _Problem:
         """Start values of node states at samples ``at``: the measured states where the
         output selects them, zero for the others: (*batch, len(at), nx) or (nx,)-like."""
         nx = self.model.nx
-        guess = torch.zeros(*part.batch_shape, at.shape[0], nx, dtype=self.dtype, device=self.device)
+        guess = torch.zeros(
+            *part.batch_shape, at.shape[0], nx, dtype=self.dtype, device=self.device
+        )
         if self.idx_out is not None:
             guess[..., self.idx_out] = part.y[..., at, :]
         return guess
@@ -249,6 +251,11 @@ class _Problem:
         model, nx, ny = self.model, self.model.nx, self.ny
         P, chain = self.physical(z, e)
         nodes = self.nodes(z, e)
+        # a trial point outside the representable range (e.g. exp overflow of a bounded
+        # parameter) gets an infinite residual, which the line search rejects
+        unusable = ~(torch.isfinite(P).all(-1) & torch.isfinite(nodes).flatten(-2).all(-1))
+        P = torch.where(unusable[..., None], torch.ones_like(P), P)
+        nodes = torch.where(unusable[..., None, None], torch.zeros_like(nodes), nodes)
         seg = self.segments[e]
         out = model.simulate_segments(
             P, nodes, part.u, part.Ts, part.intersample, seg, ny, self.method, derivatives
@@ -270,6 +277,7 @@ class _Problem:
             valid &= (torch.arange(L + 1)[None, :] < L) | last
         rows = valid[..., None].expand(S, L + 1, ny).reshape(-1)
         r = err.reshape(*err.shape[:-3], -1)[..., rows]
+        r = torch.where(unusable[..., None], torch.full_like(r, math.inf), r)
         if not derivatives:
             if self.criterion != "multiple_shooting" or S == 1:
                 return r
@@ -314,7 +322,6 @@ class _Problem:
         if self.node_columns[e] is not None:
             table[1:] = torch.tensor(self.node_columns[e]).reshape(S - 1, nx)
         return table
-
 
 
 def _scatter_columns(
@@ -408,6 +415,8 @@ def fit_greybox(
     integrator, reason = _integrator(model, data, x0)
     problem = _Problem(model, data, criterion, x0, segment_length, integrator)
     z0 = problem.initial_z()
+    P0, _ = problem.physical(z0, 0)
+    model.check_index(problem.nodes(z0, 0)[..., 0, :], data.u[..., 0, :], P0)
     gauss = GaussianLoss()
     if criterion == "multiple_shooting":
         z, history, iterations = _multiple_shooting(problem, z0, gauss, max_iter, xtol, ftol)
@@ -436,9 +445,9 @@ def _integrator(model: GreyBoxModel, data: IOData, x0):
     if model.method != "auto":
         return model.method, "as requested"
     E = data.n_experiments
-    P = torch.stack(
-        [model.params[n].start(E)[0].to(data.dtype) for n in model.names], -1
-    ).expand(*data.batch_shape, len(model.names))
+    P = torch.stack([model.params[n].start(E)[0].to(data.dtype) for n in model.names], -1).expand(
+        *data.batch_shape, len(model.names)
+    )
     start = model.x0 if isinstance(model.x0, torch.Tensor) else None
     if isinstance(x0, torch.Tensor):
         start = x0
@@ -506,9 +515,17 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
         if p.free and not p.per_experiment:
             params[n] = theta[..., names.index(n)]
         elif p.free:
-            params[n] = torch.stack(
-                [phys[..., problem.param_columns[e][model.names.index(n)]] for e in range(len(problem.parts))], -1
-            ) if len(problem.parts) > 1 else theta[..., names.index(n)]
+            params[n] = (
+                torch.stack(
+                    [
+                        phys[..., problem.param_columns[e][model.names.index(n)]]
+                        for e in range(len(problem.parts))
+                    ],
+                    -1,
+                )
+                if len(problem.parts) > 1
+                else theta[..., names.index(n)]
+            )
         else:
             params[n] = p.values if p.values.numel() > 1 else p.values[0]
     x0_est = None
@@ -516,7 +533,9 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
         x0_est = [phys[..., cols] for cols in problem.x0_columns]
         x0_est = x0_est[0] if len(x0_est) == 1 else x0_est
     messages = []
-    for idx in [tuple(i) for i in torch.nonzero(~converged.reshape(converged.shape or (1,))).tolist()]:
+    for idx in [
+        tuple(i) for i in torch.nonzero(~converged.reshape(converged.shape or (1,))).tolist()
+    ]:
         key = idx if converged.dim() else ()
         why = (
             "the line search found no decrease"

@@ -11,7 +11,8 @@
   physical ones: they are substituted by ``torch.func.functional_call`` with values of shape
   ``(*batch, 1)`` (the zoo's broadcast convention, see ``sysid.zoo._params``);
 * a semi-explicit index-1 DAE ``x' = f(t, x, z, u), 0 = g(t, x, z, u)`` (notes eq. 5.24): an
-  ``nn.Module`` with methods ``f`` and ``g`` (the zoo's DAE plants), or an
+  ``nn.Module`` with methods ``f`` and ``g`` and an attribute ``nz >= 1`` (the zoo's DAE
+  plants), or an
   :class:`integrators.SemiExplicitDAE` whose functions take ``p`` last. The algebraic state is
   eliminated at every stage by Newton's method on ``g`` (index 1: ``dg/dz`` invertible,
   Corollary 1, eq. 5.56), and its derivatives reach the sensitivities by the implicit function
@@ -241,7 +242,26 @@ class GreyBoxModel:
 
     def rhs(self, values: torch.Tensor) -> Callable:
         """``f(t, x, u, P)`` evaluated with the parameter values in ``P`` (*batch, n_params) in
-        the order of :attr:`names` (``values`` is unused; kept for the dtype)."""
+        the order of :attr:`names` (``values`` is unused; kept for the dtype); raises
+        :class:`InputValidationError` when ``f`` returns another shape than ``x``'s."""
+        call = self._rhs()
+
+        def checked(t, x, u, P):
+            dx = call(t, x, u, P)
+            if not isinstance(dx, torch.Tensor) or dx.shape != x.shape:
+                got = tuple(dx.shape) if isinstance(dx, torch.Tensor) else type(dx).__name__
+                raise InputValidationError(
+                    f"the model's right-hand side returned shape {got} for a state of shape "
+                    f"{tuple(x.shape)}; it must return one derivative per state. A function "
+                    "f(t, x, u, p) gets each p[name] with the shape of one state component "
+                    "x[..., i] (*batch,): write p['k'] * x[..., 0], or p['k'][..., None] * x, "
+                    "not p['k'] * x[..., 0:1]."
+                )
+            return dx
+
+        return checked
+
+    def _rhs(self) -> Callable:
         names, kind, f = self.names, self.kind, self.f
         if kind == "function":
 
@@ -375,7 +395,6 @@ class GreyBoxModel:
         tab = self._tableau(method)
         L = segments.length
         N = u.shape[-2]
-        S = segments.starts.shape[0]
         pad = int(segments.starts[-1]) + L + 1 - N
         u_pad = torch.cat([u, u[..., -1:, :].expand(*u.shape[:-2], max(pad, 0), u.shape[-1])], -2)
         tau = stage_fractions(tab, self.substeps)
@@ -470,9 +489,12 @@ class GreyBoxModel:
             values.update({n: torch.as_tensor(v, dtype=u.dtype) for n, v in params.items()})
         batch = u.shape[:-2]
         P = torch.stack(
-            [torch.as_tensor(values[n], dtype=u.dtype).reshape(-1)[0:1].squeeze(0)
-             if torch.as_tensor(values[n]).numel() == 1 else torch.as_tensor(values[n], dtype=u.dtype)
-             for n in self.names],
+            [
+                torch.as_tensor(values[n], dtype=u.dtype).reshape(-1)[0:1].squeeze(0)
+                if torch.as_tensor(values[n]).numel() == 1
+                else torch.as_tensor(values[n], dtype=u.dtype)
+                for n in self.names
+            ],
             -1,
         )
         P = P.expand(*torch.broadcast_shapes(batch, P.shape[:-1]), len(self.names))
@@ -488,7 +510,9 @@ class GreyBoxModel:
         method = self.method
         if method == "auto":
             method, _ = self.resolve_method(
-                IOData._trusted(u, u[..., :1].expand(*u.shape[:-1], 1), Ts, inter), P, nodes[..., 0, :]
+                IOData._trusted(u, u[..., :1].expand(*u.shape[:-1], 1), Ts, inter),
+                P,
+                nodes[..., 0, :],
             )
         with torch.no_grad():
             out = self.simulate_segments(P, nodes, u, Ts, inter, seg, ny, method)
@@ -514,7 +538,8 @@ def _kind(f) -> str:
     if isinstance(f, SemiExplicitDAE):
         return "dae_problem"
     if isinstance(f, nn.Module):
-        if callable(getattr(f, "g", None)) and callable(getattr(f, "f", None)):
+        has_fg = callable(getattr(f, "g", None)) and callable(getattr(f, "f", None))
+        if has_fg and int(getattr(f, "nz", 0) or 0) >= 1:
             return "dae_module"
         return "module"
     if callable(f):
@@ -526,8 +551,10 @@ def _kind(f) -> str:
 
 
 def _describe_f(f) -> str:
-    return type(f).__name__ if isinstance(f, (nn.Module, SemiExplicitDAE)) else getattr(
-        f, "__name__", "f"
+    return (
+        type(f).__name__
+        if isinstance(f, (nn.Module, SemiExplicitDAE))
+        else getattr(f, "__name__", "f")
     )
 
 

@@ -67,7 +67,9 @@ class Param:
 
     def __repr__(self) -> str:
         value = float(self.values[0]) if self.values.numel() == 1 else self.values.tolist()
-        bounds = "" if self.min is None and self.max is None else f", min={self.min}, max={self.max}"
+        bounds = (
+            "" if self.min is None and self.max is None else f", min={self.min}, max={self.max}"
+        )
         extra = ", per_experiment=True" if self.per_experiment else ""
         return f"Param({value}, free={self.free}{bounds}{extra})"
 
@@ -98,7 +100,9 @@ class Param:
             return torch.log(self.max - value)
         return value / scale
 
-    def to_physical(self, z: torch.Tensor, scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def to_physical(
+        self, z: torch.Tensor, scale: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The physical value ``p(z)`` and the derivative ``dp/dz`` (same shape as ``z``)."""
         if self.min is not None and self.max is not None:
             sig = torch.sigmoid(z)
