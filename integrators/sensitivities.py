@@ -184,9 +184,11 @@ class _InputParameters:
     Args:
         u: None, a callable, samples (*batch, T, nu) or a CollocationInput (already prepared).
         tab: the tableau (its nodes ``c``); substeps: steps per output interval.
+        differentiated: False keeps the stage inputs but adds no columns (``size`` 0 in ``q``).
     """
 
-    def __init__(self, u, tab: ButcherTableau, substeps: int):
+    def __init__(self, u, tab: ButcherTableau, substeps: int, differentiated: bool = True):
+        self.differentiated = differentiated
         self.kind, self.size, self.shape, self.batch = "callable", 0, (), ()
         self.values = self.weights = None
         if u is None:
@@ -205,7 +207,8 @@ class _InputParameters:
 
     @property
     def parameterised(self) -> bool:
-        return self.kind in ("zoh", "collocation")
+        """Whether the input values are columns of ``q`` (differentiated)."""
+        return self.differentiated and self.kind in ("zoh", "collocation")
 
     def interval(self, k: int, batch) -> torch.Tensor:
         """``w_k``: (*batch, size)."""
@@ -218,8 +221,9 @@ class _InputParameters:
         return self.weights[m, i] @ w.unflatten(-1, (self.q, self.nu))
 
 
-def _explicit_stages(stage_at, tab, h, x, q, seed):
-    """Stages and their derivatives of an explicit step by the recursion of eq. 8.17."""
+def _explicit_stages(stage_at, tab, h, x, q, seed, derivatives=True):
+    """Stages and their derivatives of an explicit step by the recursion of eq. 8.17 (only
+    the stages, with ``dKs`` None, when ``derivatives`` is False)."""
     nx = x.shape[-1]
     Ks, dKs = [], []
     for i in range(tab.stages):
@@ -227,7 +231,12 @@ def _explicit_stages(stage_at, tab, h, x, q, seed):
         for j in range(i):
             if tab.A[i, j] != 0.0:
                 xs = xs + h * float(tab.A[i, j]) * Ks[j]
-                dxs = dxs + h * float(tab.A[i, j]) * dKs[j]
+                if derivatives:
+                    dxs = dxs + h * float(tab.A[i, j]) * dKs[j]
+        if not derivatives:
+            Ks.append(stage_at(i)(torch.cat([xs, q], -1)).detach())
+            dKs.append(None)
+            continue
         K, J = batch_jacobian(stage_at(i), torch.cat([xs, q], -1))
         dK = J[..., :nx] @ dxs  # chain through the stage state ...
         dK[..., nx:] += J[..., nx:]  # ... plus the direct parameter/input dependence
@@ -371,6 +380,8 @@ def sensitivities(
     substeps: int = 1,
     stages: int | None = None,
     newton_tol: float | None = None,
+    input_sensitivities: bool = True,
+    derivatives: bool = True,
 ) -> SensitivityResult:
     """Exact sensitivities of a fixed-step Runge-Kutta simulation (notes eq. 8.13-8.34).
 
@@ -407,6 +418,14 @@ def sensitivities(
         newton_tol: implicit methods: the stage equations are solved to
             ``||r(K)||_inf <= newton_tol`` (units of ``dx/dt``) before the last correction;
             default ``max(1e-10, 100 eps)`` of the dtype.
+        input_sensitivities: False skips ``C`` for sampled and collocation inputs: the stage
+            inputs are the same, only the input columns are not propagated (``C`` is None).
+            Use it when only ``dx/dx0`` and ``dx/dp`` are wanted: ``C`` has
+            ``T * T * nx * nu`` entries per batch member, quadratic in the record length.
+        derivatives: False returns only the states (``A``, ``B``, ``C`` None): the same
+            discrete simulation, arithmetic for arithmetic, without the derivative work for an
+            explicit tableau (an implicit one still needs the Newton matrix), e.g. for the
+            trial points of a line search whose Jacobians come from this function.
 
     Returns:
         :class:`SensitivityResult` with ``x``, ``A = dx_k/dx_0``, ``B = dx_k/dp``, ``C`` (the
@@ -426,13 +445,13 @@ def sensitivities(
             f"sensitivities: substeps must be an integer >= 1, got {substeps!r}."
         )
     substeps = int(substeps)
-    inputs = _InputParameters(u, tab, substeps)
+    inputs = _InputParameters(u, tab, substeps, differentiated=bool(input_sensitivities))
     g = _model(f, u is not None, p is not None)
     nx, n_p = x0.shape[-1], (0 if p is None else p.shape[-1])
     batch = torch.broadcast_shapes(x0.shape[:-1], () if p is None else p.shape[:-1], inputs.batch)
     x = x0.expand(*batch, nx).clone()
     eye = torch.eye(nx, dtype=x.dtype, device=x.device)
-    T, nw = t.shape[0], inputs.size
+    T, nw = t.shape[0], (inputs.size if inputs.parameterised else 0)
     nq = n_p + nw
     A = eye.expand(*batch, nx, nx).clone()
     B = x.new_zeros(*batch, nx, n_p)
@@ -453,11 +472,12 @@ def sensitivities(
             + [x.new_zeros(*batch, 0)],
             -1,
         )
+        held = inputs.interval(k, batch) if inputs.kind in ("zoh", "collocation") else None
         h = (t[k + 1] - t[k]) / substeps
         for m in range(substeps):
             tk = t[k] + m * h
 
-            def stage_at(i, tk=tk, h=h, m=m):
+            def stage_at(i, tk=tk, h=h, m=m, held=held):
                 ti = tk + float(tab.c[i]) * h
                 u_call = u(ti) if inputs.kind == "callable" else None
 
@@ -466,12 +486,14 @@ def sensitivities(
                     zu = u_call
                     if inputs.parameterised:
                         zu = inputs.stage_input(z[..., nx + n_p :], m, i)
+                    elif held is not None:
+                        zu = inputs.stage_input(held, m, i)
                     return g(ti, z[..., :nx], zu, zp)
 
                 return stage
 
             if solver is None:
-                Ks, dKs = _explicit_stages(stage_at, tab, h, x, q, seed)
+                Ks, dKs = _explicit_stages(stage_at, tab, h, x, q, seed, derivatives)
                 n_f += tab.stages
                 n_jac += tab.stages
             else:
@@ -482,7 +504,10 @@ def sensitivities(
             for i in range(tab.stages):
                 if tab.b[i] != 0.0:
                     x = x + h * float(tab.b[i]) * Ks[i]
-                    step = step + h * float(tab.b[i]) * dKs[i]
+                    if derivatives:
+                        step = step + h * float(tab.b[i]) * dKs[i]
+            if not derivatives:
+                continue
             Phi, Psi = step[..., :nx], step[..., nx:]  # eq. 8.18b-c / 8.28b-c
             A = Phi @ A
             B = Phi @ B + Psi[..., :n_p]
@@ -502,8 +527,8 @@ def sensitivities(
     return SensitivityResult(
         t=t,
         x=torch.stack(xs_out, -2),
-        A=torch.stack(As_out, -3),
-        B=None if p is None else torch.stack(Bs_out, -3),
+        A=torch.stack(As_out, -3) if derivatives else None,
+        B=None if p is None or not derivatives else torch.stack(Bs_out, -3),
         C=None if C is None else torch.stack(Cs_out, -3).unflatten(-1, inputs.shape),
         stats=stats,
     )

@@ -1,6 +1,7 @@
 """System identification and modelling built on ``integrators``."""
 
-from . import dae, zoo
+from . import continuous, dae, zoo
+from .continuous import GreyBoxModel, Param
 from .data import IOData
 from .errors import (
     ConvergenceError,
@@ -72,6 +73,9 @@ __all__ = [
     "residual_test",
     "OrderSelection",
     "select_order",
+    "continuous",
+    "GreyBoxModel",
+    "Param",
     "dae",
     "zoo",
     "linearize",

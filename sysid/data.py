@@ -31,7 +31,12 @@ import torch
 
 from integrators.errors import InputValidationError
 
-__all__ = ["IOData", "as_signal"]
+__all__ = ["INTERSAMPLE", "IOData", "as_signal"]
+
+#: How the input behaves between samples (MATLAB's ``InterSample`` names): ``"zoh"`` held
+#: constant, ``"foh"`` linear between samples, ``"cubic"`` a cubic spline through the samples,
+#: ``"bl"`` band-limited (the trigonometric interpolant of the periodic record).
+INTERSAMPLE = ("zoh", "foh", "cubic", "bl")
 
 
 def as_signal(x, name: str, dtype: torch.dtype | None = None, device=None) -> torch.Tensor:
@@ -88,16 +93,35 @@ class IOData:
         u: input, ``(N,)``, ``(N, nu)`` or ``(*batch, N, nu)``.
         y: output, ``(N,)``, ``(N, ny)`` or ``(*batch, N, ny)``; same ``N`` as ``u``.
         Ts: sample time in seconds (> 0).
+        intersample: how the input behaves between samples, one of :data:`INTERSAMPLE`
+            (default ``"zoh"``). Discrete-time models ignore it; every simulation of a
+            continuous-time model (:mod:`sysid.continuous`) reconstructs the input with it.
 
     Attributes:
         u, y: ``(*batch, N, nu)`` and ``(*batch, N, ny)`` tensors (for several experiments:
             the parts concatenated along time, see the module docstring).
         Ts: sample time.
+        intersample: the intersample behaviour of the input.
         experiment_list: tuple of single-experiment :class:`IOData` (``(self,)`` for one).
     """
 
-    def __init__(self, u, y, Ts: float = 1.0, *, _experiment: int | None = None):
+    def __init__(
+        self,
+        u,
+        y,
+        Ts: float = 1.0,
+        *,
+        intersample: str = "zoh",
+        _experiment: int | None = None,
+    ):
         where = "" if _experiment is None else f" of experiment {_experiment}"
+        if intersample not in INTERSAMPLE:
+            raise InputValidationError(
+                f"intersample must be one of {INTERSAMPLE}, got {intersample!r}: 'zoh' for an "
+                "input held between samples (a digital controller's output), 'foh' for a "
+                "piecewise-linear one, 'cubic' for a smooth one, 'bl' for a band-limited "
+                "(e.g. multisine) excitation sampled without aliasing."
+            )
         u = as_signal(u, "u" + where)
         y = as_signal(y, "y" + where)
         dtype = torch.promote_types(u.dtype, y.dtype)
@@ -126,6 +150,7 @@ class IOData:
         self.u = u.expand(*batch, *u.shape[-2:])
         self.y = y.expand(*batch, *y.shape[-2:])
         self.Ts = Ts
+        self.intersample = intersample
         self.experiment_list: tuple[IOData, ...] = (self,)
 
     # ------------------------------------------------------------------ construction
@@ -150,7 +175,7 @@ class IOData:
             flat.extend(p.experiment_list)
         ref = flat[0]
         for i, p in enumerate(flat[1:], start=1):
-            for attr in ("Ts", "nu", "ny", "batch_shape", "dtype", "device"):
+            for attr in ("Ts", "intersample", "nu", "ny", "batch_shape", "dtype", "device"):
                 if getattr(p, attr) != getattr(ref, attr):
                     raise InputValidationError(
                         f"experiment {i} has {attr} = {getattr(p, attr)} but experiment 0 has "
@@ -162,19 +187,22 @@ class IOData:
         out.u = torch.cat([p.u for p in flat], dim=-2)
         out.y = torch.cat([p.y for p in flat], dim=-2)
         out.Ts = ref.Ts
+        out.intersample = ref.intersample
         out.experiment_list = tuple(flat)
         return out
 
     @classmethod
-    def _trusted(cls, u: torch.Tensor, y: torch.Tensor, Ts: float) -> IOData:
+    def _trusted(
+        cls, u: torch.Tensor, y: torch.Tensor, Ts: float, intersample: str = "zoh"
+    ) -> IOData:
         out = cls.__new__(cls)
-        out.u, out.y, out.Ts = u, y, Ts
+        out.u, out.y, out.Ts, out.intersample = u, y, Ts, intersample
         out.experiment_list = (out,)
         return out
 
     def _map(self, fn) -> IOData:
         """Apply ``fn(u, y) -> (u, y)`` to every experiment and recombine."""
-        parts = [IOData._trusted(*fn(p.u, p.y), p.Ts) for p in self.experiment_list]
+        parts = [IOData._trusted(*fn(p.u, p.y), p.Ts, p.intersample) for p in self.experiment_list]
         return parts[0] if len(parts) == 1 else IOData.experiments(parts)
 
     # ------------------------------------------------------------------ properties
@@ -221,6 +249,7 @@ class IOData:
         return (
             f"IOData(N={self.lengths if self.n_experiments > 1 else self.N}, nu={self.nu}, "
             f"ny={self.ny}, batch_shape={tuple(self.batch_shape)}, Ts={self.Ts}, "
+            f"intersample={self.intersample!r}, "
             f"dtype={self.dtype})"
         )
 
@@ -285,6 +314,6 @@ class IOData:
                     f"split point {k} leaves an empty part of experiment {i} (N = {p.N}); "
                     "choose 0 < index < N."
                 )
-            heads.append(IOData._trusted(p.u[..., :k, :], p.y[..., :k, :], p.Ts))
-            tails.append(IOData._trusted(p.u[..., k:, :], p.y[..., k:, :], p.Ts))
+            heads.append(IOData._trusted(p.u[..., :k, :], p.y[..., :k, :], p.Ts, p.intersample))
+            tails.append(IOData._trusted(p.u[..., k:, :], p.y[..., k:, :], p.Ts, p.intersample))
         return IOData.experiments(heads), IOData.experiments(tails)

@@ -50,11 +50,18 @@ def fit(
     xtol: float = 1e-8,
     ftol: float = 1e-10,
     iv_iterations: int = 2,
+    x0=None,
+    segment_length: int | None = None,
 ) -> FitResult:
     """Estimate the parameters of ``model`` from ``data`` (batched over data sets).
 
+    The one entry point for every model: polynomial models (below) and continuous-time
+    grey-box models (:class:`~sysid.continuous.GreyBoxModel`, fitted through the Runge-Kutta
+    layers by :mod:`sysid.continuous.fit`; ``criterion``, ``x0``, ``segment_length`` apply).
+
     Args:
-        model: FIR, ARX, OE, ARMAX, BJ or a general :class:`PolynomialModel`; its batch shape
+        model: FIR, ARX, OE, ARMAX, BJ, a general :class:`PolynomialModel` or a
+            :class:`~sysid.continuous.GreyBoxModel`. A polynomial model's batch shape
             must equal the data's or be empty. It only gives the structure (and, for
             ``init="model"``, the start): it is never modified. The fitted model is
             ``result.model``, a copy batched like the data with the estimate as parameters.
@@ -72,16 +79,37 @@ def fit(
             least-squares residuals (:func:`~sysid.estimation.losses.make_loss`).
         weights: per-sample weights ``1/sigma_k^2`` of the Gaussian loss, ``(*batch, N)``.
         criterion: ``"prediction"`` (one-step prediction errors, eq. 4.130; the simulation
-            error for OE) or ``"simulation"`` (free-run errors for any structure).
+            error for OE) or ``"simulation"`` (free-run errors for any structure). Grey-box
+            models: ``"simulation"`` (the default), ``"multiple_shooting"`` or ``"one_step"``
+            (see :mod:`sysid.continuous.fit`).
         init: starting parameters ``(*batch, p)``, ``"model"`` (the model's current values) or
             ``None`` (automatic: ARX least squares / instrumental variables, stabilised).
         max_iter, xtol, ftol: iteration limit and step/relative-decrease tolerances.
         iv_iterations: instrument refinements of ``"iv"`` (and of the automatic start).
+        x0: grey-box models: the initial state, ``"zero"``, ``"estimate"`` (one per
+            experiment) or a tensor (nx,) / (*batch, nx); default the model's ``x0``.
+        segment_length: grey-box multiple shooting: sample intervals per segment.
 
     Returns:
         :class:`FitResult`; ``result.model`` is the fitted model (a copy), the input model
         is left as it was.
     """
+    from ..continuous.greybox import GreyBoxModel  # the continuous package builds on this one
+
+    if isinstance(model, GreyBoxModel):
+        from ..continuous.fit import fit_greybox
+
+        return fit_greybox(
+            model,
+            data,
+            method=method,
+            loss=loss,
+            alpha=alpha,
+            criterion="simulation" if criterion == "prediction" else criterion,
+            x0=x0,
+            segment_length=segment_length,
+            max_iter=max_iter,
+        )
     if not isinstance(model, PolynomialModel):
         raise InputValidationError(f"model must be a sysid model, got {type(model).__name__}.")
     if not isinstance(data, IOData):

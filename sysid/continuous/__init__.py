@@ -1,0 +1,12 @@
+"""Continuous-time identification: grey-box models fitted through the Runge-Kutta layers.
+
+:class:`GreyBoxModel` wraps a physical right-hand side (a function, a zoo plant, a
+:class:`~sysid.mechanics.LagrangianSystem`, an index-1 DAE) with named :class:`Param` s;
+:func:`sysid.fit` estimates them by the criteria of :mod:`sysid.continuous.fit`.
+"""
+
+from .fit import CRITERIA
+from .greybox import GreyBoxModel
+from .params import Param
+
+__all__ = ["CRITERIA", "GreyBoxModel", "Param"]

@@ -1,0 +1,615 @@
+"""Fitting grey-box continuous-time models through the Runge-Kutta layers.
+
+Criteria (``criterion=`` of :func:`sysid.fit`), all least squares or robust M-estimation of
+output errors ``e_k = y_k - yhat_k`` sampled at the data's times:
+
+* ``"simulation"``: the free-run simulation error of the whole record from the initial state
+  (output error, the course notes (Modelling and Simulation) eq. 4.133 for a continuous-time
+  model). The statistically efficient criterion under white output noise; the covariance
+  ``sigma^2 (J'J)^{-1}`` (eq. 4.101 form) refers to it. Needs a start inside the basin of
+  attraction: on oscillatory plants a poor start converges to a wrong local minimum.
+* ``"multiple_shooting"``: the record cut into segments of ``segment_length`` intervals, each
+  simulated from its own free initial state (node), the continuity of the trajectory
+  ``x_end,j = s_{j+1}`` enforced by quadratic penalties of increasing weight (a penalty
+  continuation). Only the outputs need to be measured: unmeasured node states are estimated.
+  Short segments keep the simulation error nearly linear in the parameters, which widens the
+  basin of attraction; the estimate is then polished by the simulation criterion from the
+  fitted parameters and first node, so its covariance is that of the simulation error.
+* ``"one_step"``: where every state is measured (the output selects all states), the error
+  of one step of the integrator from each measured state: an equation-error fit, fast and
+  with no simulation over the record, biased under measurement noise; use it for starting
+  values.
+
+The Jacobian of the residuals comes from the exact forward sensitivities of the discrete
+simulation (eq. 8.17-8.18 explicit, 8.24-8.28 implicit; parameters and initial states only, no
+input sensitivities), chained through the bounded-parameter transforms; the minimiser is the
+batched Levenberg-Marquardt iteration of :mod:`sysid.estimation` (eq. 3.61 damping). Every data
+set of a batch is fitted independently in the same call.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import torch
+
+from integrators.errors import InputValidationError
+from integrators.newton import NewtonStatus, minimize
+
+from ..data import IOData
+from ..errors import ConvergenceWarning, PoorExcitationWarning
+from ..estimation.losses import LOSSES, GaussianLoss, make_loss
+from ..estimation.results import STATIONARY_TOL, FitResult, covariance, remaining_step
+from .greybox import GreyBoxModel, Segments
+
+__all__ = ["CRITERIA", "fit_greybox"]
+
+CRITERIA = ("simulation", "multiple_shooting", "one_step")
+
+#: continuity penalty weights of multiple shooting, applied in turn (each run starts from the
+#: previous estimate); relative to the output scale, see ``_Problem.defect_weight``
+_PENALTY_CONTINUATION = (1.0, 1e2, 1e4)
+
+#: |correlation| of two estimates above which the pair is reported as not separately
+#: identifiable from the data
+_IDENTIFIABILITY_CORRELATION = 0.999
+
+
+class _Problem:
+    """Residuals and Jacobian of one criterion for a batch of data sets, in the unconstrained
+    coordinates ``z`` of the free quantities (layout: shared free parameters, then per
+    experiment its per-experiment free parameters, its initial state if estimated and its
+    multiple-shooting nodes)."""
+
+    def __init__(self, model: GreyBoxModel, data: IOData, criterion, x0, segment_length, method):
+        self.model, self.data, self.criterion, self.method = model, data, criterion, method
+        self.ny = data.ny
+        self.batch = data.batch_shape
+        self.dtype, self.device = data.dtype, data.device
+        nx = model.nx
+        self.parts = data.experiment_list
+        E = len(self.parts)
+        self.column_names: list[str] = []
+        self.reported: list[int] = []  # columns reported in the result (params and x0)
+        self.param_columns: list[list[int | None]] = []  # per experiment, per param
+        self.starts_z: list[torch.Tensor] = []
+        self.scales: dict[tuple[str, int], torch.Tensor] = {}
+        self.fixed: dict[tuple[str, int], torch.Tensor] = {}
+        col = 0
+        shared = {}
+        for n in model.names:
+            p = model.params[n]
+            start = p.start(E)
+            if p.free and not p.per_experiment:
+                shared[n] = col
+                self.scales[(n, 0)] = p.scale(start[0])
+                self.starts_z.append(p.to_unconstrained(start[0], self.scales[(n, 0)]).reshape(1))
+                self.column_names.append(n)
+                self.reported.append(col)
+                col += 1
+        self.x0_columns: list[list[int] | None] = []
+        self.node_columns: list[list[int] | None] = []
+        self.segments: list[Segments] = []
+        self.known_x0: list[torch.Tensor | None] = []
+        self.nodes_measured: list[torch.Tensor | None] = []
+        idx_out = model.output_indices(self.ny)
+        self.idx_out = idx_out
+        if criterion == "one_step" and (idx_out is None or sorted(idx_out) != list(range(nx))):
+            raise InputValidationError(
+                "criterion='one_step' needs every state measured: the output must select all "
+                f"nx = {nx} states (output={model.output!r}); use 'simulation' or "
+                "'multiple_shooting' when only outputs are measured."
+            )
+        for e, part in enumerate(self.parts):
+            cols = []
+            for n in model.names:
+                p = model.params[n]
+                if not p.free:
+                    self.fixed[(n, e)] = p.start(E)[e if p.per_experiment else 0]
+                    cols.append(None)
+                elif not p.per_experiment:
+                    cols.append(shared[n])
+                else:
+                    start = p.start(E)[e]
+                    self.scales[(n, e)] = p.scale(start)
+                    self.starts_z.append(p.to_unconstrained(start, self.scales[(n, e)]).reshape(1))
+                    self.column_names.append(f"{n}[{e}]" if E > 1 else n)
+                    self.reported.append(col)
+                    cols.append(col)
+                    col += 1
+            self.param_columns.append(cols)
+            N = part.N
+            if N < 2:
+                raise InputValidationError(f"experiment {e} has N = {N} < 2 samples.")
+            if criterion == "simulation":
+                seg = Segments(torch.zeros(1, dtype=torch.int64), N - 1)
+            elif criterion == "one_step":
+                seg = Segments(torch.arange(N - 1, dtype=torch.int64), 1)
+            else:
+                L = segment_length if segment_length is not None else max(5, (N - 1) // 20)
+                if isinstance(L, bool) or int(L) != L or L < 1:
+                    raise InputValidationError(
+                        f"segment_length must be an integer >= 1, got {segment_length!r}."
+                    )
+                L = min(int(L), N - 1)
+                S = math.ceil((N - 1) / L)
+                seg = Segments(torch.arange(S, dtype=torch.int64) * L, L)
+            self.segments.append(seg)
+            # initial state of the experiment
+            if criterion == "one_step":
+                self.x0_columns.append(None)
+                self.known_x0.append(None)
+            elif x0 == "estimate":
+                self.x0_columns.append(list(range(col, col + nx)))
+                suffix = f"[{e}]" if E > 1 else ""
+                names = model.state_names or tuple(str(i) for i in range(nx))
+                self.column_names += [f"x0{suffix}.{s}" for s in names]
+                self.reported += list(range(col, col + nx))
+                self.starts_z.append(
+                    self._node_guess(part, torch.zeros(1, dtype=torch.int64))[..., 0, :]
+                )
+                col += nx
+                self.known_x0.append(None)
+            else:
+                self.x0_columns.append(None)
+                self.known_x0.append(self._known_x0(x0, e))
+            # further nodes of multiple shooting
+            if criterion == "multiple_shooting" and seg.starts.shape[0] > 1:
+                S = seg.starts.shape[0]
+                self.node_columns.append(list(range(col, col + (S - 1) * nx)))
+                self.column_names += [f"node{j}.{i}" for j in range(1, S) for i in range(nx)]
+                self.starts_z.append(self._node_guess(part, seg.starts[1:]).flatten(-2))
+                col += (S - 1) * nx
+            else:
+                self.node_columns.append(None)
+            self.nodes_measured.append(
+                part.y[..., seg.starts, :][..., torch.argsort(torch.tensor(idx_out))]
+                if criterion == "one_step"
+                else None
+            )
+        self.n_columns = col
+        self.defect_weight = None
+
+    # ----------------------------------------------------------------------- start values
+    def _known_x0(self, x0, e) -> torch.Tensor:
+        value = self.model.x0 if x0 is None else x0
+        if value is None or (isinstance(value, str) and value == "zero"):
+            return torch.zeros(self.model.nx, dtype=self.dtype, device=self.device)
+        if isinstance(value, str):
+            raise InputValidationError(f"x0 must be 'zero', 'estimate' or a tensor, got {value!r}.")
+        t = torch.as_tensor(value, dtype=self.dtype, device=self.device)
+        if t.dim() < 1 or t.shape[-1] != self.model.nx:
+            raise InputValidationError(
+                f"x0 must have shape (nx,) or (*batch, nx) with nx = {self.model.nx}, got "
+                f"{tuple(t.shape)}."
+            )
+        return t
+
+    def _node_guess(self, part: IOData, at: torch.Tensor) -> torch.Tensor:
+        """Start values of node states at samples ``at``: the measured states where the
+        output selects them, zero for the others: (*batch, len(at), nx) or (nx,)-like."""
+        nx = self.model.nx
+        guess = torch.zeros(
+            *part.batch_shape, at.shape[0], nx, dtype=self.dtype, device=self.device
+        )
+        if self.idx_out is not None:
+            guess[..., self.idx_out] = part.y[..., at, :]
+        return guess
+
+    def initial_z(self) -> torch.Tensor:
+        """(*batch, n_columns) start of the minimiser."""
+        pieces = [z.to(self.dtype).expand(*self.batch, z.shape[-1]) for z in self.starts_z]
+        return torch.cat(pieces, -1).clone()
+
+    # ----------------------------------------------------------------------- evaluation
+    def physical(self, z: torch.Tensor, e: int) -> tuple[torch.Tensor, list]:
+        """(*batch, n_params) parameter values of experiment ``e`` and, per parameter, its
+        z-column and ``dp/dz`` (None for fixed ones)."""
+        values, chain = [], []
+        for j, n in enumerate(self.model.names):
+            c = self.param_columns[e][j]
+            p = self.model.params[n]
+            if c is None:
+                v = self.fixed[(n, e)].to(z).expand(z.shape[:-1])
+                values.append(v)
+                chain.append(None)
+            else:
+                key = (n, 0) if not p.per_experiment else (n, e)
+                v, d = p.to_physical(z[..., c], self.scales[key].to(z))
+                values.append(v)
+                chain.append((c, d))
+        return torch.stack(values, -1), chain
+
+    def nodes(self, z: torch.Tensor, e: int) -> torch.Tensor:
+        """(*batch, S, nx) initial states of the segments of experiment ``e``."""
+        nx = self.model.nx
+        if self.nodes_measured[e] is not None:
+            return self.nodes_measured[e].expand(*self.batch, -1, nx)
+        cols = self.x0_columns[e]
+        first = z[..., cols] if cols is not None else self.known_x0[e].expand(*self.batch, nx)
+        rest = []
+        if self.node_columns[e] is not None:
+            rest = [z[..., self.node_columns[e]].unflatten(-1, (-1, nx))]
+        return torch.cat([first.unsqueeze(-2)] + rest, -2)
+
+    def residuals_and_jacobian(self, z: torch.Tensor):
+        """``r`` (*batch, M) and ``J = dr/dz`` (*batch, M, n_columns)."""
+        self.stats = []
+        pieces = [self._experiment(z, e, part, True) for e, part in enumerate(self.parts)]
+        return torch.cat([r for r, _ in pieces], -1), torch.cat([J for _, J in pieces], -2)
+
+    def residuals(self, z: torch.Tensor) -> torch.Tensor:
+        """``r`` (*batch, M) alone (the same simulation without its derivatives)."""
+        self.stats = []
+        return torch.cat(
+            [self._experiment(z, e, part, False) for e, part in enumerate(self.parts)], -1
+        )
+
+    def _experiment(self, z, e, part, derivatives):
+        model, nx, ny = self.model, self.model.nx, self.ny
+        P, chain = self.physical(z, e)
+        nodes = self.nodes(z, e)
+        # a trial point outside the representable range (e.g. exp overflow of a bounded
+        # parameter) gets an infinite residual, which the line search rejects
+        unusable = ~(torch.isfinite(P).all(-1) & torch.isfinite(nodes).flatten(-2).all(-1))
+        P = torch.where(unusable[..., None], torch.ones_like(P), P)
+        nodes = torch.where(unusable[..., None, None], torch.zeros_like(nodes), nodes)
+        seg = self.segments[e]
+        out = model.simulate_segments(
+            P, nodes, part.u, part.Ts, part.intersample, seg, ny, self.method, derivatives
+        )
+        self.stats.append(out["stats"])
+        S, L = seg.starts.shape[0], seg.length
+        N = part.N
+        y_data = torch.cat(
+            [part.y, part.y[..., -1:, :].expand(*part.y.shape[:-2], S * L + L + 1, ny)], -2
+        )
+        idx = seg.starts[:, None] + torch.arange(L + 1)
+        err = out["y"] - y_data[..., idx, :]  # (*batch, S, L+1, ny)
+        valid = idx <= N - 1
+        if self.criterion == "one_step":
+            valid &= torch.arange(L + 1)[None, :] == 1
+        else:
+            last = torch.zeros(S, L + 1, dtype=torch.bool)
+            last[-1, -1] = True
+            valid &= (torch.arange(L + 1)[None, :] < L) | last
+        rows = valid[..., None].expand(S, L + 1, ny).reshape(-1)
+        r = err.reshape(*err.shape[:-3], -1)[..., rows]
+        r = torch.where(unusable[..., None], torch.full_like(r, math.inf), r)
+        if not derivatives:
+            if self.criterion != "multiple_shooting" or S == 1:
+                return r
+            w = self.defect_weight.to(z)
+            defect = (out["x_end"][..., :-1, :] - nodes[..., 1:, :]) * w[..., None, :]
+            return torch.cat([r, defect.reshape(*defect.shape[:-2], -1)], -1)
+        Jy = torch.zeros(*err.shape, self.n_columns, dtype=z.dtype, device=z.device)
+        for j, link in enumerate(chain):
+            if link is not None:
+                c, d = link
+                Jy[..., c] += out["dy_dP"][..., j] * d[..., None, None, None]
+        table = self.node_table(e, S).to(z.device)
+        _scatter_columns(Jy, out["dy_dx0"], table, 2)
+        J = Jy.reshape(*err.shape[:-3], -1, self.n_columns)[..., rows, :]
+        if self.criterion != "multiple_shooting" or S == 1:
+            return r, J
+        # continuity defects x_end,j - s_{j+1}, j = 0..S-2, weighted (state units / scale)
+        w = self.defect_weight.to(z)  # (*batch, nx) or (nx,)
+        defect = (out["x_end"][..., :-1, :] - nodes[..., 1:, :]) * w[..., None, :]
+        Jd = torch.zeros(*defect.shape, self.n_columns, dtype=z.dtype, device=z.device)
+        for j, link in enumerate(chain):
+            if link is not None:
+                c, d = link
+                Jd[..., c] += out["dxend_dP"][..., :-1, :, j] * d[..., None, None]
+        Jd = Jd * w[..., None, :, None]
+        _scatter_columns(
+            Jd, out["dxend_dx0"][..., :-1, :, :] * w[..., None, :, None], table[:-1], 1
+        )
+        minus_eye = -torch.eye(nx, dtype=z.dtype, device=z.device) * w[..., None, :, None]
+        minus_eye = minus_eye.expand(*self.batch, S - 1, nx, nx)
+        _scatter_columns(Jd, minus_eye, table[1:], 1)
+        r = torch.cat([r, defect.reshape(*defect.shape[:-2], -1)], -1)
+        J = torch.cat([J, Jd.reshape(*Jd.shape[:-3], -1, self.n_columns)], -2)
+        return r, J
+
+    def node_table(self, e: int, S: int) -> torch.Tensor:
+        """(S, nx) z-columns of the segments' initial states (-1 where not free)."""
+        nx = self.model.nx
+        table = torch.full((S, nx), -1, dtype=torch.int64)
+        if self.x0_columns[e] is not None:
+            table[0] = torch.tensor(self.x0_columns[e])
+        if self.node_columns[e] is not None:
+            table[1:] = torch.tensor(self.node_columns[e]).reshape(S - 1, nx)
+        return table
+
+
+def _scatter_columns(
+    Jt: torch.Tensor, d_dnode: torch.Tensor, table: torch.Tensor, n_rows: int
+) -> None:
+    """Add ``d_dnode`` (*batch, S, *rows, nx), the derivatives of segment ``j``'s rows with
+    respect to its initial state, into the columns ``table[j]`` of ``Jt``
+    (*batch, S, *rows, n_columns), in place. ``table`` (S, nx) holds the z-columns of each
+    segment's initial state; entries -1 (not free) are skipped. ``rows`` are the dims between
+    the segment and the last one, ``n_rows`` of them (``(L+1, ny)`` for outputs, ``(nx,)``
+    for defects)."""
+    S, nx = table.shape
+    view = (S,) + (1,) * n_rows + (nx,)
+    free = (table >= 0).to(d_dnode.dtype).view(view)
+    index = table.clamp_min(0).view(view).expand_as(d_dnode)
+    Jt.scatter_add_(-1, index, d_dnode * free)
+
+
+def _minimise(problem: _Problem, z0: torch.Tensor, loss, max_iter, xtol, ftol):
+    """Levenberg-Marquardt on ``sum rho(r(z))`` with the sensitivity Jacobian."""
+    return minimize(
+        problem.residuals,
+        z0,
+        method="levenberg_marquardt",
+        jacobian=problem.residuals_and_jacobian,
+        loss=None if loss.name == "gaussian" else loss,
+        max_iter=max_iter,
+        xtol=xtol,
+        ftol=ftol,
+    )
+
+
+def _check_start(problem: _Problem, z0: torch.Tensor) -> None:
+    """Raise a named error when the simulation from the start is not finite."""
+    with torch.no_grad():
+        r = problem.residuals(z0)
+    bad = ~torch.isfinite(r).all(-1)
+    if bool(bad.any()):
+        idx = [tuple(i) for i in torch.nonzero(bad.reshape(bad.shape or (1,))).tolist()][:5]
+        raise InputValidationError(
+            f"the model's simulation from the starting values is not finite for data set(s) "
+            f"{idx} ({int(bad.sum())} in all): the start makes the plant diverge (or a DAE's "
+            "algebraic equations have no solution). Start closer (Param values, x0), use "
+            "criterion='multiple_shooting' with short segments, more substeps or an implicit "
+            "method for a stiff plant."
+        )
+
+
+def fit_greybox(
+    model: GreyBoxModel,
+    data: IOData,
+    *,
+    method: str | None = None,
+    loss: str = "gaussian",
+    alpha=None,
+    criterion: str = "simulation",
+    x0=None,
+    segment_length: int | None = None,
+    max_iter: int = 100,
+    xtol: float = 1e-10,
+    ftol: float = 1e-12,
+) -> FitResult:
+    """Estimate the free parameters (and initial states) of a grey-box model; see
+    :func:`sysid.fit` for the arguments and the module docstring for the criteria."""
+    if criterion not in CRITERIA:
+        raise InputValidationError(
+            f"criterion must be one of {CRITERIA} for a continuous-time model, got {criterion!r}."
+        )
+    if method not in (None, "gauss_newton", "mle"):
+        raise InputValidationError(
+            f"method {method!r} does not apply to a grey-box model: use 'gauss_newton' "
+            f"(least squares) or 'mle' with a loss in {LOSSES}."
+        )
+    if loss not in LOSSES:
+        raise InputValidationError(f"loss must be one of {LOSSES}, got {loss!r}.")
+    if method == "gauss_newton" and loss != "gaussian":
+        raise InputValidationError(
+            f"method 'gauss_newton' minimises squared errors; use method='mle' for loss={loss!r}."
+        )
+    method = method or ("mle" if loss != "gaussian" else "gauss_newton")
+    if x0 is not None and isinstance(x0, str) and x0 not in ("zero", "estimate"):
+        raise InputValidationError(f"x0 must be 'zero', 'estimate' or a tensor, got {x0!r}.")
+    if x0 is None and isinstance(model.x0, str):
+        x0 = model.x0
+    if not isinstance(data, IOData):
+        raise InputValidationError(f"data must be IOData, got {type(data).__name__}.")
+    if data.dtype != torch.float64 and data.dtype != torch.float32:
+        data = data.to(dtype=torch.float64)
+    if not model.free_names and x0 != "estimate":
+        raise InputValidationError("the model has no free parameter and x0 is not estimated.")
+    integrator, reason = _integrator(model, data, x0)
+    problem = _Problem(model, data, criterion, x0, segment_length, integrator)
+    z0 = problem.initial_z()
+    P0, _ = problem.physical(z0, 0)
+    model.check_index(problem.nodes(z0, 0)[..., 0, :], data.u[..., 0, :], P0)
+    gauss = GaussianLoss()
+    if criterion == "multiple_shooting":
+        z, history, iterations = _multiple_shooting(problem, z0, gauss, max_iter, xtol, ftol)
+        # polish by the simulation criterion from the fitted parameters and first node
+        final = _Problem(model, data, "simulation", x0, None, integrator)
+        z_sim = _carry_over(problem, final, z)
+        problem = final
+    else:
+        _check_start(problem, z0)
+        z_sim, history, iterations = z0, [], 0
+    _check_start(problem, z_sim)
+    lm = _minimise(problem, z_sim, gauss, max_iter, xtol, ftol)
+    history = history + [lm.loss_history]
+    iterations = iterations + lm.iterations
+    the_loss = gauss
+    if loss != "gaussian":
+        the_loss = make_loss(loss, lm.residual, alpha)
+        budget = max(max_iter, 500) if loss == "laplace" else max_iter
+        lm = _minimise(problem, lm.theta, the_loss, budget, xtol, ftol)
+        history.append(lm.loss_history)
+        iterations = iterations + lm.iterations
+    return _result(problem, lm, the_loss, method, loss, history, iterations, integrator, reason)
+
+
+def _integrator(model: GreyBoxModel, data: IOData, x0):
+    if model.method != "auto":
+        return model.method, "as requested"
+    E = data.n_experiments
+    P = torch.stack([model.params[n].start(E)[0].to(data.dtype) for n in model.names], -1).expand(
+        *data.batch_shape, len(model.names)
+    )
+    start = model.x0 if isinstance(model.x0, torch.Tensor) else None
+    if isinstance(x0, torch.Tensor):
+        start = x0
+    if start is None:
+        start = torch.zeros(model.nx, dtype=data.dtype)
+    start = torch.as_tensor(start, dtype=data.dtype).expand(*data.batch_shape, model.nx)
+    return model.resolve_method(data.experiment_list[0], P, start)
+
+
+def _multiple_shooting(problem: _Problem, z0, loss, max_iter, xtol, ftol):
+    """Penalty continuation over :data:`_PENALTY_CONTINUATION` (see the module docstring)."""
+    y = problem.data.y
+    y_scale = y.std(dim=-2).mean(-1).clamp_min(torch.finfo(y.dtype).tiny)  # (*batch,)
+    with torch.no_grad():
+        nodes = torch.cat([problem.nodes(z0, e) for e in range(len(problem.parts))], -2)
+    state_scale = nodes.std(dim=-2).clamp_min(1e-3 * float(nodes.abs().max().clamp_min(1.0)))
+    history, iterations, z = [], 0, z0
+    for mu in _PENALTY_CONTINUATION:
+        problem.defect_weight = math.sqrt(mu) * y_scale[..., None] / state_scale
+        _check_start(problem, z)
+        lm = _minimise(problem, z, loss, max_iter, xtol, ftol)
+        z = lm.theta
+        history.append(lm.loss_history)
+        iterations = iterations + lm.iterations
+    return z, history, iterations
+
+
+def _carry_over(ms: _Problem, sim: _Problem, z: torch.Tensor) -> torch.Tensor:
+    """The simulation problem's start from a multiple-shooting estimate: the parameters and,
+    where estimated, the first node of each experiment as its initial state."""
+    out = sim.initial_z()
+    for c_sim, name in enumerate(sim.column_names):
+        out[..., c_sim] = z[..., ms.column_names.index(name)]
+    return out
+
+
+def _result(problem, lm, the_loss, method, loss, history, iterations, integrator, reason):
+    J, r, z = lm.J, lm.residual, lm.theta
+    failed = lm.status == NewtonStatus.LINE_SEARCH_FAILED
+    # columns of J in physical units: divide each parameter column by dp/dz
+    factor_cols = torch.ones_like(z)
+    phys = torch.empty_like(z)
+    phys.copy_(z)
+    for e in range(len(problem.parts)):
+        P, chain = problem.physical(z, e)
+        for j, link in enumerate(chain):
+            if link is not None:
+                c, d = link
+                factor_cols[..., c] = d
+                phys[..., c] = P[..., j]
+    J_phys = J / factor_cols.unsqueeze(-2)
+    keep = problem.reported
+    cov_all, sigma2, factor = covariance(J_phys, r, the_loss)
+    cov = cov_all[..., keep, :][..., :, keep]
+    theta = phys[..., keep]
+    se = torch.diagonal(cov, dim1=-2, dim2=-1).clamp_min(0).sqrt()
+    d, zstat = remaining_step(J, r, the_loss, factor)
+    tiny = d.norm(dim=-1) <= math.sqrt(torch.finfo(d.dtype).eps) * (1 + z.norm(dim=-1))
+    converged = (zstat <= STATIONARY_TOL) | tiny
+    names = [problem.column_names[c] for c in keep]
+    model = problem.model
+    params = {}
+    for n in model.names:
+        p = model.params[n]
+        if p.free and not p.per_experiment:
+            params[n] = theta[..., names.index(n)]
+        elif p.free:
+            params[n] = (
+                torch.stack(
+                    [
+                        phys[..., problem.param_columns[e][model.names.index(n)]]
+                        for e in range(len(problem.parts))
+                    ],
+                    -1,
+                )
+                if len(problem.parts) > 1
+                else theta[..., names.index(n)]
+            )
+        else:
+            params[n] = p.values if p.values.numel() > 1 else p.values[0]
+    x0_est = None
+    if problem.x0_columns[0] is not None:
+        x0_est = [phys[..., cols] for cols in problem.x0_columns]
+        x0_est = x0_est[0] if len(x0_est) == 1 else x0_est
+    messages = []
+    for idx in [
+        tuple(i) for i in torch.nonzero(~converged.reshape(converged.shape or (1,))).tolist()
+    ]:
+        key = idx if converged.dim() else ()
+        why = (
+            "the line search found no decrease"
+            if bool(failed[key])
+            else "the iteration limit was reached or it stopped away from a stationary point"
+        )
+        messages.append(
+            f"batch index {key}: did not converge: {why}; a Gauss-Newton step would still move "
+            f"the estimate by {float(zstat[key]):.3g} standard errors (converged means <= "
+            f"{STATIONARY_TOL}). Start closer, raise max_iter, or use "
+            "criterion='multiple_shooting'."
+        )
+    if messages:
+        warnings.warn(
+            f"fit: {len(messages)} of {converged.numel()} data sets did not converge:\n  "
+            + "\n  ".join(messages[:5])
+            + "\n(result.messages lists them all; result.converged flags them.)",
+            ConvergenceWarning,
+            stacklevel=3,
+        )
+    _warn_unidentifiable(cov, names)
+    stats = problem.stats
+    result = FitResult(
+        theta=theta,
+        covariance=cov,
+        standard_errors=se,
+        sigma2=sigma2,
+        loss_history=torch.cat(history, 0),
+        iterations=torch.as_tensor(iterations),
+        converged=converged,
+        method=method,
+        loss=loss,
+        parameter_names=names,
+        n_samples=r.shape[-1],
+        residuals=r,
+        model=model.with_values(params, x0_est if isinstance(x0_est, torch.Tensor) else None),
+        info={
+            "criterion": problem.criterion,
+            "integrator": integrator if isinstance(integrator, str) else integrator.name,
+            "integrator_choice": reason,
+            "substeps": model.substeps,
+            "n_steps": sum(s.n_steps for s in stats),
+            "n_f_evals": sum(s.n_f_evals for s in stats),
+            "damping": lm.damping,
+            "step_in_standard_errors": zstat,
+            "line_search_failed": failed,
+        },
+        stable=None,
+        messages=messages,
+    )
+    result.params = params
+    result.x0 = x0_est
+    return result
+
+
+def _warn_unidentifiable(cov: torch.Tensor, names: list[str]) -> None:
+    """PoorExcitationWarning naming the most correlated pair of estimates when it is
+    (nearly) perfectly correlated in some data set."""
+    p = cov.shape[-1]
+    if p < 2:
+        return
+    sd = torch.diagonal(cov, dim1=-2, dim2=-1).clamp_min(torch.finfo(cov.dtype).tiny).sqrt()
+    corr = cov / (sd.unsqueeze(-1) * sd.unsqueeze(-2))
+    corr = torch.nan_to_num(corr, nan=1.0, posinf=1.0, neginf=-1.0)
+    off = corr.abs() * (1 - torch.eye(p, dtype=cov.dtype, device=cov.device))
+    worst = off.reshape(-1, p * p).amax(0).reshape(p, p)
+    value = float(worst.max())
+    if value > _IDENTIFIABILITY_CORRELATION:
+        i, j = np.unravel_index(int(worst.argmax()), (p, p))
+        warnings.warn(
+            f"the estimates of {names[i]!r} and {names[j]!r} are correlated at |r| = "
+            f"{value:.6f}: the data cannot tell them apart (only a combination is "
+            "identifiable). Fix one of them (Param(..., free=False)), or use an input that "
+            "excites the plant more richly.",
+            PoorExcitationWarning,
+            stacklevel=4,
+        )

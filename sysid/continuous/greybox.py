@@ -1,0 +1,623 @@
+"""Grey-box continuous-time models: a physical right-hand side with named parameters.
+
+``x' = f(t, x, u, p)``, ``y = h(x, u, p)`` sampled at ``t_k = k Ts`` (the course notes
+(Modelling and Simulation), chapter 1 for the models, §8 for their sensitivities), where
+``f`` is any of
+
+* a function ``f(t, x, u, p)`` with ``p`` a dict of named tensors, each of shape ``(*batch,)``
+  like a state component ``x[..., i]``;
+* an ``nn.Module`` with ``forward(t, x, u)`` (a zoo plant, a
+  :class:`~sysid.mechanics.LagrangianSystem`, a user network) whose named parameters are the
+  physical ones: they are substituted by ``torch.func.functional_call`` with values of shape
+  ``(*batch, 1)`` (the zoo's broadcast convention, see ``sysid.zoo._params``);
+* a semi-explicit index-1 DAE ``x' = f(t, x, z, u), 0 = g(t, x, z, u)`` (notes eq. 5.24): an
+  ``nn.Module`` with methods ``f`` and ``g`` and an attribute ``nz >= 1`` (the zoo's DAE
+  plants), or an
+  :class:`integrators.SemiExplicitDAE` whose functions take ``p`` last. The algebraic state is
+  eliminated at every stage by Newton's method on ``g`` (index 1: ``dg/dz`` invertible,
+  Corollary 1, eq. 5.56), and its derivatives reach the sensitivities by the implicit function
+  theorem (eq. 3.40), so the model is the state-space form of the DAE.
+
+The model is simulated by a fixed-step Runge-Kutta method with ``substeps`` steps per sample
+interval; its output and exact discrete sensitivities (eq. 8.17-8.18 explicit, 8.24-8.28
+implicit) come from :func:`integrators.sensitivities` on "segments": stretches of the record
+started from their own initial states, batched together (one segment for the simulation
+error, many for multiple shooting, one-interval segments for the one-step error).
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+from torch.func import functional_call
+
+from integrators import SemiExplicitDAE, sensitivities
+from integrators.auto import choose_method
+from integrators.collocation import gauss_legendre, radau_iia
+from integrators.errors import HighIndexError, InputValidationError
+from integrators.inputs import CollocationInput
+from integrators.newton import batch_jacobian, newton
+from integrators.tableau import ButcherTableau, tableau
+
+from ..data import IOData
+from .intersample import input_between_samples, stage_fractions
+from .params import Param
+
+__all__ = ["GreyBoxModel"]
+
+_IMPLICIT = ("gauss_legendre", "radau_iia", "implicit_euler", "implicit_midpoint")
+
+
+class _Method(nn.Module):
+    """Calls ``plant.<name>`` so that ``functional_call`` can substitute the plant's
+    parameters in any of its methods (parameter names get the prefix ``plant.``)."""
+
+    def __init__(self, plant: nn.Module, name: str):
+        super().__init__()
+        self.plant, self.name = plant, name
+
+    def forward(self, *args):
+        return getattr(self.plant, self.name)(*args)
+
+
+@dataclass
+class Segments:
+    """Stretches of one experiment simulated from their own initial states.
+
+    Segment ``j`` starts at sample ``starts[j]`` and covers ``length`` intervals (samples
+    beyond the record are padded with the last input and masked out of the residuals).
+    """
+
+    starts: torch.Tensor  # (S,) int64
+    length: int
+
+
+class GreyBoxModel:
+    """A continuous-time model with named physical parameters, fitted by :func:`sysid.fit`.
+
+    Args:
+        f: the right-hand side (see the module docstring for the four kinds).
+        params: name -> :class:`Param` or float (a free parameter starting there). For an
+            ``nn.Module`` the names are its parameter names; None takes every scalar
+            parameter of the module, free (those with ``requires_grad=False`` fixed), and the
+            module's parameters not named here stay fixed at their values.
+        nx: number of states (taken from the module's ``nx`` or ``state_names`` when omitted).
+        output: None (the first ``ny`` states, ``ny`` from the data), a sequence of state
+            indices or state names, or a function ``h(x, u, p) -> (*batch, ny)``.
+        x0: initial state: None / ``"zero"`` (zeros), ``"estimate"`` (one free initial state
+            per experiment), or a tensor (nx,) / (*batch, nx) (known).
+        method: a fixed-step method name or tableau ("rk4" by default; "radau_iia" or
+            "gauss_legendre" for stiff plants and DAEs), or "auto" (Radau IIA where
+            ``rho(df/dx) Ts / substeps`` exceeds the explicit stability limit at the start,
+            RK4 otherwise; see :func:`integrators.auto.choose_method`).
+        substeps: Runge-Kutta steps per sample interval.
+        stages: stage count of "gauss_legendre" / "radau_iia".
+        nz, z0: DAE models: number of algebraic states and the Newton start for ``z`` (zeros by
+            default); ``nz`` is read from the module's ``nz`` when omitted.
+        state_names: names of the states (for ``output`` and reports).
+
+    Raises:
+        InputValidationError: unknown parameter names, a non-scalar module parameter, a
+            missing ``nx``, a bad ``output`` or ``x0``.
+        HighIndexError: a DAE whose declared index exceeds 1.
+    """
+
+    def __init__(
+        self,
+        f,
+        params: dict | None = None,
+        *,
+        nx: int | None = None,
+        output=None,
+        x0=None,
+        method: str | ButcherTableau = "rk4",
+        substeps: int = 1,
+        stages: int | None = None,
+        nz: int | None = None,
+        z0=None,
+        state_names: Sequence[str] | None = None,
+    ):
+        self.f = f
+        self.kind = _kind(f)
+        if self.kind in ("dae_module", "dae_problem"):
+            index = getattr(f, "index", 1)
+            if index is not None and int(index) > 1:
+                raise HighIndexError(
+                    f"{type(f).__name__} is a DAE of index {index}: the grey-box model needs "
+                    "index 1 (dg/dz invertible). Reduce the index first (differentiate the "
+                    "constraints, e.g. sysid.dae.reduce_index, or use the index-1 KKT form "
+                    "with Baumgarte stabilisation, notes eq. 2.168 and 2.186)."
+                )
+        self.params = _collect_params(f, params, self.kind)
+        self.names = list(self.params)
+        self.state_names = tuple(state_names) if state_names is not None else _state_names(f)
+        self.nx = nx if nx is not None else _infer_nx(f, self.state_names)
+        if self.nx is None:
+            raise InputValidationError(
+                "GreyBoxModel: the number of states is unknown; pass nx= (or state_names=)."
+            )
+        if self.state_names is not None and len(self.state_names) != self.nx:
+            raise InputValidationError(
+                f"GreyBoxModel: {len(self.state_names)} state names for nx = {self.nx} states."
+            )
+        self.nz = nz if nz is not None else getattr(f, "nz", 0 if self.kind in ("ode",) else None)
+        if self.kind in ("dae_module", "dae_problem") and not self.nz:
+            raise InputValidationError(
+                "GreyBoxModel: a DAE model needs nz >= 1 algebraic states (pass nz=)."
+            )
+        self.z0 = None if z0 is None else torch.as_tensor(z0, dtype=torch.float64)
+        self.output = self._check_output(output)
+        self.x0 = _check_x0(x0, self.nx)
+        if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
+            raise InputValidationError(f"substeps must be an integer >= 1, got {substeps!r}.")
+        self.substeps = int(substeps)
+        self.method, self.stages = method, stages
+        if method != "auto":
+            self._tableau(method)  # validate the name now
+
+    # ----------------------------------------------------------------------- description
+    def __repr__(self) -> str:
+        return (
+            f"GreyBoxModel({_describe_f(self.f)}, params={self.params}, nx={self.nx}, "
+            f"method={self.method!r}, substeps={self.substeps})"
+        )
+
+    @property
+    def free_names(self) -> list[str]:
+        """Names of the free parameters."""
+        return [n for n in self.names if self.params[n].free]
+
+    def _check_output(self, output):
+        if output is None or callable(output):
+            return output
+        idx = []
+        for o in output:
+            if isinstance(o, str):
+                if self.state_names is None or o not in self.state_names:
+                    raise InputValidationError(
+                        f"output: unknown state name {o!r}; the states are {self.state_names}."
+                    )
+                idx.append(self.state_names.index(o))
+            else:
+                if not 0 <= int(o) < self.nx:
+                    raise InputValidationError(
+                        f"output: state index {o} out of range for nx = {self.nx}."
+                    )
+                idx.append(int(o))
+        if not idx:
+            raise InputValidationError("output: select at least one state.")
+        return idx
+
+    def output_indices(self, ny: int) -> list[int] | None:
+        """The measured state indices (None for an output function)."""
+        if callable(self.output):
+            return None
+        idx = list(range(ny)) if self.output is None else self.output
+        if len(idx) != ny:
+            raise InputValidationError(
+                f"the data have ny = {ny} outputs but the model's output selects {len(idx)} "
+                f"states ({idx}); pass output= with {ny} states or a function h(x, u, p)."
+            )
+        if max(idx) >= self.nx:
+            raise InputValidationError(
+                f"the data have ny = {ny} outputs but the model has only nx = {self.nx} states; "
+                "pass output= naming the measured states or a function h(x, u, p)."
+            )
+        return idx
+
+    # ----------------------------------------------------------------------- numerics
+    def _tableau(self, method) -> ButcherTableau:
+        if isinstance(method, ButcherTableau):
+            tab = method
+        elif method in ("gauss_legendre", "radau_iia"):
+            s = self.stages if self.stages is not None else (2 if method == "gauss_legendre" else 3)
+            tab = (gauss_legendre if method == "gauss_legendre" else radau_iia)(s)
+        elif method in ("dopri5", "auto"):
+            raise InputValidationError(
+                f"method {method!r} is adaptive; a grey-box fit needs a fixed-step method "
+                "(its sensitivities are exact for the discrete simulation): use 'rk4', "
+                "'radau_iia', 'gauss_legendre' or a tableau, with substeps= for accuracy."
+            )
+        else:
+            tab = tableau(method)
+        if self.kind in ("dae_module", "dae_problem") and tab.is_explicit:
+            pass  # the eliminated algebraic state makes the DAE an ODE: any method applies
+        return tab
+
+    def resolve_method(self, data: IOData, values: torch.Tensor, x0: torch.Tensor) -> tuple:
+        """The method to use on ``data`` (resolving ``"auto"``): ``(name_or_tableau, reason)``."""
+        if self.method != "auto":
+            return self.method, "as requested"
+        u0 = data.u[..., 0, :]
+        rhs = self.rhs(values.unsqueeze(-2) if values.dim() > 1 else values)
+        h = data.Ts / self.substeps
+        t = torch.tensor([0.0, h], dtype=data.dtype, device=data.device)
+        name, info = choose_method(lambda t, x: rhs(t, x, u0.expand(*x.shape[:-1], -1)), x0, t)
+        return ("radau_iia" if name == "radau_iia" else "rk4"), info["reason"]
+
+    def rhs(self, values: torch.Tensor) -> Callable:
+        """``f(t, x, u, P)`` evaluated with the parameter values in ``P`` (*batch, n_params) in
+        the order of :attr:`names` (``values`` is unused; kept for the dtype); raises
+        :class:`InputValidationError` when ``f`` returns another shape than ``x``'s."""
+        call = self._rhs()
+
+        def checked(t, x, u, P):
+            dx = call(t, x, u, P)
+            if not isinstance(dx, torch.Tensor) or dx.shape != x.shape:
+                got = tuple(dx.shape) if isinstance(dx, torch.Tensor) else type(dx).__name__
+                raise InputValidationError(
+                    f"the model's right-hand side returned shape {got} for a state of shape "
+                    f"{tuple(x.shape)}; it must return one derivative per state. A function "
+                    "f(t, x, u, p) gets each p[name] with the shape of one state component "
+                    "x[..., i] (*batch,): write p['k'] * x[..., 0], or p['k'][..., None] * x, "
+                    "not p['k'] * x[..., 0:1]."
+                )
+            return dx
+
+        return checked
+
+    def _rhs(self) -> Callable:
+        names, kind, f = self.names, self.kind, self.f
+        if kind == "function":
+
+            def call(t, x, u, P):
+                return f(t, x, u, {n: P[..., j] for j, n in enumerate(names)})
+
+            return call
+        if kind == "module":
+
+            def call(t, x, u, P):
+                params = {n: P[..., j : j + 1] for j, n in enumerate(names)}
+                return functional_call(f, params, (t, x, u))
+
+            return call
+        return self._dae_rhs()
+
+    def _dae_rhs(self) -> Callable:
+        names, f, nz = self.names, self.f, self.nz
+        if self.kind == "dae_module":
+            fm, gm = _Method(f, "f"), _Method(f, "g")
+
+            def fun(which, t, x, z, u, P):
+                params = {f"plant.{n}": P[..., j : j + 1] for j, n in enumerate(names)}
+                return functional_call(fm if which == "f" else gm, params, (t, x, z, u))
+
+        else:
+
+            def fun(which, t, x, z, u, P):
+                p = {n: P[..., j] for j, n in enumerate(names)}
+                return (f.f if which == "f" else f.g)(t, x, z, u, p)
+
+        z_start = self.z0
+
+        def call(t, x, u, P):
+            guess = x.new_zeros(*x.shape[:-1], nz)
+            if z_start is not None:
+                guess = guess + z_start.to(x)
+            sol = newton(lambda z, x, u, P: fun("g", t, x, z, u, P), guess, x, u, P)
+            if not bool(sol.converged.all()):
+                # an unconverged z makes f wrong: NaN marks the affected members as failed
+                bad = ~sol.converged
+                z = torch.where(bad[..., None], torch.full_like(sol.x, float("nan")), sol.x)
+            else:
+                z = sol.x
+            return fun("f", t, x, z, u, P)
+
+        return call
+
+    def check_index(self, x0: torch.Tensor, u0: torch.Tensor, P: torch.Tensor) -> None:
+        """Raise :class:`HighIndexError` unless ``dg/dz`` is invertible at the start."""
+        if self.kind not in ("dae_module", "dae_problem"):
+            return
+        names, f, nz = self.names, self.f, self.nz
+        z = x0.new_zeros(*x0.shape[:-1], nz)
+        if self.z0 is not None:
+            z = z + self.z0.to(x0)
+        if self.kind == "dae_module":
+            gm = _Method(f, "g")
+
+            def g(z):
+                params = {f"plant.{n}": P[..., j : j + 1] for j, n in enumerate(names)}
+                return functional_call(gm, params, (torch.zeros((), dtype=x0.dtype), x0, z, u0))
+
+        else:
+
+            def g(z):
+                p = {n: P[..., j] for j, n in enumerate(names)}
+                return f.g(torch.zeros((), dtype=x0.dtype), x0, z, u0, p)
+
+        _, Gz = batch_jacobian(g, z)
+        if Gz.shape[-2] != nz:
+            raise InputValidationError(
+                f"g returns {Gz.shape[-2]} equations for nz = {nz} algebraic states; an index-1 "
+                "semi-explicit DAE has as many algebraic equations as algebraic states."
+            )
+        sv = torch.linalg.svdvals(Gz)
+        rank_def = sv[..., -1] <= sv[..., 0] * 1e-10 * nz
+        if bool(rank_def.any()):
+            raise HighIndexError(
+                "dg/dz is singular at the initial state: the DAE is not of index 1 (notes "
+                "Corollary 1, eq. 5.56). Reduce the index (differentiate the constraints, "
+                "e.g. sysid.dae.reduce_index; for mechanics the index-1 KKT form with "
+                "Baumgarte stabilisation, notes eq. 2.168 and 2.186) and fit that model."
+            )
+
+    def output_map(self, ny: int) -> Callable:
+        """``h(x, u, P) -> (*batch, ny)``."""
+        idx = self.output_indices(ny)
+        if idx is not None:
+            index = torch.tensor(idx)
+
+            def select(x, u, P):
+                return x.index_select(-1, index.to(x.device))
+
+            return select
+        names, h = self.names, self.output
+
+        def call(x, u, P):
+            return h(x, u, {n: P[..., j] for j, n in enumerate(names)})
+
+        return call
+
+    def simulate_segments(
+        self,
+        P: torch.Tensor,
+        nodes: torch.Tensor,
+        u: torch.Tensor,
+        Ts: float,
+        intersample: str,
+        segments: Segments,
+        ny: int,
+        method,
+        derivatives: bool = True,
+    ) -> dict:
+        """Outputs and sensitivities of the segments of one experiment.
+
+        Args:
+            P: (*batch, n_params) physical parameter values (order of :attr:`names`).
+            nodes: (*batch, S, nx) initial state of each segment.
+            u: (*batch, N, nu) input samples of the experiment.
+            Ts: sample time; intersample: the input between samples.
+            segments: the segments (S starts, ``length`` intervals each).
+            ny: number of outputs; method: the fixed-step method.
+            derivatives: False computes only ``y`` and ``x_end`` (the same simulation).
+
+        Returns:
+            dict with ``y`` (*batch, S, L+1, ny), ``dy_dP`` (*batch, S, L+1, ny, n_params),
+            ``dy_dx0`` (*batch, S, L+1, ny, nx), ``x_end`` (*batch, S, nx), ``dxend_dP`` and
+            ``dxend_dx0``, and ``stats`` (the integrator's statistics).
+        """
+        tab = self._tableau(method)
+        L = segments.length
+        N = u.shape[-2]
+        pad = int(segments.starts[-1]) + L + 1 - N
+        u_pad = torch.cat([u, u[..., -1:, :].expand(*u.shape[:-2], max(pad, 0), u.shape[-1])], -2)
+        tau = stage_fractions(tab, self.substeps)
+        between = input_between_samples(u, intersample, tau)  # (*batch, N-1, q, nu)
+        if pad > 0:
+            last = between[..., -1:, :, :]
+            between = torch.cat([between, last.expand(*last.shape[:-3], pad, *last.shape[-2:])], -3)
+        idx = segments.starts.to(u.device)[:, None] + torch.arange(L + 1, device=u.device)
+        u_seg = u_pad[..., idx, :]  # (*batch, S, L+1, nu)
+        coeff = between[..., idx[:, :-1], :, :]  # (*batch, S, L, q, nu)
+        t_loc = Ts * torch.arange(L + 1, dtype=u.dtype, device=u.device)
+        nodes_q = torch.as_tensor(tau, dtype=u.dtype, device=u.device)
+        rhs = self.rhs(P)
+        sens = sensitivities(
+            rhs,
+            nodes,
+            t_loc,
+            P.unsqueeze(-2),
+            u=CollocationInput(coeff, t_loc, nodes=nodes_q),
+            method=tab,
+            substeps=self.substeps,
+            input_sensitivities=False,
+            derivatives=derivatives,
+        )
+        x = sens.x  # (*batch, S, L+1, nx)
+        h = self.output_map(ny)
+        if not derivatives:
+            Pb = P[..., None, None, :].expand(*x.shape[:-1], P.shape[-1])
+            y = h(x, u_seg, Pb)
+            return {"y": y, "x_end": x[..., -1, :], "x": x, "stats": sens.stats}
+        A, B = sens.A, sens.B
+        n_p = P.shape[-1]
+        idx_out = self.output_indices(ny)
+        Pb = P[..., None, None, :].expand(*x.shape[:-1], n_p)
+        if idx_out is not None:
+            y = x[..., idx_out]
+            dy_dx = A[..., idx_out, :]
+            dy_dP = B[..., idx_out, :]
+        else:
+            z = torch.cat([x, Pb], -1)
+            nx = self.nx
+            y, H = batch_jacobian(lambda z: h(z[..., :nx], u_seg, z[..., nx:]), z)
+            if y.shape[-1] != ny:
+                raise InputValidationError(
+                    f"the output function returns {y.shape[-1]} outputs per sample but the data "
+                    f"have ny = {ny}; h(x, u, p) must return (*batch, ny)."
+                )
+            dy_dx = H[..., :nx] @ A
+            dy_dP = H[..., :nx] @ B + H[..., nx:]
+        return {
+            "y": y,
+            "dy_dP": dy_dP,
+            "dy_dx0": dy_dx,
+            "x_end": x[..., -1, :],
+            "dxend_dP": B[..., -1, :, :],
+            "dxend_dx0": A[..., -1, :, :],
+            "x": x,
+            "stats": sens.stats,
+        }
+
+    def simulate(self, data: IOData | torch.Tensor, params: dict | None = None, x0=None, Ts=None):
+        """Free-run output of the model on the input of ``data``.
+
+        Args:
+            data: :class:`IOData` (its ``u``, ``Ts`` and ``intersample``) or an input tensor
+                (*batch, N, nu) with ``Ts`` given (then held between samples, ``"zoh"``).
+            params: name -> value (float or (*batch,) tensor) overriding the model's values.
+            x0: initial state (nx,) / (*batch, nx); default the model's (zeros when
+                ``"estimate"`` without a value).
+            Ts: sample time when ``data`` is a tensor.
+
+        Returns:
+            (*batch, N, ny) simulated outputs (``ny``: the output map's width; the first
+            state when ``output`` is None and ``data`` is a tensor).
+        """
+        if isinstance(data, IOData):
+            u, Ts, inter, ny = data.u, data.Ts, data.intersample, data.ny
+        else:
+            u = torch.as_tensor(data, dtype=torch.float64)
+            if Ts is None:
+                raise InputValidationError("simulate: pass Ts= with an input tensor.")
+            inter, ny = "zoh", None
+        if ny is None:
+            ny = len(self.output) if isinstance(self.output, list) else 1
+        values = {n: self.params[n].values for n in self.names}
+        if params is not None:
+            unknown = set(params) - set(self.names)
+            if unknown:
+                raise InputValidationError(
+                    f"simulate: unknown parameter(s) {sorted(unknown)}; the model has {self.names}."
+                )
+            values.update({n: torch.as_tensor(v, dtype=u.dtype) for n, v in params.items()})
+        batch = u.shape[:-2]
+        P = torch.stack(
+            [
+                torch.as_tensor(values[n], dtype=u.dtype).reshape(-1)[0:1].squeeze(0)
+                if torch.as_tensor(values[n]).numel() == 1
+                else torch.as_tensor(values[n], dtype=u.dtype)
+                for n in self.names
+            ],
+            -1,
+        )
+        P = P.expand(*torch.broadcast_shapes(batch, P.shape[:-1]), len(self.names))
+        start = x0 if x0 is not None else self.x0
+        if start is None or isinstance(start, str):
+            start = u.new_zeros(self.nx)
+        start = torch.as_tensor(start, dtype=u.dtype, device=u.device)
+        full = torch.broadcast_shapes(P.shape[:-1], start.shape[:-1])
+        nodes = start.expand(*full, self.nx).unsqueeze(-2)
+        P = P.expand(*full, P.shape[-1])
+        u = u.expand(*full, *u.shape[-2:])
+        seg = Segments(torch.zeros(1, dtype=torch.int64), u.shape[-2] - 1)
+        method = self.method
+        if method == "auto":
+            method, _ = self.resolve_method(
+                IOData._trusted(u, u[..., :1].expand(*u.shape[:-1], 1), Ts, inter),
+                P,
+                nodes[..., 0, :],
+            )
+        with torch.no_grad():
+            out = self.simulate_segments(P, nodes, u, Ts, inter, seg, ny, method)
+        return out["y"][..., 0, :, :]
+
+    def with_values(self, values: dict, x0=None) -> GreyBoxModel:
+        """A copy whose parameters take ``values`` (name -> float or (*batch,) tensor) and, if
+        given, whose known initial state is ``x0``."""
+        out = copy.copy(self)
+        out.params = dict(self.params)
+        for n, v in values.items():
+            old = self.params[n]
+            new = copy.copy(old)
+            new.values = torch.as_tensor(v, dtype=torch.float64).detach()
+            out.params[n] = new
+        if x0 is not None:
+            out.x0 = torch.as_tensor(x0).detach()
+        return out
+
+
+# ---------------------------------------------------------------------------- helpers
+def _kind(f) -> str:
+    if isinstance(f, SemiExplicitDAE):
+        return "dae_problem"
+    if isinstance(f, nn.Module):
+        has_fg = callable(getattr(f, "g", None)) and callable(getattr(f, "f", None))
+        if has_fg and int(getattr(f, "nz", 0) or 0) >= 1:
+            return "dae_module"
+        return "module"
+    if callable(f):
+        return "function"
+    raise InputValidationError(
+        f"GreyBoxModel: f must be a function f(t, x, u, p), an nn.Module or a SemiExplicitDAE, "
+        f"got {type(f).__name__}."
+    )
+
+
+def _describe_f(f) -> str:
+    return (
+        type(f).__name__
+        if isinstance(f, (nn.Module, SemiExplicitDAE))
+        else getattr(f, "__name__", "f")
+    )
+
+
+def _collect_params(f, params, kind) -> dict[str, Param]:
+    module_params = {}
+    if kind in ("module", "dae_module"):
+        module_params = dict(f.named_parameters())
+    if params is None:
+        if not module_params:
+            raise InputValidationError(
+                "GreyBoxModel: params= is required for a function right-hand side (name -> "
+                "Param or starting value)."
+            )
+        params = {
+            n: Param(float(v.detach().reshape(-1)[0]), free=bool(v.requires_grad))
+            for n, v in module_params.items()
+            if v.numel() == 1
+        }
+    if not isinstance(params, dict) or not params:
+        raise InputValidationError("GreyBoxModel: params must be a non-empty dict name -> Param.")
+    out = {}
+    for name, p in params.items():
+        if module_params and name not in module_params:
+            raise InputValidationError(
+                f"GreyBoxModel: unknown parameter name {name!r}; the module "
+                f"{type(f).__name__} has {sorted(module_params)}."
+            )
+        if module_params and module_params[name].numel() != 1:
+            raise InputValidationError(
+                f"GreyBoxModel: module parameter {name!r} has {module_params[name].numel()} "
+                "entries; only scalar parameters can be estimated by name."
+            )
+        out[name] = p if isinstance(p, Param) else Param(p)
+    for name, v in module_params.items():  # the module's other parameters stay fixed
+        if name not in out and v.numel() == 1:
+            out[name] = Param(float(v.detach().reshape(-1)[0]), free=False)
+    return out
+
+
+def _state_names(f):
+    names = getattr(f, "state_names", None)
+    return tuple(names) if names is not None else None
+
+
+def _infer_nx(f, state_names):
+    nx = getattr(f, "nx", None)
+    if isinstance(nx, (int, np.integer)):
+        return int(nx)
+    if state_names is not None:
+        return len(state_names)
+    return None
+
+
+def _check_x0(x0, nx):
+    if x0 is None or (isinstance(x0, str) and x0 in ("zero", "estimate")):
+        return x0
+    if isinstance(x0, str):
+        raise InputValidationError(
+            f"x0 must be 'zero', 'estimate' or a tensor of shape (nx,) / (*batch, nx), got {x0!r}."
+        )
+    t = torch.as_tensor(x0, dtype=torch.float64)
+    if t.dim() < 1 or t.shape[-1] != nx or not bool(torch.isfinite(t).all()):
+        raise InputValidationError(
+            f"x0 must be finite with shape (nx,) or (*batch, nx), nx = {nx}; got {tuple(t.shape)}."
+        )
+    return t

@@ -1,0 +1,117 @@
+"""Named physical parameters of a continuous-time model: free or fixed, bounded, shared or
+one per experiment.
+
+A bounded parameter is estimated through an unconstrained coordinate ``z`` so that every
+iterate respects the bounds (the estimate and its standard error are reported in physical
+units, the covariance by the delta method):
+
+* no bounds: ``p = s z`` with the scale ``s = |p_start|`` (1 for a zero start), so that every
+  coordinate of the minimiser is of order one;
+* ``min`` only: ``p = min + exp(z)``; ``max`` only: ``p = max - exp(z)``;
+* both: ``p = min + (max - min) / (1 + exp(-z))``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from integrators.errors import InputValidationError
+
+__all__ = ["Param"]
+
+
+class Param:
+    """A named physical parameter of a grey-box model.
+
+    Args:
+        value: the starting value (free) or the value (fixed), in physical units: a float, or
+            for ``per_experiment=True`` a float or one value per experiment.
+        free: estimate it (True) or hold it at ``value`` (False).
+        min, max: optional bounds (free parameters only); the start must lie strictly inside.
+        per_experiment: one value per experiment of the data (e.g. an offset or an initial
+            condition that differs between runs) instead of one value shared by all.
+
+    Raises:
+        InputValidationError: non-finite values, ``min >= max``, or a start outside the bounds.
+    """
+
+    def __init__(self, value, *, free: bool = True, min=None, max=None, per_experiment=False):
+        values = torch.as_tensor(value, dtype=torch.float64).detach().reshape(-1)
+        if values.numel() == 0 or not bool(torch.isfinite(values).all()):
+            raise InputValidationError(f"Param: value must be finite, got {value!r}.")
+        if values.numel() > 1 and not per_experiment:
+            raise InputValidationError(
+                f"Param: {values.numel()} values given for a shared parameter; give one value, "
+                "or per_experiment=True for one value per experiment."
+            )
+        for name, bound in (("min", min), ("max", max)):
+            if bound is not None and not math.isfinite(float(bound)):
+                raise InputValidationError(f"Param: {name} must be finite or None, got {bound!r}.")
+        if min is not None and max is not None and float(min) >= float(max):
+            raise InputValidationError(f"Param: min = {min} must be < max = {max}.")
+        lo = -math.inf if min is None else float(min)
+        hi = math.inf if max is None else float(max)
+        if free and not bool(((values > lo) & (values < hi)).all()):
+            raise InputValidationError(
+                f"Param: the start {values.tolist()} lies outside the bounds ({min}, {max}); "
+                "start strictly inside them (a bounded parameter is estimated through a "
+                "logarithmic or logistic coordinate that never reaches the bound)."
+            )
+        self.values = values
+        self.free = bool(free)
+        self.min = None if min is None else float(min)
+        self.max = None if max is None else float(max)
+        self.per_experiment = bool(per_experiment)
+
+    def __repr__(self) -> str:
+        value = float(self.values[0]) if self.values.numel() == 1 else self.values.tolist()
+        bounds = (
+            "" if self.min is None and self.max is None else f", min={self.min}, max={self.max}"
+        )
+        extra = ", per_experiment=True" if self.per_experiment else ""
+        return f"Param({value}, free={self.free}{bounds}{extra})"
+
+    def start(self, n_experiments: int) -> torch.Tensor:
+        """The starting values, (n_experiments,) for a per-experiment parameter, else (1,)."""
+        if not self.per_experiment:
+            return self.values
+        if self.values.numel() not in (1, n_experiments):
+            raise InputValidationError(
+                f"Param: {self.values.numel()} values for {n_experiments} experiments; give "
+                "one value or one per experiment."
+            )
+        return self.values.expand(n_experiments).clone()
+
+    def scale(self, start: torch.Tensor) -> torch.Tensor:
+        """The scale ``s`` of an unbounded parameter (see the module docstring)."""
+        s = start.abs()
+        return torch.where(s > 0, s, torch.ones_like(s))
+
+    def to_unconstrained(self, value: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+        """``z`` of a physical value (strictly inside the bounds)."""
+        if self.min is not None and self.max is not None:
+            frac = (value - self.min) / (self.max - self.min)
+            return torch.log(frac) - torch.log1p(-frac)
+        if self.min is not None:
+            return torch.log(value - self.min)
+        if self.max is not None:
+            return torch.log(self.max - value)
+        return value / scale
+
+    def to_physical(
+        self, z: torch.Tensor, scale: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The physical value ``p(z)`` and the derivative ``dp/dz`` (same shape as ``z``)."""
+        if self.min is not None and self.max is not None:
+            sig = torch.sigmoid(z)
+            width = self.max - self.min
+            return self.min + width * sig, width * sig * (1 - sig)
+        if self.min is not None:
+            e = torch.exp(z)
+            return self.min + e, e
+        if self.max is not None:
+            e = torch.exp(z)
+            return self.max - e, -e
+        return scale * z, scale.expand_as(z)

@@ -1,0 +1,340 @@
+"""Grey-box identification through the Runge-Kutta layers (sysid.continuous) against
+independent truth: central finite differences of the criterion, Monte-Carlo spread of the
+estimates against the reported sigma^2 (J'J)^-1, closed-form band-limited signals, the true
+parameters of simulated plants."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from integrators import SemiExplicitDAE, sensitivities, tableau
+from integrators.errors import HighIndexError, InputValidationError
+from sysid import GreyBoxModel, IOData, Param, fit
+from sysid.continuous.fit import _Problem
+from sysid.continuous.intersample import input_between_samples, stage_fractions
+from sysid.montecarlo import input_signal
+from sysid.zoo import LinearIndex2DAE, SpringMassDamper
+
+TRUE = {"m": 1.0, "xi": 0.5, "K": 4.0}
+
+
+def oscillator(t, x, u, p):
+    """m y'' + xi y' + K y + k3 y^3 = u (a Duffing oscillator for k3 != 0)."""
+    k3 = p.get("k3", torch.zeros_like(p["m"]))
+    acc = (u[..., 0] - p["xi"] * x[..., 1] - p["K"] * x[..., 0] - k3 * x[..., 0] ** 3) / p["m"]
+    return torch.stack([x[..., 1], acc], -1)
+
+
+def bounded(**start):
+    return {n: Param(v, min=0.0) for n, v in start.items()}
+
+
+def simulated_data(trials, N, noise, seed, Ts=0.1, params=TRUE, noise_kind="gauss"):
+    g = torch.Generator().manual_seed(seed)
+    u = input_signal("prbs", N, (trials,), hold=3, generator=g)
+    truth = GreyBoxModel(oscillator, dict(params), nx=2, output=[0], substeps=2)
+    y = truth.simulate(IOData(u, u, Ts=Ts))
+    if noise_kind == "gauss":
+        e = torch.randn(y.shape, generator=g, dtype=y.dtype)
+    else:  # Student-t with 2 degrees of freedom
+        rng = np.random.default_rng(seed)
+        e = torch.as_tensor(rng.standard_t(2, size=tuple(y.shape)))
+    return IOData(u, y + noise * e, Ts=Ts)
+
+
+# ------------------------------------------------------------------------ Jacobians
+DAE = SemiExplicitDAE(
+    lambda t, x, z, u, p: -p["b"][..., None] * x + z,
+    lambda t, x, z, u, p: x - p["a"][..., None] * z - 0.1 * z**3 + u,
+)
+JACOBIAN_MODELS = {
+    "erk": lambda: GreyBoxModel(
+        oscillator,
+        {**bounded(m=1.2, xi=0.4), "K": Param(3.0), "k3": 0.5},
+        nx=2,
+        output=[0],
+        substeps=2,
+    ),
+    "irk": lambda: GreyBoxModel(
+        oscillator,
+        {**bounded(m=1.2, xi=0.4), "K": Param(3.0, min=0, max=10)},
+        nx=2,
+        output=[0],
+        substeps=2,
+        method="radau_iia",
+    ),
+    "dae": lambda: GreyBoxModel(
+        DAE, {"a": Param(2.0, min=0), "b": 1.0}, nx=1, nz=1, output=[0], method="radau_iia"
+    ),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(JACOBIAN_MODELS))
+@pytest.mark.parametrize("criterion", ["simulation", "multiple_shooting"])
+@pytest.mark.parametrize("x0", [None, "estimate"])
+def test_gauss_newton_jacobian_equals_central_differences(kind, criterion, x0):
+    """The sensitivity Jacobian (eq. 8.17-8.18 ERK, 8.24-8.28 IRK, DAE by the implicit function
+    theorem) of the residuals in the unconstrained coordinates, against central differences."""
+    model = JACOBIAN_MODELS[kind]()
+    g = torch.Generator().manual_seed(3)
+    B, N = 2, 40
+    u = input_signal("prbs", N, (B,), hold=3, generator=g)
+    data = IOData(u, torch.randn(B, N, 1, dtype=torch.float64, generator=g), Ts=0.1)
+    problem = _Problem(model, data, criterion, x0, 10, model.method)
+    if criterion == "multiple_shooting":
+        problem.defect_weight = torch.full((B, model.nx), 3.0, dtype=torch.float64)
+    z = problem.initial_z() + 0.05 * torch.randn(B, problem.n_columns, generator=g).double()
+    r, J = problem.residuals_and_jacobian(z)
+    assert torch.equal(r, problem.residuals(z))  # the line search sees the same simulation
+    h = 1e-6
+    fd = torch.stack(
+        [
+            (problem.residuals(z + h * e) - problem.residuals(z - h * e)) / (2 * h)
+            for e in torch.eye(problem.n_columns, dtype=torch.float64)
+        ],
+        -1,
+    )
+    assert float((J - fd).abs().max() / J.abs().max()) < 1e-6
+
+
+# ------------------------------------------------------------------------ statistics
+def test_spring_mass_damper_estimates_match_their_reported_covariance():
+    """300 batched data sets: the spread of the estimates equals the mean reported
+    sigma^2 (J'J)^-1 (relative Frobenius < 0.2 at this number of trials), no bias beyond
+    0.2 SE, 95 % intervals cover about 95 %."""
+    data = simulated_data(300, 150, 0.02, seed=0)
+    model = GreyBoxModel(
+        SpringMassDamper(), bounded(**{"m": 1.5, "xi": 1.0, "K": 3.0}), output=[0], substeps=2
+    )
+    res = fit(model, data)
+    assert bool(res.converged.all())
+    assert res.parameter_names == ["m", "xi", "K"]
+    truth = torch.tensor([TRUE[n] for n in res.parameter_names], dtype=torch.float64)
+    est, se = res.theta, res.standard_errors
+    empirical = torch.cov(est.T)
+    reported = res.covariance.mean(0)
+    assert float(torch.linalg.norm(empirical - reported) / torch.linalg.norm(reported)) < 0.25
+    assert bool(((est.mean(0) - truth).abs() < 0.25 * se.mean(0)).all())
+    coverage = ((est - truth).abs() <= 1.959964 * se).double().mean()
+    assert 0.91 <= float(coverage) <= 0.99
+    # physical units in the result: params by name, the fitted model carries them
+    assert torch.equal(res.params["K"], est[:, 2])
+    y_fit = res.model.simulate(data)
+    assert float((y_fit - data.y).pow(2).mean().sqrt()) < 0.025
+
+
+def test_zoo_plant_parameters_by_name():
+    """A zoo plant (a LagrangianSystem, autograd inside f) fitted by its parameter names."""
+    data = simulated_data(2, 100, 0.01, seed=8)
+    model = GreyBoxModel(SpringMassDamper(), bounded(m=1.5, xi=1.0, K=3.0), output=[0], substeps=2)
+    res = fit(model, data)
+    truth = torch.tensor([1.0, 0.5, 4.0], dtype=torch.float64)
+    assert bool(((res.theta - truth).abs() <= 4 * res.standard_errors).all())
+
+
+def test_standard_errors_shrink_as_one_over_root_n():
+    """std of the estimates against N (200 -> 800 samples): log-log slope -0.5 (within the
+    sampling error of 80 trials)."""
+    stds = []
+    for N in (200, 800):
+        res = fit(
+            GreyBoxModel(oscillator, bounded(m=1.2, xi=0.6, K=3.5), nx=2, output=[0], substeps=2),
+            simulated_data(150, N, 0.05, seed=N),
+        )
+        stds.append(res.theta.std(0))
+    slope = torch.log(stds[1] / stds[0]) / math.log(4.0)
+    assert bool(((slope + 0.5).abs() < 0.2).all()), slope
+
+
+def test_fair_loss_beats_least_squares_under_student_t_noise():
+    """Fat-tailed (Student-t, nu = 2) output noise: the fair-loss MLE (eq. 4.73) has a smaller
+    mean squared parameter error than least squares on the same data sets."""
+    data = simulated_data(40, 150, 0.02, seed=5, noise_kind="t")
+    model = GreyBoxModel(oscillator, bounded(m=1.2, xi=0.6, K=3.5), nx=2, output=[0], substeps=2)
+    truth = torch.tensor([TRUE[n] for n in ("m", "xi", "K")], dtype=torch.float64)
+    ls = fit(model, data)
+    fair = fit(model, data, loss="fair")
+    mse_ls = ((ls.theta - truth) / truth).pow(2).sum(-1).mean()
+    mse_fair = ((fair.theta - truth) / truth).pow(2).sum(-1).mean()
+    assert float(mse_fair) < 0.5 * float(mse_ls)
+    assert fair.loss == "fair" and fair.method == "mle"
+
+
+# ------------------------------------------------------------------------ DAE
+def test_dae_parameters_recovered_through_the_algebraic_equations():
+    """x' = -b x + z, 0 = x - a z - 0.1 z^3 + u (index 1): a and b within 3 SE."""
+    g = torch.Generator().manual_seed(2)
+    u = input_signal("prbs", 200, (4,), hold=4, generator=g)
+    truth = GreyBoxModel(
+        DAE, {"a": 1.5, "b": 0.7}, nx=1, nz=1, output=[0], x0=[0.2], method="radau_iia"
+    )
+    y = truth.simulate(IOData(u, u, Ts=0.1))
+    data = IOData(u, y + 0.01 * torch.randn(y.shape, generator=g, dtype=y.dtype), Ts=0.1)
+    model = GreyBoxModel(
+        DAE, {"a": Param(1.0, min=0), "b": Param(1.0)}, nx=1, nz=1, output=[0], method="radau_iia"
+    )
+    res = fit(model, data, x0="estimate")
+    assert res.parameter_names == ["a", "b", "x0.0"]
+    truth_v = torch.tensor([1.5, 0.7, 0.2], dtype=torch.float64)
+    assert bool(((res.theta - truth_v).abs() <= 3 * res.standard_errors).all())
+
+
+def test_high_index_dae_is_refused():
+    with pytest.raises(HighIndexError, match="index 2.*Reduce the index"):
+        GreyBoxModel(LinearIndex2DAE(), {}, nx=2)
+
+
+def test_singular_algebraic_jacobian_is_refused_with_advice():
+    dae = SemiExplicitDAE(lambda t, x, z, u, p: z, lambda t, x, z, u, p: x - p["a"][..., None])
+    model = GreyBoxModel(dae, {"a": 1.0}, nx=1, nz=1, output=[0])
+    data = IOData(torch.zeros(20, 1), torch.zeros(20, 1), Ts=0.1)
+    with pytest.raises(HighIndexError, match="not of index 1"):
+        fit(model, data)
+
+
+# ------------------------------------------------------------------------ criteria
+def test_multiple_shooting_reaches_the_truth_from_a_poor_start():
+    """A lightly damped oscillator from a stiffness 2.5x too large, only the position
+    measured: multiple shooting on short segments (free unmeasured node states, penalty
+    continuation, then the simulation-error polish) lands on the truth in every data set."""
+    params = {"m": 1.0, "xi": 0.1, "K": 4.0}
+    data = simulated_data(4, 400, 0.01, seed=9, params=params)
+    model = GreyBoxModel(oscillator, bounded(m=1.0, xi=0.3, K=10.0), nx=2, output=[0], substeps=2)
+    truth = torch.tensor([1.0, 0.1, 4.0], dtype=torch.float64)
+    ms = fit(model, data, criterion="multiple_shooting", segment_length=10)
+    assert ms.info["criterion"] == "simulation"  # polished by the simulation error
+    assert bool(((ms.theta - truth).abs() <= 4 * ms.standard_errors).all())
+
+
+def test_one_step_criterion_gives_start_values_from_measured_states():
+    """Both states measured: the one-step (equation error) fit lands near the truth."""
+    g = torch.Generator().manual_seed(4)
+    u = input_signal("prbs", 300, (2,), hold=3, generator=g)
+    truth = GreyBoxModel(oscillator, dict(TRUE), nx=2, output=[0, 1], substeps=2)
+    y = truth.simulate(IOData(u, torch.zeros(2, 300, 2), Ts=0.1))
+    data = IOData(u, y + 1e-4 * torch.randn(y.shape, generator=g, dtype=y.dtype), Ts=0.1)
+    model = GreyBoxModel(oscillator, bounded(m=2.0, xi=1.0, K=2.0), nx=2, output=[0, 1], substeps=2)
+    res = fit(model, data, criterion="one_step")
+    assert torch.allclose(res.theta, torch.tensor([1.0, 0.5, 4.0]).double(), rtol=0.02)
+    with pytest.raises(InputValidationError, match="every state measured"):
+        fit(
+            GreyBoxModel(oscillator, bounded(m=1, xi=1, K=2), nx=2, output=[0]),
+            IOData(u, y[..., :1], Ts=0.1),
+            criterion="one_step",
+        )
+
+
+# ------------------------------------------------------------------------ intersample
+def test_band_limited_reconstruction_is_exact_for_a_periodic_multisine():
+    N = 64
+    k = np.arange(N)
+
+    def multisine(t):
+        return (
+            np.cos(2 * np.pi * 3 * t / N + 0.3)
+            + 0.5 * np.sin(2 * np.pi * 11 * t / N)
+            + 0.2 * np.cos(np.pi * t)
+        )
+
+    u = torch.tensor(multisine(k))[:, None]
+    tau = stage_fractions(tableau("rk4"), 3)
+    values = input_between_samples(u, "bl", tau)[..., 0]
+    expected = np.stack([multisine(k[:-1] + t) for t in tau], -1)
+    assert np.abs(values.numpy() - expected).max() < 1e-12
+    foh = input_between_samples(u, "foh", tau)[..., 0]
+    assert torch.allclose(foh[:, -1], u[1:, 0]) and torch.allclose(foh[:, 0], u[:-1, 0])
+
+
+def test_intersample_decides_a_multisine_fit():
+    """A Duffing oscillator under a band-limited multisine sampled at 4 samples per period of
+    its highest line: 'bl' recovers the parameters within 3 SE; 'zoh' on the same samples
+    (a half-sample delay) is biased by many SE."""
+    N, Ts = 256, 0.25
+    t_fine = np.arange(N * 8) * Ts / 8
+    rng = np.random.default_rng(1)
+    lines = np.arange(1, 16)
+    phases = rng.uniform(0, 2 * np.pi, lines.size)
+
+    def force(t):
+        return (
+            sum(
+                np.cos(2 * np.pi * f * t / (N * Ts) + ph)
+                for f, ph in zip(lines, phases, strict=True)
+            )
+            / 3
+        )
+
+    p_true = {"m": 1.0, "xi": 0.4, "K": 2.0, "k3": 0.5}
+    fine = GreyBoxModel(oscillator, dict(p_true), nx=2, output=[0], substeps=1)
+    uf = torch.tensor(force(t_fine))[:, None]
+    y_fine = fine.simulate(IOData(uf, uf, Ts=Ts / 8, intersample="bl"))
+    g = torch.Generator().manual_seed(0)
+    y = y_fine[::8] + 1e-3 * torch.randn(N, 1, generator=g, dtype=torch.float64)
+    u = uf[::8]
+    start = {"m": Param(1.2, min=0), "xi": Param(0.5, min=0), "K": Param(2.5, min=0), "k3": 0.3}
+    model = GreyBoxModel(oscillator, start, nx=2, output=[0], substeps=4)
+    truth = torch.tensor([p_true[n] for n in ("m", "xi", "K", "k3")], dtype=torch.float64)
+    errors = {}
+    for kind in ("bl", "zoh"):
+        res = fit(
+            model,
+            IOData(u, y, Ts=Ts, intersample=kind),
+            x0="estimate",
+            criterion="multiple_shooting",
+            segment_length=32,
+        )
+        errors[kind] = ((res.theta[:4] - truth).abs() / res.standard_errors[:4]).max()
+    assert float(errors["bl"]) < 3
+    assert float(errors["zoh"]) > 10
+
+
+# ------------------------------------------------------------------------ integrator flags
+def test_sensitivity_flags_keep_the_simulation():
+    def f(t, x, u, p):
+        return torch.stack(
+            [x[..., 1], u[..., 0] - p[..., 0] * x[..., 0] - p[..., 1] * x[..., 1]], -1
+        )
+
+    t = torch.linspace(0, 2, 21, dtype=torch.float64)
+    u = torch.randn(3, 21, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    p = torch.tensor([4.0, 0.5], dtype=torch.float64)
+    x0 = torch.zeros(3, 2, dtype=torch.float64)
+    full = sensitivities(f, x0, t, p, u=u)
+    lean = sensitivities(f, x0, t, p, u=u, input_sensitivities=False)
+    bare = sensitivities(f, x0, t, p, u=u, derivatives=False)
+    assert lean.C is None and torch.equal(lean.x, full.x) and torch.equal(lean.B, full.B)
+    assert bare.A is None and bare.B is None and torch.equal(bare.x, full.x)
+
+
+# ------------------------------------------------------------------------ bad input
+def test_bad_input_gets_named_errors():
+    data = simulated_data(2, 50, 0.01, seed=1)
+    with pytest.raises(InputValidationError, match="unknown parameter name 'mass'"):
+        GreyBoxModel(SpringMassDamper(), {"mass": 1.0})
+    with pytest.raises(InputValidationError, match="outside the bounds"):
+        Param(-1.0, min=0.0)
+    with pytest.raises(InputValidationError, match="non-finite|not finite|NaN"):
+        IOData(data.u, data.y.clone().index_fill_(-2, torch.tensor([3]), float("nan")), Ts=0.1)
+    bad_h = GreyBoxModel(
+        oscillator, bounded(m=1, xi=1, K=2), nx=2, output=lambda x, u, p: x
+    )  # 2 outputs for 1 measured
+    with pytest.raises(InputValidationError, match="output function returns 2 outputs"):
+        fit(bad_h, data)
+    shape_trap = GreyBoxModel(
+        lambda t, x, u, p: -p["k"] * x[..., 0:1].expand_as(x), {"k": 1.0}, nx=2, output=[0]
+    )
+    with pytest.raises(InputValidationError, match="one derivative per state"):
+        fit(shape_trap, data)
+    diverging = GreyBoxModel(
+        lambda t, x, u, p: p["a"][..., None] * x**3,
+        {"a": 50.0},
+        nx=2,
+        output=[0],
+        x0=torch.tensor([3.0, 3.0]),
+    )
+    with pytest.raises(InputValidationError, match="not finite for data set"):
+        fit(diverging, data)
+    with pytest.raises(InputValidationError, match="criterion must be one of"):
+        fit(GreyBoxModel(oscillator, bounded(m=1, xi=1, K=2), nx=2), data, criterion="truncated")
