@@ -451,10 +451,10 @@ def daeint(
             consistent ``z(t0)`` carries the derivatives of that root with respect to ``x0``
             and every tensor the model uses, first and second order).
         t: (T,) strictly increasing output times.
-        method, stages, adaptive, rtol, atol, substeps, max_steps, controller,
-            **newton_options: as in
-            :func:`solve_implicit_ode`; ``index_tol`` (default 1e-10) is the relative
-            singular-value threshold of the rank test.
+        method, stages, adaptive, rtol, atol, substeps, max_steps, controller: as in
+            :func:`solve_implicit_ode`.
+        **newton_options: as in :func:`solve_implicit_ode`; ``index_tol`` (default 1e-10) is
+            the relative singular-value threshold of the rank test.
         u: input: None, a callable ``u(t)`` or samples (T, nu) / (*batch, T, nu) on ``t``.
         interpolation: "zoh" or "linear" for sampled inputs (see :mod:`integrators.inputs`).
 
