@@ -80,7 +80,7 @@ import torch
 from ._irk_dense import extrapolation_matrix
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
 from .inputs import CollocationInput
-from .methods import resolve_method
+from .methods import EXPLICIT_FIXED, resolve_method
 from .newton import _default_tol, batch_jacobian
 from .solution import SolverStats
 from .tableau import ButcherTableau
@@ -588,7 +588,8 @@ def variational_sensitivities(
 
     z0 = torch.cat([x0, eye.expand(*batch, nx, nx).flatten(-2), x0.new_zeros(*batch, nx * n_p)], -1)
     with torch.no_grad():
-        odeint_options.setdefault("compile", False)  # autograd Jacobians inside the rhs
+        if resolve_method(method).kind == EXPLICIT_FIXED:  # autograd Jacobians inside the rhs
+            odeint_options.setdefault("compile", False)
         sol = odeint(augmented, z0, t, method=method, u=u, **odeint_options)
     z = sol.x
     return SensitivityResult(

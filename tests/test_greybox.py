@@ -4,6 +4,7 @@ estimates against the reported sigma^2 (J'J)^-1, closed-form band-limited signal
 parameters of simulated plants."""
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -195,17 +196,28 @@ def test_singular_algebraic_jacobian_is_refused_with_advice():
 
 
 # ------------------------------------------------------------------------ criteria
-def test_multiple_shooting_reaches_the_truth_from_a_poor_start():
-    """A lightly damped oscillator from a stiffness 2.5x too large, only the position
-    measured: multiple shooting on short segments (free unmeasured node states, penalty
-    continuation, then the simulation-error polish) lands on the truth in every data set."""
+def test_multiple_shooting_reaches_the_truth_where_single_shooting_fails():
+    """A lightly damped oscillator started at twice its natural frequency (K 4x too large),
+    only the position measured: the simulation error has local minima and single shooting
+    ends far from the truth in some data sets; multiple shooting on short segments (free
+    unmeasured node states, penalty continuation, then the simulation-error polish) lands
+    on the truth in every one."""
     params = {"m": 1.0, "xi": 0.1, "K": 4.0}
     data = simulated_data(4, 400, 0.01, seed=9, params=params)
-    model = GreyBoxModel(oscillator, bounded(m=1.0, xi=0.3, K=10.0), nx=2, output=[0], substeps=2)
+    model = GreyBoxModel(oscillator, bounded(m=1.0, xi=0.3, K=16.0), nx=2, output=[0], substeps=2)
     truth = torch.tensor([1.0, 0.1, 4.0], dtype=torch.float64)
+
+    def on_truth(res):
+        close = ((res.theta - truth).abs() <= 0.05 * truth).all(-1)
+        return close & ((res.theta - truth).abs() <= 4 * res.standard_errors).all(-1)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the failing data sets stop short: that is the point
+        single = fit(model, data, max_iter=20)
     ms = fit(model, data, criterion="multiple_shooting", segment_length=10)
     assert ms.info["criterion"] == "simulation"  # polished by the simulation error
-    assert bool(((ms.theta - truth).abs() <= 4 * ms.standard_errors).all())
+    assert bool(on_truth(ms).all())
+    assert not bool(on_truth(single).all())
 
 
 def test_one_step_criterion_gives_start_values_from_measured_states():
