@@ -332,7 +332,7 @@ def test_bad_input_gets_named_errors():
     bad_h = GreyBoxModel(
         oscillator, bounded(m=1, xi=1, K=2), nx=2, output=lambda x, u, p: x
     )  # 2 outputs for 1 measured
-    with pytest.raises(InputValidationError, match="output function returns 2 outputs"):
+    with pytest.raises(InputValidationError, match="output function returns shape .*ny = 1"):
         fit(bad_h, data)
     shape_trap = GreyBoxModel(
         lambda t, x, u, p: -p["k"] * x[..., 0:1].expand_as(x), {"k": 1.0}, nx=2, output=[0]
@@ -350,3 +350,62 @@ def test_bad_input_gets_named_errors():
         fit(diverging, data)
     with pytest.raises(InputValidationError, match="criterion must be one of"):
         fit(GreyBoxModel(oscillator, bounded(m=1, xi=1, K=2), nx=2), data, criterion="truncated")
+
+
+def test_auto_method_picks_radau_for_a_stiff_plant_and_rk4_otherwise():
+    """method="auto": rho(df/dx) Ts / substeps against the explicit stability limit
+    (integrators.auto.choose_method) decides; the fit reports the choice."""
+    data = simulated_data(1, 30, 0.01, seed=2)
+    stiff = GreyBoxModel(
+        oscillator, {"m": 1.0, "xi": Param(400.0, min=0), "K": 1.0}, nx=2, output=[0], method="auto"
+    )
+    soft = GreyBoxModel(
+        oscillator, {"m": 1.0, "xi": Param(0.5, min=0), "K": 4.0}, nx=2, output=[0], method="auto"
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the stiff model does not fit these data
+        assert fit(stiff, data).info["integrator"] == "radau_iia"
+    assert fit(soft, data).info["integrator"] == "rk4"
+
+
+def test_per_experiment_parameters_and_initial_states():
+    """Two experiments with different output offsets and initial states: the offsets are
+    per-experiment parameters, the initial states are estimated per experiment, the physical
+    parameters are shared; all recovered, and the fitted model reproduces both records."""
+
+    def with_offset(x, u, p):
+        return x[..., :1] + p["offset"][..., None]
+
+    g = torch.Generator().manual_seed(6)
+    parts = []
+    for offset, x0 in ((0.3, (0.5, 0.0)), (-0.2, (-0.4, 0.2))):
+        u = input_signal("prbs", 150, (), hold=3, generator=g)
+        truth = GreyBoxModel(
+            oscillator, dict(TRUE), nx=2, output=[0], substeps=2, x0=torch.tensor(x0)
+        )
+        y = truth.simulate(IOData(u, u, Ts=0.1)) + offset
+        parts.append(IOData(u, y + 1e-3 * torch.randn(y.shape, generator=g, dtype=y.dtype), Ts=0.1))
+    data = IOData.experiments(parts)
+    model = GreyBoxModel(
+        oscillator,
+        {**bounded(m=1.3, xi=0.8, K=3.0), "offset": Param(0.0, per_experiment=True)},
+        nx=2,
+        output=with_offset,
+        substeps=2,
+    )
+    res = fit(model, data, x0="estimate")
+    assert res.parameter_names == [
+        "m",
+        "xi",
+        "K",
+        "offset[0]",
+        "x0[0].0",
+        "x0[0].1",
+        "offset[1]",
+        "x0[1].0",
+        "x0[1].1",
+    ]
+    expected = torch.tensor([1.0, 0.5, 4.0, 0.3, 0.5, 0.0, -0.2, -0.4, 0.2], dtype=torch.float64)
+    assert bool(((res.theta - expected).abs() <= 4 * res.standard_errors).all())
+    rms = (res.model.simulate(data, x0=res.x0) - data.y).pow(2).mean().sqrt()
+    assert float(rms) < 2e-3

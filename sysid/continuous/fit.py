@@ -204,23 +204,23 @@ class _Problem:
         return torch.cat(pieces, -1).clone()
 
     # ----------------------------------------------------------------------- evaluation
-    def physical(self, z: torch.Tensor, e: int) -> tuple[torch.Tensor, list]:
-        """(*batch, n_params) parameter values of experiment ``e`` and, per parameter, its
-        z-column and ``dp/dz`` (None for fixed ones)."""
-        values, chain = [], []
-        for j, n in enumerate(self.model.names):
+    def physical(self, z: torch.Tensor, e: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The parameter values of experiment ``e``, ``P`` (*batch, n_params), and their
+        derivatives ``dP/dz`` (*batch, n_params, n_columns) (zero rows for fixed ones)."""
+        names = self.model.names
+        values = []
+        D = z.new_zeros(*z.shape[:-1], len(names), self.n_columns)
+        for j, n in enumerate(names):  # assembles the (short) parameter vector
             c = self.param_columns[e][j]
             p = self.model.params[n]
             if c is None:
-                v = self.fixed[(n, e)].to(z).expand(z.shape[:-1])
-                values.append(v)
-                chain.append(None)
-            else:
-                key = (n, 0) if not p.per_experiment else (n, e)
-                v, d = p.to_physical(z[..., c], self.scales[key].to(z))
-                values.append(v)
-                chain.append((c, d))
-        return torch.stack(values, -1), chain
+                values.append(self.fixed[(n, e)].to(z).expand(z.shape[:-1]))
+                continue
+            key = (n, 0) if not p.per_experiment else (n, e)
+            v, d = p.to_physical(z[..., c], self.scales[key].to(z))
+            values.append(v)
+            D[..., j, c] = d
+        return torch.stack(values, -1), D
 
     def nodes(self, z: torch.Tensor, e: int) -> torch.Tensor:
         """(*batch, S, nx) initial states of the segments of experiment ``e``."""
@@ -249,7 +249,7 @@ class _Problem:
 
     def _experiment(self, z, e, part, derivatives):
         model, nx, ny = self.model, self.model.nx, self.ny
-        P, chain = self.physical(z, e)
+        P, dP_dz = self.physical(z, e)
         nodes = self.nodes(z, e)
         # a trial point outside the representable range (e.g. exp overflow of a bounded
         # parameter) gets an infinite residual, which the line search rejects
@@ -263,12 +263,9 @@ class _Problem:
         self.stats.append(out["stats"])
         S, L = seg.starts.shape[0], seg.length
         N = part.N
-        y_data = torch.cat(
-            [part.y, part.y[..., -1:, :].expand(*part.y.shape[:-2], S * L + L + 1, ny)], -2
-        )
         idx = seg.starts[:, None] + torch.arange(L + 1)
-        err = out["y"] - y_data[..., idx, :]  # (*batch, S, L+1, ny)
         valid = idx <= N - 1
+        err = out["y"] - part.y[..., idx.clamp(max=N - 1), :]  # (*batch, S, L+1, ny)
         if self.criterion == "one_step":
             valid &= torch.arange(L + 1)[None, :] == 1
         else:
@@ -278,40 +275,27 @@ class _Problem:
         rows = valid[..., None].expand(S, L + 1, ny).reshape(-1)
         r = err.reshape(*err.shape[:-3], -1)[..., rows]
         r = torch.where(unusable[..., None], torch.full_like(r, math.inf), r)
-        if not derivatives:
-            if self.criterion != "multiple_shooting" or S == 1:
-                return r
-            w = self.defect_weight.to(z)
+        shooting = self.criterion == "multiple_shooting" and S > 1
+        if shooting:  # continuity defects x_end,j - s_{j+1}, j = 0..S-2, scaled per state
+            w = self.defect_weight.to(z)  # (*batch, nx)
             defect = (out["x_end"][..., :-1, :] - nodes[..., 1:, :]) * w[..., None, :]
-            return torch.cat([r, defect.reshape(*defect.shape[:-2], -1)], -1)
-        Jy = torch.zeros(*err.shape, self.n_columns, dtype=z.dtype, device=z.device)
-        for j, link in enumerate(chain):
-            if link is not None:
-                c, d = link
-                Jy[..., c] += out["dy_dP"][..., j] * d[..., None, None, None]
+            r_all = torch.cat([r, defect.reshape(*defect.shape[:-2], -1)], -1)
+        if not derivatives:
+            return r_all if shooting else r
+        Jy = out["dy_dP"] @ dP_dz[..., None, None, :, :]  # (*batch, S, L+1, ny, n_columns)
         table = self.node_table(e, S).to(z.device)
         _scatter_columns(Jy, out["dy_dx0"], table, 2)
         J = Jy.reshape(*err.shape[:-3], -1, self.n_columns)[..., rows, :]
-        if self.criterion != "multiple_shooting" or S == 1:
+        if not shooting:
             return r, J
-        # continuity defects x_end,j - s_{j+1}, j = 0..S-2, weighted (state units / scale)
-        w = self.defect_weight.to(z)  # (*batch, nx) or (nx,)
-        defect = (out["x_end"][..., :-1, :] - nodes[..., 1:, :]) * w[..., None, :]
-        Jd = torch.zeros(*defect.shape, self.n_columns, dtype=z.dtype, device=z.device)
-        for j, link in enumerate(chain):
-            if link is not None:
-                c, d = link
-                Jd[..., c] += out["dxend_dP"][..., :-1, :, j] * d[..., None, None]
-        Jd = Jd * w[..., None, :, None]
+        Jd = (out["dxend_dP"][..., :-1, :, :] @ dP_dz[..., None, :, :]) * w[..., None, :, None]
         _scatter_columns(
             Jd, out["dxend_dx0"][..., :-1, :, :] * w[..., None, :, None], table[:-1], 1
         )
         minus_eye = -torch.eye(nx, dtype=z.dtype, device=z.device) * w[..., None, :, None]
         minus_eye = minus_eye.expand(*self.batch, S - 1, nx, nx)
         _scatter_columns(Jd, minus_eye, table[1:], 1)
-        r = torch.cat([r, defect.reshape(*defect.shape[:-2], -1)], -1)
-        J = torch.cat([J, Jd.reshape(*Jd.shape[:-3], -1, self.n_columns)], -2)
-        return r, J
+        return r_all, torch.cat([J, Jd.reshape(*Jd.shape[:-3], -1, self.n_columns)], -2)
 
     def node_table(self, e: int, S: int) -> torch.Tensor:
         """(S, nx) z-columns of the segments' initial states (-1 where not free)."""
@@ -408,26 +392,25 @@ def fit_greybox(
         x0 = model.x0
     if not isinstance(data, IOData):
         raise InputValidationError(f"data must be IOData, got {type(data).__name__}.")
-    if data.dtype != torch.float64 and data.dtype != torch.float32:
-        data = data.to(dtype=torch.float64)
     if not model.free_names and x0 != "estimate":
         raise InputValidationError("the model has no free parameter and x0 is not estimated.")
-    integrator, reason = _integrator(model, data, x0)
-    problem = _Problem(model, data, criterion, x0, segment_length, integrator)
+    problem = _Problem(model, data, criterion, x0, segment_length, None)
     z0 = problem.initial_z()
     P0, _ = problem.physical(z0, 0)
-    model.check_index(problem.nodes(z0, 0)[..., 0, :], data.u[..., 0, :], P0)
+    x_start = problem.nodes(z0, 0)[..., 0, :]
+    model.check_index(x_start, data.u[..., 0, :], P0)
+    integrator, reason = model.choose_integrator(data.experiment_list[0], P0, x_start)
+    problem.method = integrator
+    _check_start(problem, z0)
     gauss = GaussianLoss()
+    z_sim, history, iterations = z0, [], 0
     if criterion == "multiple_shooting":
         z, history, iterations = _multiple_shooting(problem, z0, gauss, max_iter, xtol, ftol)
         # polish by the simulation criterion from the fitted parameters and first node
         final = _Problem(model, data, "simulation", x0, None, integrator)
         z_sim = _carry_over(problem, final, z)
         problem = final
-    else:
-        _check_start(problem, z0)
-        z_sim, history, iterations = z0, [], 0
-    _check_start(problem, z_sim)
+        _check_start(problem, z_sim)
     lm = _minimise(problem, z_sim, gauss, max_iter, xtol, ftol)
     history = history + [lm.loss_history]
     iterations = iterations + lm.iterations
@@ -441,22 +424,6 @@ def fit_greybox(
     return _result(problem, lm, the_loss, method, loss, history, iterations, integrator, reason)
 
 
-def _integrator(model: GreyBoxModel, data: IOData, x0):
-    if model.method != "auto":
-        return model.method, "as requested"
-    E = data.n_experiments
-    P = torch.stack([model.params[n].start(E)[0].to(data.dtype) for n in model.names], -1).expand(
-        *data.batch_shape, len(model.names)
-    )
-    start = model.x0 if isinstance(model.x0, torch.Tensor) else None
-    if isinstance(x0, torch.Tensor):
-        start = x0
-    if start is None:
-        start = torch.zeros(model.nx, dtype=data.dtype)
-    start = torch.as_tensor(start, dtype=data.dtype).expand(*data.batch_shape, model.nx)
-    return model.resolve_method(data.experiment_list[0], P, start)
-
-
 def _multiple_shooting(problem: _Problem, z0, loss, max_iter, xtol, ftol):
     """Penalty continuation over :data:`_PENALTY_CONTINUATION` (see the module docstring)."""
     y = problem.data.y
@@ -467,7 +434,6 @@ def _multiple_shooting(problem: _Problem, z0, loss, max_iter, xtol, ftol):
     history, iterations, z = [], 0, z0
     for mu in _PENALTY_CONTINUATION:
         problem.defect_weight = math.sqrt(mu) * y_scale[..., None] / state_scale
-        _check_start(problem, z)
         lm = _minimise(problem, z, loss, max_iter, xtol, ftol)
         z = lm.theta
         history.append(lm.loss_history)
@@ -488,15 +454,12 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
     J, r, z = lm.J, lm.residual, lm.theta
     failed = lm.status == NewtonStatus.LINE_SEARCH_FAILED
     # columns of J in physical units: divide each parameter column by dp/dz
-    factor_cols = torch.ones_like(z)
-    phys = torch.empty_like(z)
-    phys.copy_(z)
+    factor_cols, phys = torch.ones_like(z), z.clone()
     for e in range(len(problem.parts)):
-        P, chain = problem.physical(z, e)
-        for j, link in enumerate(chain):
-            if link is not None:
-                c, d = link
-                factor_cols[..., c] = d
+        P, dP_dz = problem.physical(z, e)
+        for j, c in enumerate(problem.param_columns[e]):
+            if c is not None:
+                factor_cols[..., c] = dP_dz[..., j, c]
                 phys[..., c] = P[..., j]
     J_phys = J / factor_cols.unsqueeze(-2)
     keep = problem.reported

@@ -38,11 +38,11 @@ from torch.func import functional_call
 
 from integrators import SemiExplicitDAE, sensitivities
 from integrators.auto import choose_method
-from integrators.collocation import gauss_legendre, radau_iia
 from integrators.errors import HighIndexError, InputValidationError
 from integrators.inputs import CollocationInput
+from integrators.methods import resolve_method
 from integrators.newton import batch_jacobian, newton
-from integrators.tableau import ButcherTableau, tableau
+from integrators.tableau import ButcherTableau
 
 from ..data import IOData
 from .intersample import input_between_samples, stage_fractions
@@ -158,7 +158,7 @@ class GreyBoxModel:
         self.substeps = int(substeps)
         self.method, self.stages = method, stages
         if method != "auto":
-            self._tableau(method)  # validate the name now
+            self._tableau(method)  # validate the name and stages now
 
     # ----------------------------------------------------------------------- description
     def __repr__(self) -> str:
@@ -212,38 +212,26 @@ class GreyBoxModel:
 
     # ----------------------------------------------------------------------- numerics
     def _tableau(self, method) -> ButcherTableau:
-        if isinstance(method, ButcherTableau):
-            tab = method
-        elif method in ("gauss_legendre", "radau_iia"):
-            s = self.stages if self.stages is not None else (2 if method == "gauss_legendre" else 3)
-            tab = (gauss_legendre if method == "gauss_legendre" else radau_iia)(s)
-        elif method in ("dopri5", "auto"):
-            raise InputValidationError(
-                f"method {method!r} is adaptive; a grey-box fit needs a fixed-step method "
-                "(its sensitivities are exact for the discrete simulation): use 'rk4', "
-                "'radau_iia', 'gauss_legendre' or a tableau, with substeps= for accuracy."
-            )
-        else:
-            tab = tableau(method)
-        if self.kind in ("dae_module", "dae_problem") and tab.is_explicit:
-            pass  # the eliminated algebraic state makes the DAE an ODE: any method applies
-        return tab
+        """The tableau of ``method`` (``stages`` for the collocation families), run at fixed
+        steps: the Jacobian of a fit is exact for the discrete simulation."""
+        return resolve_method(method).tableau(self.stages)
 
-    def resolve_method(self, data: IOData, values: torch.Tensor, x0: torch.Tensor) -> tuple:
-        """The method to use on ``data`` (resolving ``"auto"``): ``(name_or_tableau, reason)``."""
+    def choose_integrator(self, data: IOData, P: torch.Tensor, x0: torch.Tensor) -> tuple:
+        """The method to use on ``data`` (resolving ``"auto"`` at the parameters ``P``
+        (*batch, n_params) and initial states ``x0`` (*batch, nx)): ``(method, reason)``."""
         if self.method != "auto":
             return self.method, "as requested"
+        rhs = self.rhs()
         u0 = data.u[..., 0, :]
-        rhs = self.rhs(values.unsqueeze(-2) if values.dim() > 1 else values)
         h = data.Ts / self.substeps
         t = torch.tensor([0.0, h], dtype=data.dtype, device=data.device)
-        name, info = choose_method(lambda t, x: rhs(t, x, u0.expand(*x.shape[:-1], -1)), x0, t)
+        name, info = choose_method(lambda t, x: rhs(t, x, u0, P), x0, t)
         return ("radau_iia" if name == "radau_iia" else "rk4"), info["reason"]
 
-    def rhs(self, values: torch.Tensor) -> Callable:
+    def rhs(self) -> Callable:
         """``f(t, x, u, P)`` evaluated with the parameter values in ``P`` (*batch, n_params) in
-        the order of :attr:`names` (``values`` is unused; kept for the dtype); raises
-        :class:`InputValidationError` when ``f`` returns another shape than ``x``'s."""
+        the order of :attr:`names`; raises :class:`InputValidationError` when ``f`` returns
+        another shape than ``x``'s."""
         call = self._rhs()
 
         def checked(t, x, u, P):
@@ -348,7 +336,8 @@ class GreyBoxModel:
             )
 
     def output_map(self, ny: int) -> Callable:
-        """``h(x, u, P) -> (*batch, ny)``."""
+        """``h(x, u, P) -> (*batch, ny)``; an output function returning another shape raises
+        :class:`InputValidationError`."""
         idx = self.output_indices(ny)
         if idx is not None:
             index = torch.tensor(idx)
@@ -360,7 +349,15 @@ class GreyBoxModel:
         names, h = self.names, self.output
 
         def call(x, u, P):
-            return h(x, u, {n: P[..., j] for j, n in enumerate(names)})
+            y = h(x, u, {n: P[..., j] for j, n in enumerate(names)})
+            if not isinstance(y, torch.Tensor) or y.shape != (*x.shape[:-1], ny):
+                got = tuple(y.shape) if isinstance(y, torch.Tensor) else type(y).__name__
+                raise InputValidationError(
+                    f"the output function returns shape {got} for states of shape "
+                    f"{tuple(x.shape)}; the data have ny = {ny} outputs, so h(x, u, p) must "
+                    f"return (*batch, {ny})."
+                )
+            return y
 
         return call
 
@@ -407,7 +404,7 @@ class GreyBoxModel:
         coeff = between[..., idx[:, :-1], :, :]  # (*batch, S, L, q, nu)
         t_loc = Ts * torch.arange(L + 1, dtype=u.dtype, device=u.device)
         nodes_q = torch.as_tensor(tau, dtype=u.dtype, device=u.device)
-        rhs = self.rhs(P)
+        rhs = self.rhs()
         sens = sensitivities(
             rhs,
             nodes,
@@ -437,11 +434,6 @@ class GreyBoxModel:
             z = torch.cat([x, Pb], -1)
             nx = self.nx
             y, H = batch_jacobian(lambda z: h(z[..., :nx], u_seg, z[..., nx:]), z)
-            if y.shape[-1] != ny:
-                raise InputValidationError(
-                    f"the output function returns {y.shape[-1]} outputs per sample but the data "
-                    f"have ny = {ny}; h(x, u, p) must return (*batch, ny)."
-                )
             dy_dx = H[..., :nx] @ A
             dy_dP = H[..., :nx] @ B + H[..., nx:]
         return {
@@ -455,30 +447,25 @@ class GreyBoxModel:
             "stats": sens.stats,
         }
 
-    def simulate(self, data: IOData | torch.Tensor, params: dict | None = None, x0=None, Ts=None):
+    def simulate(self, data: IOData, params: dict | None = None, x0=None):
         """Free-run output of the model on the input of ``data``.
 
         Args:
-            data: :class:`IOData` (its ``u``, ``Ts`` and ``intersample``) or an input tensor
-                (*batch, N, nu) with ``Ts`` given (then held between samples, ``"zoh"``).
-            params: name -> value (float or (*batch,) tensor) overriding the model's values.
-            x0: initial state (nx,) / (*batch, nx); default the model's (zeros when
-                ``"estimate"`` without a value).
-            Ts: sample time when ``data`` is a tensor.
+            data: :class:`IOData` (its ``u``, ``Ts``, ``intersample``, experiments and
+                number of outputs ``ny``; ``y`` is not used).
+            params: name -> value overriding the model's values: a float or a (*batch,)
+                tensor; for a per-experiment parameter the experiment is the last dimension.
+            x0: initial state (nx,) / (*batch, nx), or a list with one per experiment;
+                default the model's (zeros when ``"zero"`` or ``"estimate"``).
 
         Returns:
-            (*batch, N, ny) simulated outputs (``ny``: the output map's width; the first
-            state when ``output`` is None and ``data`` is a tensor).
+            (*batch, N, ny) simulated outputs (experiments concatenated along time, like
+            ``data.y``).
         """
-        if isinstance(data, IOData):
-            u, Ts, inter, ny = data.u, data.Ts, data.intersample, data.ny
-        else:
-            u = torch.as_tensor(data, dtype=torch.float64)
-            if Ts is None:
-                raise InputValidationError("simulate: pass Ts= with an input tensor.")
-            inter, ny = "zoh", None
-        if ny is None:
-            ny = len(self.output) if isinstance(self.output, list) else 1
+        if not isinstance(data, IOData):
+            raise InputValidationError(
+                f"simulate needs IOData (its input, Ts and intersample), got {type(data).__name__}."
+            )
         values = {n: self.params[n].values for n in self.names}
         if params is not None:
             unknown = set(params) - set(self.names)
@@ -486,37 +473,39 @@ class GreyBoxModel:
                 raise InputValidationError(
                     f"simulate: unknown parameter(s) {sorted(unknown)}; the model has {self.names}."
                 )
-            values.update({n: torch.as_tensor(v, dtype=u.dtype) for n, v in params.items()})
-        batch = u.shape[:-2]
-        P = torch.stack(
-            [
-                torch.as_tensor(values[n], dtype=u.dtype).reshape(-1)[0:1].squeeze(0)
-                if torch.as_tensor(values[n]).numel() == 1
-                else torch.as_tensor(values[n], dtype=u.dtype)
-                for n in self.names
-            ],
-            -1,
-        )
-        P = P.expand(*torch.broadcast_shapes(batch, P.shape[:-1]), len(self.names))
+            values.update(params)
         start = x0 if x0 is not None else self.x0
-        if start is None or isinstance(start, str):
-            start = u.new_zeros(self.nx)
-        start = torch.as_tensor(start, dtype=u.dtype, device=u.device)
-        full = torch.broadcast_shapes(P.shape[:-1], start.shape[:-1])
-        nodes = start.expand(*full, self.nx).unsqueeze(-2)
-        P = P.expand(*full, P.shape[-1])
-        u = u.expand(*full, *u.shape[-2:])
-        seg = Segments(torch.zeros(1, dtype=torch.int64), u.shape[-2] - 1)
-        method = self.method
-        if method == "auto":
-            method, _ = self.resolve_method(
-                IOData._trusted(u, u[..., :1].expand(*u.shape[:-1], 1), Ts, inter),
-                P,
-                nodes[..., 0, :],
+        parts = []
+        for e, part in enumerate(data.experiment_list):
+            P = torch.stack(
+                torch.broadcast_tensors(
+                    *(self._value(n, values[n], e, part.dtype) for n in self.names)
+                ),
+                -1,
             )
-        with torch.no_grad():
-            out = self.simulate_segments(P, nodes, u, Ts, inter, seg, ny, method)
-        return out["y"][..., 0, :, :]
+            x_e = start[e] if isinstance(start, (list, tuple)) else start
+            if x_e is None or isinstance(x_e, str):
+                x_e = torch.zeros(self.nx)
+            x_e = torch.as_tensor(x_e, dtype=part.dtype, device=part.device)
+            full = torch.broadcast_shapes(part.batch_shape, P.shape[:-1], x_e.shape[:-1])
+            P = P.to(part.device).expand(*full, len(self.names))
+            nodes = x_e.expand(*full, self.nx).unsqueeze(-2)
+            u = part.u.expand(*full, *part.u.shape[-2:])
+            method, _ = self.choose_integrator(part, P, nodes[..., 0, :])
+            seg = Segments(torch.zeros(1, dtype=torch.int64), part.N - 1)
+            with torch.no_grad():
+                out = self.simulate_segments(
+                    P, nodes, u, part.Ts, part.intersample, seg, data.ny, method, False
+                )
+            parts.append(out["y"][..., 0, :, :])
+        return torch.cat(parts, -2)
+
+    def _value(self, name: str, value, experiment: int, dtype) -> torch.Tensor:
+        """The value of parameter ``name`` in ``experiment``: () or (*batch,)."""
+        v = torch.as_tensor(value, dtype=dtype)
+        if self.params[name].per_experiment and v.numel() > 1:
+            return v[..., experiment]
+        return v.reshape(()) if v.numel() == 1 else v
 
     def with_values(self, values: dict, x0=None) -> GreyBoxModel:
         """A copy whose parameters take ``values`` (name -> float or (*batch,) tensor) and, if
