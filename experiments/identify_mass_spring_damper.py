@@ -13,9 +13,10 @@ is the seconds-long variant the tests use.
 4. Black-box identification of all data sets in one call each: ARX(2, 2, 1) by least squares
    (biased under output noise, notes §4.6) and OE(2, 2, 1) by Gauss-Newton (consistent),
    with bias, standard deviation and the coverage of the reported standard errors.
-5. Grey-box identification: the physical parameters (m, xi, K) estimated directly by
-   Gauss-Newton on the simulation error of the ODE, with Jacobians by autograd through the
-   integrator (notes §3.5.1), batched over data sets.
+5. Grey-box identification: the physical parameters (m, xi, K) of the zoo plant estimated
+   directly by ``fit`` of a ``GreyBoxModel``: Gauss-Newton on the simulation error of the ODE
+   with Jacobians from the forward sensitivities of the RK4 recursion (notes eq. 8.17-8.18),
+   batched over data sets.
 6. Validation: fit on fresh data, residual whiteness test, Bode plots of true vs identified.
 """
 
@@ -61,12 +62,19 @@ parse_early(__name__, build_parser)
 import control
 import numpy as np
 import torch
-from torch.func import functional_call
 
 from experiments._common import plt
-from integrators import odeint, sensitivities
-from integrators.newton import minimize
-from sysid import ARX, OE, IOData, fit, fit_percent, residual_test, zoh_discretize
+from sysid import (
+    ARX,
+    OE,
+    GreyBoxModel,
+    IOData,
+    Param,
+    fit,
+    fit_percent,
+    residual_test,
+    zoh_discretize,
+)
 from sysid.montecarlo import input_signal
 from sysid.zoo import SpringMassDamper
 
@@ -76,25 +84,16 @@ TRUE_PHYSICAL = {"m": 1.0, "xi": 0.5, "K": 4.0}
 PHYSICAL_NAMES = ("m", "xi", "K")
 
 
-def plant_rhs():
-    """f(t, x, u, p) of the zoo plant with its physical parameters p = (m, xi, K) (*batch, 3)."""
-    plant = SpringMassDamper(**TRUE_PHYSICAL)
-
-    def f(t, x, u, p):
-        params = {k: p[..., j : j + 1] for j, k in enumerate(PHYSICAL_NAMES)}
-        return functional_call(plant, params, (t, x, u))
-
-    return f
+def plant_model(params: dict, substeps: int) -> GreyBoxModel:
+    """The zoo plant as a grey-box model measured by its position, from rest."""
+    return GreyBoxModel(SpringMassDamper(), params, output=["y"], substeps=substeps)
 
 
 def simulate_plant(p: torch.Tensor, u: torch.Tensor, Ts: float, substeps: int) -> torch.Tensor:
     """Positions y_k (*batch, N, 1) at t_k = k Ts from rest, for ZOH inputs u (*batch, N, 1)
     and physical parameters p = (m, xi, K) of shape (3,) or (*batch, 3)."""
-    f = plant_rhs()
-    t = Ts * torch.arange(u.shape[-2], dtype=u.dtype)
-    x0 = u.new_zeros(*u.shape[:-2], 2)
-    sol = odeint(lambda t, x, u: f(t, x, u, p), x0, t, u=u, method="rk4", substeps=substeps)
-    return sol.x[..., :1]
+    values = {k: p[..., j] for j, k in enumerate(PHYSICAL_NAMES)}
+    return plant_model(dict(TRUE_PHYSICAL), substeps).simulate(IOData(u, u, Ts=Ts), values)
 
 
 def true_oe_parameters(Ts: float) -> dict[str, float]:
@@ -130,28 +129,12 @@ def _summarise(label, theta, se, names, truth) -> list[dict]:
     return rows
 
 
-def grey_box_fit(u: torch.Tensor, y: torch.Tensor, Ts: float, substeps: int):
-    """Gauss-Newton on the simulation error over p = (m, xi, K), all data sets in one batch.
-
-    The Jacobian d y_k / d p comes from the forward sensitivities of the RK4 recursion
-    (notes eq. 8.17-8.18), p directions instead of N reverse passes.
-    """
-    f = plant_rhs()
-    t = Ts * torch.arange(u.shape[-2], dtype=u.dtype)
-    x0 = u.new_zeros(*u.shape[:-2], 2)
-
-    def residual_and_jacobian(p):
-        sens = sensitivities(f, x0, t, p, u=u, method="rk4", substeps=substeps)
-        return sens.x[..., 0] - y[..., 0], sens.B[..., 0, :]
-
-    def residual(p):
-        return simulate_plant(p, u, Ts, substeps)[..., 0] - y[..., 0]
-
-    p0 = u.new_tensor([1.5, 1.0, 3.0]).expand(*u.shape[:-2], 3).clone()
-    res = minimize(residual, p0, method="gauss_newton", jacobian=residual_and_jacobian, max_iter=50)
-    sigma2 = 2 * res.loss / (y.shape[-2] - 3)
-    cov = sigma2[..., None, None] * torch.linalg.inv(res.hessian)
-    return res, cov
+def grey_box_fit(data: IOData, substeps: int):
+    """``fit`` of the grey-box model over (m, xi, K), all data sets in one batch, from a start
+    50 % off, with the positive parameters estimated through their logarithms."""
+    start = {"m": 1.5, "xi": 1.0, "K": 3.0}
+    model = plant_model({k: Param(v, min=0.0) for k, v in start.items()}, substeps)
+    return fit(model, data)
 
 
 def main(argv=None):
@@ -179,8 +162,8 @@ def main(argv=None):
 
     n_grey = min(N, 100 if args.quick else 400)
     note(f"grey-box Gauss-Newton on {grey_trials} data sets of {n_grey} samples")
-    grey, grey_cov = grey_box_fit(u[:grey_trials, :n_grey], y[:grey_trials, :n_grey], Ts, substeps)
-    grey_se = torch.diagonal(grey_cov, dim1=-2, dim2=-1).sqrt()
+    grey = grey_box_fit(IOData(u[:grey_trials, :n_grey], y[:grey_trials, :n_grey], Ts=Ts), substeps)
+    grey_se = grey.standard_errors
     rows += _summarise(
         "grey-box (m, xi, K)", grey.theta, grey_se, list(PHYSICAL_NAMES), TRUE_PHYSICAL
     )

@@ -744,7 +744,9 @@ def minimize(
             "levenberg_marquardt": when ``||t dtheta||_2 <= xtol (xtol + ||theta||_2)``
             (``xtol`` at least ``10 eps``).
         ftol: "levenberg_marquardt": also converged when an accepted step decreases the loss
-            by at most ``ftol f`` (``ftol`` at least ``10 eps``).
+            by at most ``ftol f`` (``ftol`` at least ``10 eps``), or when no step decreases it
+            while the predicted decrease ``-g'd`` is below ``10 sqrt(m) eps f``, the rounding
+            error of a sum of ``m`` residual terms.
         max_iter: iteration budget.
         raise_on_failure: raise :class:`ConvergenceError` naming the failed problems.
         jacobian: residual methods: ``jacobian(theta, *args) -> (r, J)`` with ``J`` of shape
@@ -804,6 +806,7 @@ def minimize(
         trials = trials if line_search else 1
     n_evals = 1
     loss_value, grad, H, J, r = _loss_derivatives(fun, theta, frozen, method, jacobian, loss)
+    rounding_terms = math.sqrt(r.shape[-1]) if adaptive else 1.0
     with torch.no_grad():
         status = torch.full(batch, NewtonStatus.MAX_ITER, dtype=torch.int8, device=dev)
         iterations = torch.zeros(batch, dtype=torch.int64, device=dev)
@@ -853,6 +856,12 @@ def minimize(
                 t = torch.where(pending, t / 2, t)
             no_decrease = active & ~accepted
             if adaptive:
+                # no decrease found where the predicted one is below the rounding error of a
+                # sum of m residual terms (about sqrt(m) eps |loss|): the minimum is reached
+                flat = no_decrease & (-slope <= 10 * eps * rounding_terms * loss_value.abs())
+                status[flat] = NewtonStatus.CONVERGED
+                active &= ~flat
+                no_decrease &= ~flat
                 full = accepted & (t == 1)
                 lam = torch.where(full, (lam / 10).clamp_min(1e-12), lam)
                 lam = torch.where(accepted & ~full, lam * 2, lam)

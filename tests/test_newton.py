@@ -479,3 +479,30 @@ def test_levenberg_marquardt_options_are_checked():
         minimize(_exp_residual, th0, t, y, method="levenberg_marquardt", damping=0.0)
     with pytest.raises(InputValidationError, match="levenberg_marquardt"):
         minimize(_exp_residual, th0, t, y, method="lm")
+
+
+def test_levenberg_marquardt_stops_where_only_rounding_noise_is_left():
+    """A residual whose evaluation carries 1e-9 of non-smooth noise (like a long simulation's
+    rounding): at the least-squares solution no step decreases the loss while the predicted
+    decrease is below the loss' rounding level, which is convergence, found in two
+    iterations and a few evaluations instead of growing the damping step by step."""
+    g = torch.Generator().manual_seed(0)
+    B, m, n = 8, 100, 3
+    A = torch.randn(m, n, generator=g, dtype=torch.float64)
+    b = torch.randn(B, m, generator=g, dtype=torch.float64)
+    w = torch.randn(n, generator=g, dtype=torch.float64)
+
+    def residual(th):
+        return th @ A.T - b + 1e-9 * torch.sin(1e9 * (th @ w))[..., None]
+
+    res = minimize(
+        residual,
+        torch.zeros(B, n, dtype=torch.float64),
+        method="levenberg_marquardt",
+        jacobian=lambda th: (residual(th), A.expand(*th.shape[:-1], m, n)),
+    )
+    exact = torch.linalg.lstsq(A, b.T).solution.T
+    assert bool(res.converged.all())
+    assert torch.allclose(res.theta, exact, atol=1e-6)
+    assert int(res.iterations.max()) <= 3
+    assert res.n_fun_evals <= 40
