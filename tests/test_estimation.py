@@ -571,3 +571,21 @@ def test_fit_never_modifies_the_input_model(model_batch, data_batch):
     torch.testing.assert_close(res.model.parameter_vector(), res.theta, rtol=0, atol=0)
     torch.testing.assert_close(res.info["initial_theta"], start.expand(*data_batch, 4))
     assert (res.theta - torch.tensor(th, dtype=DT)).abs().max() < 0.1
+
+
+def test_covariance_of_a_degenerate_member_is_inf_not_a_crash():
+    """A batch member whose Jacobian holds inf/NaN (an estimate that ran off to a degenerate
+    model) gets an inf covariance and a PoorExcitationWarning; the others keep their exact
+    (J'J)^-1."""
+    from sysid.errors import PoorExcitationWarning
+    from sysid.estimation.results import inverse_normal_matrix
+
+    g = torch.Generator().manual_seed(0)
+    J = torch.randn(3, 50, 2, generator=g, dtype=torch.float64)
+    J[1, 4, 0] = float("inf")
+    J[2, 7, 1] = float("nan")
+    with pytest.warns(PoorExcitationWarning, match="batch index \\(1,\\)"):
+        P = inverse_normal_matrix(J)
+    assert bool(torch.isinf(P[1:]).all())
+    exact = torch.linalg.inv(J[0].T @ J[0])
+    assert torch.allclose(P[0], exact, rtol=1e-12)

@@ -32,14 +32,17 @@ def bounded(**start):
     return {n: Param(v, min=0.0) for n, v in start.items()}
 
 
-def simulated_data(trials, N, noise, seed, Ts=0.1, params=TRUE, noise_kind="gauss"):
+def simulated_data(trials, N, noise, seed, Ts=0.1, params=TRUE, noise_kind="gauss", substeps=2):
+    """``trials`` records of the oscillator's position under a binary input held 3 samples,
+    simulated by RK4 with ``substeps`` steps per sample, plus white noise (Gaussian, or
+    Student-t with 2 degrees of freedom) of scale ``noise``."""
     g = torch.Generator().manual_seed(seed)
     u = input_signal("prbs", N, (trials,), hold=3, generator=g)
-    truth = GreyBoxModel(oscillator, dict(params), nx=2, output=[0], substeps=2)
+    truth = GreyBoxModel(oscillator, dict(params), nx=2, output=[0], substeps=substeps)
     y = truth.simulate(IOData(u, u, Ts=Ts))
     if noise_kind == "gauss":
         e = torch.randn(y.shape, generator=g, dtype=y.dtype)
-    else:  # Student-t with 2 degrees of freedom
+    else:
         rng = np.random.default_rng(seed)
         e = torch.as_tensor(rng.standard_t(2, size=tuple(y.shape)))
     return IOData(u, y + noise * e, Ts=Ts)
@@ -101,14 +104,13 @@ def test_gauss_newton_jacobian_equals_central_differences(kind, criterion, x0):
 
 
 # ------------------------------------------------------------------------ statistics
-def test_spring_mass_damper_estimates_match_their_reported_covariance():
-    """300 batched data sets: the spread of the estimates equals the mean reported
-    sigma^2 (J'J)^-1 (relative Frobenius < 0.2 at this number of trials), no bias beyond
-    0.2 SE, 95 % intervals cover about 95 %."""
-    data = simulated_data(300, 150, 0.02, seed=0)
-    model = GreyBoxModel(
-        SpringMassDamper(), bounded(**{"m": 1.5, "xi": 1.0, "K": 3.0}), output=[0], substeps=2
-    )
+def test_estimates_match_their_reported_covariance_over_500_data_sets():
+    """500 batched data sets of a spring-mass-damper (notes eq. 1.26-1.28) under white
+    output noise: the empirical covariance of the estimates equals the mean reported
+    sigma^2 (J'J)^-1 within 10 % (relative Frobenius; about 6 % is the sampling error of 500
+    trials), |bias| < 0.1 SE, 95 % intervals cover 93-97 %."""
+    data = simulated_data(500, 100, 0.02, seed=100)
+    model = GreyBoxModel(oscillator, bounded(m=1.5, xi=1.0, K=3.0), nx=2, output=[0], substeps=2)
     res = fit(model, data)
     assert bool(res.converged.all())
     assert res.parameter_names == ["m", "xi", "K"]
@@ -116,14 +118,14 @@ def test_spring_mass_damper_estimates_match_their_reported_covariance():
     est, se = res.theta, res.standard_errors
     empirical = torch.cov(est.T)
     reported = res.covariance.mean(0)
-    assert float(torch.linalg.norm(empirical - reported) / torch.linalg.norm(reported)) < 0.25
-    assert bool(((est.mean(0) - truth).abs() < 0.25 * se.mean(0)).all())
+    assert float(torch.linalg.norm(empirical - reported) / torch.linalg.norm(reported)) < 0.1
+    assert bool(((est.mean(0) - truth).abs() < 0.1 * se.mean(0)).all())
     coverage = ((est - truth).abs() <= 1.959964 * se).double().mean()
-    assert 0.91 <= float(coverage) <= 0.99
+    assert 0.93 <= float(coverage) <= 0.97
     # physical units in the result: params by name, the fitted model carries them
     assert torch.equal(res.params["K"], est[:, 2])
     y_fit = res.model.simulate(data)
-    assert float((y_fit - data.y).pow(2).mean().sqrt()) < 0.025
+    assert float((y_fit - data.y).pow(2).mean().sqrt()) < 0.021
 
 
 def test_zoo_plant_parameters_by_name():
@@ -136,17 +138,19 @@ def test_zoo_plant_parameters_by_name():
 
 
 def test_standard_errors_shrink_as_one_over_root_n():
-    """std of the estimates against N (200 -> 800 samples): log-log slope -0.5 (within the
-    sampling error of 80 trials)."""
-    stds = []
-    for N in (200, 800):
-        res = fit(
-            GreyBoxModel(oscillator, bounded(m=1.2, xi=0.6, K=3.5), nx=2, output=[0], substeps=2),
-            simulated_data(150, N, 0.05, seed=N),
-        )
-        stds.append(res.theta.std(0))
-    slope = torch.log(stds[1] / stds[0]) / math.log(4.0)
-    assert bool(((slope + 0.5).abs() < 0.2).all()), slope
+    """Consistency: the first 200 and all 800 samples of the same 200 records (a well damped
+    plant, time constant 5 samples, so the start-up transient is a small part of either):
+    the mean reported SE falls with slope -0.5 +- 0.05 in N, and so does the empirical std
+    of the estimates (+- 0.15, its sampling error at 200 trials is about 0.05)."""
+    params = {"m": 1.0, "xi": 2.0, "K": 4.0}
+    data = simulated_data(200, 800, 0.05, seed=4, Ts=0.2, params=params, substeps=1)
+    model = GreyBoxModel(oscillator, bounded(m=1.2, xi=1.5, K=3.5), nx=2, output=[0])
+    short = fit(model, IOData(data.u[:, :200], data.y[:, :200], Ts=data.Ts))
+    full = fit(model, data)
+    se_slope = torch.log(full.standard_errors.mean(0) / short.standard_errors.mean(0))
+    std_slope = torch.log(full.theta.std(0) / short.theta.std(0))
+    assert bool(((se_slope / math.log(4.0) + 0.5).abs() < 0.05).all()), se_slope
+    assert bool(((std_slope / math.log(4.0) + 0.5).abs() < 0.15).all()), std_slope
 
 
 def test_fair_loss_beats_least_squares_under_student_t_noise():
@@ -165,21 +169,20 @@ def test_fair_loss_beats_least_squares_under_student_t_noise():
 
 # ------------------------------------------------------------------------ DAE
 def test_dae_parameters_recovered_through_the_algebraic_equations():
-    """x' = -b x + z, 0 = x - a z - 0.1 z^3 + u (index 1): a and b within 3 SE."""
+    """x' = -b x + z, 0 = x - a z - 0.1 z^3 + u (index 1; z eliminated by Newton at every
+    stage): a, b and the initial state within 3 SE (RK4 here; Radau IIA's Jacobian is checked
+    against finite differences above)."""
     g = torch.Generator().manual_seed(2)
-    u = input_signal("prbs", 200, (4,), hold=4, generator=g)
-    truth = GreyBoxModel(
-        DAE, {"a": 1.5, "b": 0.7}, nx=1, nz=1, output=[0], x0=[0.2], method="radau_iia"
-    )
+    u = input_signal("prbs", 100, (2,), hold=4, generator=g)
+    truth = GreyBoxModel(DAE, {"a": 1.5, "b": 0.7}, nx=1, nz=1, output=[0], x0=[0.2])
     y = truth.simulate(IOData(u, u, Ts=0.1))
     data = IOData(u, y + 0.01 * torch.randn(y.shape, generator=g, dtype=y.dtype), Ts=0.1)
-    model = GreyBoxModel(
-        DAE, {"a": Param(1.0, min=0), "b": Param(1.0)}, nx=1, nz=1, output=[0], method="radau_iia"
-    )
+    model = GreyBoxModel(DAE, {"a": Param(1.0, min=0), "b": Param(1.0)}, nx=1, nz=1, output=[0])
     res = fit(model, data, x0="estimate")
     assert res.parameter_names == ["a", "b", "x0.0"]
     truth_v = torch.tensor([1.5, 0.7, 0.2], dtype=torch.float64)
     assert bool(((res.theta - truth_v).abs() <= 3 * res.standard_errors).all())
+    assert bool((res.standard_errors < 0.1 * truth_v.abs().clamp(min=0.2)).all())
 
 
 def test_high_index_dae_is_refused():
@@ -203,7 +206,7 @@ def test_multiple_shooting_reaches_the_truth_where_single_shooting_fails():
     unmeasured node states, penalty continuation, then the simulation-error polish) lands
     on the truth in every one."""
     params = {"m": 1.0, "xi": 0.1, "K": 4.0}
-    data = simulated_data(4, 400, 0.01, seed=9, params=params)
+    data = simulated_data(4, 200, 0.01, seed=9, params=params)
     model = GreyBoxModel(oscillator, bounded(m=1.0, xi=0.3, K=16.0), nx=2, output=[0], substeps=2)
     truth = torch.tensor([1.0, 0.1, 4.0], dtype=torch.float64)
 
@@ -213,7 +216,7 @@ def test_multiple_shooting_reaches_the_truth_where_single_shooting_fails():
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the failing data sets stop short: that is the point
-        single = fit(model, data, max_iter=20)
+        single = fit(model, data, max_iter=10)
     ms = fit(model, data, criterion="multiple_shooting", segment_length=10)
     assert ms.info["criterion"] == "simulation"  # polished by the simulation error
     assert bool(on_truth(ms).all())

@@ -170,7 +170,9 @@ class _Problem:
                 else None
             )
         self.n_columns = col
-        self.defect_weight = None
+        #: (*batch, nx) weights of the continuity defects (multiple shooting), set per
+        #: penalty stage by :func:`_multiple_shooting`
+        self.defect_weight = torch.ones(model.nx, dtype=self.dtype, device=self.device)
 
     # ----------------------------------------------------------------------- start values
     def _known_x0(self, x0, e) -> torch.Tensor:

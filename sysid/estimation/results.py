@@ -148,11 +148,16 @@ def inverse_normal_matrix(J: torch.Tensor) -> torch.Tensor:
     H = J.transpose(-1, -2) @ J
     d = torch.diagonal(H, dim1=-2, dim2=-1).clamp_min(torch.finfo(J.dtype).tiny).rsqrt()
     Hs = H * d.unsqueeze(-1) * d.unsqueeze(-2)
-    L, info = torch.linalg.cholesky_ex(Hs)
     eye = torch.eye(H.shape[-1], dtype=J.dtype, device=J.device).expand_as(H)
+    # a Jacobian with inf/NaN entries (an estimate that ran off to a degenerate model) is
+    # singular; the identity stands in for it so the batched factorisations still run
+    finite = torch.isfinite(Hs).flatten(-2).all(-1)
+    Hs = torch.where(finite[..., None, None], Hs, eye)
+    L, info = torch.linalg.cholesky_ex(Hs)
     P = torch.cholesky_solve(eye, L) * d.unsqueeze(-1) * d.unsqueeze(-2)
-    ev = torch.linalg.eigvalsh(Hs)
-    singular = (info != 0) | (ev[..., 0] <= ev[..., -1] * torch.finfo(J.dtype).eps * J.shape[-2])
+    ev = torch.linalg.eigvalsh(torch.where((info == 0)[..., None, None], Hs, eye))
+    rank_deficient = ev[..., 0] <= ev[..., -1] * torch.finfo(J.dtype).eps * J.shape[-2]
+    singular = ~finite | (info != 0) | rank_deficient
     if bool(singular.any()):
         idx = tuple(int(i) for i in torch.nonzero(singular)[0]) if singular.dim() else ()
         warnings.warn(
