@@ -72,6 +72,10 @@ JACOBIAN_MODELS = {
     "dae": lambda: GreyBoxModel(
         DAE, {"a": Param(2.0, min=0), "b": 1.0}, nx=1, nz=1, output=[0], method="radau_iia"
     ),
+    # a LagrangianSystem: autograd inside f, parameters substituted by name
+    "lagrangian": lambda: GreyBoxModel(
+        SpringMassDamper(), bounded(m=1.2, xi=0.4, K=3.0), output=["y"], substeps=2
+    ),
 }
 
 

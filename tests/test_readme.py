@@ -117,3 +117,14 @@ def test_monte_carlo_study_example(quick_start):
     assert (table["bias"].abs() < 4 * table["bias_se"]).all()
     assert (table["coverage"] - 0.95).abs().max() < 0.05
     assert (slopes["std_slope"] + 0.5).abs().max() < 0.15
+
+
+def test_identify_your_own_plant_recovers_the_pendulum(quick_start):
+    """The grey-box example: every record's g/L and damping within 4 standard errors of the
+    values that simulated it, each fit converged."""
+    namespace, _ = quick_start
+    estimate = namespace["estimate"]
+    truth = torch.tensor([9.81, 0.3], dtype=torch.float64)
+    assert estimate.parameter_names == ["g_over_L", "d"]
+    assert bool(estimate.converged.all())
+    assert bool(((estimate.theta - truth).abs() <= 4 * estimate.standard_errors).all())
