@@ -1,6 +1,7 @@
 """Shared fixtures. Global torch state (default dtype) is restored after every test, and
 dynamo's compile caches are reset before every test module."""
 
+import contextlib
 import functools
 import math
 import os
@@ -114,10 +115,11 @@ def same_values_and_gradients():
     return _same_values_and_gradients
 
 
-@pytest.fixture
-def saved_figures(monkeypatch):
-    """Every matplotlib figure saved during the test, by file name (e.g. ``"regions.png"``),
-    for checks on its axes, lines and legends (``experiments._common.figure_defects``)."""
+@contextlib.contextmanager
+def recorded_figures():
+    """Within the block, every matplotlib figure saved is recorded in the yielded dict, by
+    file name (e.g. ``"regions.png"``), for checks on its axes, lines and legends
+    (``experiments._common.figure_defects``); usable by module-scoped fixtures."""
     from matplotlib.figure import Figure
 
     figures = {}
@@ -127,8 +129,16 @@ def saved_figures(monkeypatch):
         figures[os.path.basename(str(fname))] = self
         return savefig(self, fname, *args, **kwargs)
 
-    monkeypatch.setattr(Figure, "savefig", recording)
-    return figures
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Figure, "savefig", recording)
+        yield figures
+
+
+@pytest.fixture
+def saved_figures():
+    """Every matplotlib figure saved during the test (see :func:`recorded_figures`)."""
+    with recorded_figures() as figures:
+        yield figures
 
 
 def _reference_slope_mismatches(ax) -> list[str]:

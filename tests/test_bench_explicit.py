@@ -8,8 +8,13 @@ import math
 
 import pytest
 import torch
+from conftest import recorded_figures
 
+from experiments._common import figure_defects
 from experiments.bench_explicit import ADAPTIVE_SOLVERS, main, match_error
+
+#: the figures the module's quick run saved, by file name
+FIGURES: dict = {}
 
 
 def _power_law_runs(rtols):
@@ -63,7 +68,9 @@ def quick(tmp_path_factory):
     """One --quick run shared by the tests below: (result, output folder, torch state kept)."""
     out = tmp_path_factory.mktemp("bench_explicit")
     before = (torch.get_num_threads(), torch.get_default_dtype())
-    result = main(["--quick", "--out", str(out)])
+    with recorded_figures() as figures:
+        result = main(["--quick", "--out", str(out)])
+    FIGURES.update(figures)
     return result, out, before == (torch.get_num_threads(), torch.get_default_dtype())
 
 
@@ -163,3 +170,11 @@ def test_bench_explicit_quick_matched_error(quick):
         assert len(list(csv.DictReader(handle))) == len(sweep)
     assert (tmp_path / "adaptive_dopri5_work_precision.png").stat().st_size > 10_000
     assert "matched error" in (tmp_path / "bench_explicit.md").read_text()
+
+
+def test_quick_run_figures_are_readable(quick):
+    """Every figure of the quick run has labelled axes, finite lines and a legend without
+    duplicates (``experiments._common.figure_defects``)."""
+    assert FIGURES, "the quick run saved no figure"
+    for name, figure in FIGURES.items():
+        assert figure_defects(figure) == [], name

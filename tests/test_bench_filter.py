@@ -2,12 +2,14 @@
 
 import csv
 
+from experiments._common import figure_defects
 from experiments.bench_filter import main
 
 
-def test_bench_filter_quick_agrees(tmp_path):
+def test_bench_filter_quick_agrees(tmp_path, saved_figures):
     main(["--quick", "--out", str(tmp_path), "--repeats", "1"])
     assert (tmp_path / "bench_filter.png").stat().st_size > 10_000
+    assert figure_defects(saved_figures["bench_filter.png"]) == []
     assert (tmp_path / "bench_filter.md").read_text().startswith("| N | data_sets | method")
     with open(tmp_path / "bench_filter.csv") as handle:
         rows = list(csv.DictReader(handle))

@@ -10,8 +10,13 @@ import csv
 
 import pytest
 import torch
+from conftest import recorded_figures
 
+from experiments._common import figure_defects
 from experiments.bench_implicit import GraphMemory, main, unrolled_newton
+
+#: the figures the module's quick run saved, by file name
+FIGURES: dict = {}
 
 UNROLLED = "unrolled autograd through Newton"
 
@@ -19,7 +24,10 @@ UNROLLED = "unrolled autograd through Newton"
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench_implicit")
-    return out, main(["--quick", "--out", str(out)])
+    with recorded_figures() as figures:
+        result = main(["--quick", "--out", str(out)])
+    FIGURES.update(figures)
+    return out, result
 
 
 def test_bench_implicit_quick_reports_consistent_errors(quick):
@@ -118,3 +126,11 @@ def test_unrolled_newton_matches_closed_form():
     torch.testing.assert_close(x, torch.log(b), atol=1e-14, rtol=0)
     (g,) = torch.autograd.grad(x.sum(), b)
     torch.testing.assert_close(g, 1 / b.detach(), atol=1e-12, rtol=0)
+
+
+def test_quick_run_figures_are_readable(quick):
+    """Every figure of the quick run has labelled axes, finite lines and a legend without
+    duplicates (``experiments._common.figure_defects``)."""
+    assert FIGURES, "the quick run saved no figure"
+    for name, figure in FIGURES.items():
+        assert figure_defects(figure) == [], name

@@ -11,6 +11,12 @@ from __future__ import annotations
 import csv
 
 import pytest
+from conftest import recorded_figures
+
+from experiments._common import figure_defects
+
+#: the figures the module's quick run saved, by file name
+FIGURES: dict = {}
 
 
 def read_csv(path) -> list[dict]:
@@ -24,7 +30,9 @@ def tikhonov(tmp_path_factory):
     from experiments import dae_tikhonov
 
     out = tmp_path_factory.mktemp("dae_tikhonov")
-    dae_tikhonov.main(["--quick", "--out", str(out)])
+    with recorded_figures() as figures:
+        dae_tikhonov.main(["--quick", "--out", str(out)])
+    FIGURES.update(figures)
     assert (out / "tikhonov.png").stat().st_size > 0
     assert (out / "tikhonov_deviation.md").exists() and (out / "tikhonov_slopes.md").exists()
     return read_csv(out / "tikhonov_deviation.csv"), read_csv(out / "tikhonov_slopes.csv")
@@ -88,3 +96,11 @@ def test_fig53_gap_saturates_at_the_rho_over_k_step(tikhonov):
     assert abs(gap - step) < 0.01 * step
     m1_min = min(float(r["dev_slow"]) for r in deviations if r["family"] == "two-mass m1")
     assert gap > 100 * m1_min
+
+
+def test_quick_run_figures_are_readable(tikhonov):
+    """Every figure of the quick run has labelled axes, finite lines and a legend without
+    duplicates (``experiments._common.figure_defects``)."""
+    assert FIGURES, "the quick run saved no figure"
+    for name, figure in FIGURES.items():
+        assert figure_defects(figure) == [], name
