@@ -528,7 +528,9 @@ class Study:
         rows = rows[mask]
         names = list(dict.fromkeys(rows["parameter"]))
         p = len(names)
-        estimates = torch.as_tensor(rows["estimate"].to_numpy().reshape(-1, p))
+        estimates = torch.tensor(
+            rows["estimate"].to_numpy().reshape(-1, p)
+        )  # a copy: pandas 3 hands out read-only views
         reported = np.stack(rows["covariance_row"].to_numpy()).reshape(-1, p, p).mean(0)
         empirical = summarize_estimates(estimates, estimates.mean(0)).covariance
         theory = None if self.theory is None else self.theory(dict(self.points[point]), estimator)
