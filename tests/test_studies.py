@@ -184,8 +184,8 @@ def test_results_table_is_tidy(tmp_path):
     one = rows[(rows["N"] == 80) & (rows["trial"] == 7)]
     data = study._simulate_chunk(1, 1)[2]  # chunk 1 = trials 5..9
     alone = fit(FIR(3, 1), data)
-    torch.testing.assert_close(torch.as_tensor(one["estimate"].to_numpy()), alone.theta)
-    torch.testing.assert_close(torch.as_tensor(one["se"].to_numpy()), alone.standard_errors)
+    torch.testing.assert_close(torch.tensor(one["estimate"].to_numpy()), alone.theta)
+    torch.testing.assert_close(torch.tensor(one["se"].to_numpy()), alone.standard_errors)
     assert one["loss"].iloc[0] == pytest.approx(float(alone.loss_history[-1]))
 
 
