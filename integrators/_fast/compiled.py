@@ -118,6 +118,11 @@ class Stepper:
         self.n_out, self.component_major = (key[0], key[1]) if active else (1, False)
         self.compile_s = compile_s
 
+    @property
+    def active(self) -> bool:
+        """Whether calls may run compiled (wanted, and not given up before)."""
+        return self._active and not self._entry.failed
+
     def __call__(self, x: torch.Tensor, *args):
         """The compiled chunk's ``(x_new, outputs)`` for ``chunk(x, *args)``, or None: nothing
         is compiled, or the compiled chunk failed now or before (the caller then runs the
@@ -154,15 +159,24 @@ class Stepper:
 
 
 def compiled_stepper(
-    f, config, *, compile, n_steps: int, x0: torch.Tensor, make_chunk, n_out: int, f_at_start
+    f,
+    config,
+    *,
+    compile,
+    n_steps: int,
+    x0: torch.Tensor,
+    make_chunk,
+    n_out: int,
+    f_at_start=None,
+    auto_min_steps: int = AUTO_COMPILE_MIN_STEPS,
 ) -> Stepper:
     """A compiled chunk function for a run of model ``f``, or the reason there is none.
 
     Args:
         f: the model, the cache key (bound methods: their instance).
         config: a hashable description of everything else the chunk depends on.
-        compile: True, False or ``"auto"`` (compile once :data:`AUTO_COMPILE_MIN_STEPS` steps
-            were taken with this model and configuration over all calls).
+        compile: True, False or ``"auto"`` (compile once ``auto_min_steps`` steps were taken
+            with this model and configuration over all calls).
         n_steps: the steps of this run (counted towards ``"auto"``).
         x0: (*batch, nx) initial state; the chunk is compiled for its shape, dtype and device.
         make_chunk: ``make_chunk(n_out, component_major)``, the chunk function to compile
@@ -170,7 +184,9 @@ def compiled_stepper(
         n_out: output intervals per compiled chunk.
         f_at_start: ``x -> f`` at the first output time with the input there, traced once per
             cache entry to decide the layout (runs without autograd, at most
-            :data:`COMPONENT_MAJOR_MAX_STATES` states).
+            :data:`COMPONENT_MAJOR_MAX_STATES` states); None: the chunk has one layout, the
+            interleaved one.
+        auto_min_steps: the ``"auto"`` threshold (default :data:`AUTO_COMPILE_MIN_STEPS`).
 
     Returns:
         A :class:`Stepper`, called like the chunk; it returns None wherever the caller must run
@@ -178,13 +194,14 @@ def compiled_stepper(
     """
     entry = _cache_entry(f, config)
     entry.steps_seen += n_steps
-    want = compile is True or (compile == "auto" and entry.steps_seen >= AUTO_COMPILE_MIN_STEPS)
+    want = compile is True or (compile == "auto" and entry.steps_seen >= auto_min_steps)
     grad_mode = torch.is_grad_enabled()
     active = want and not entry.failed and not torch.compiler.is_compiling()
     active = active and not (grad_mode and entry.backward_failed)
     compile_s = 0.0
     component_major = False
-    if active and not grad_mode and x0.shape[-1] <= COMPONENT_MAJOR_MAX_STATES:
+    layouts = f_at_start is not None and x0.shape[-1] <= COMPONENT_MAJOR_MAX_STATES
+    if active and not grad_mode and layouts:
         first_check = entry.componentwise is None  # imports inductor, traces f: compile time
         tic = time.perf_counter()
         component_major = _is_componentwise(entry, f_at_start, x0)

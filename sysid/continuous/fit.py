@@ -544,6 +544,11 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
             "substeps": model.substeps,
             "n_steps": sum(s.n_steps for s in stats),
             "n_f_evals": sum(s.n_f_evals for s in stats),
+            "compiled": any(s.extra.get("compiled", False) for s in stats),
+            "compile_fallback": next(
+                (s.extra["compile_fallback"] for s in stats if s.extra.get("compile_fallback")),
+                None,
+            ),
             "damping": lm.damping,
             "step_in_standard_errors": zstat,
             "line_search_failed": failed,

@@ -100,6 +100,12 @@ class GreyBoxModel:
         nz, z0: DAE models: number of algebraic states and the Newton start for ``z`` (zeros by
             default); ``nz`` is read from the module's ``nz`` when omitted.
         state_names: names of the states (for ``output`` and reports).
+        compile: explicit methods: True runs each sample interval of the simulations and
+            sensitivities as one compiled kernel (a one-off compile of seconds, then about
+            ten times less time per step), False never, ``"auto"`` (default) once the model
+            has taken :data:`integrators.sensitivities.AUTO_COMPILE_MIN_STEPS` steps (see
+            :func:`integrators.sensitivities`). Models the compiler cannot handle (autograd or
+            a Newton solve inside ``f``) run eagerly; the fit's ``info`` says which ran.
 
     Raises:
         InputValidationError: unknown parameter names, a non-scalar module parameter, a
@@ -121,7 +127,12 @@ class GreyBoxModel:
         nz: int | None = None,
         z0=None,
         state_names: Sequence[str] | None = None,
+        compile: bool | str = "auto",
     ):
+        if compile not in (True, False, "auto"):
+            raise InputValidationError(f"compile must be True, False or 'auto', got {compile!r}.")
+        self.compile = compile
+        self._rhs_cache = None
         self.f = f
         self.kind = _kind(f)
         if self.kind in ("dae_module", "dae_problem"):
@@ -231,7 +242,11 @@ class GreyBoxModel:
     def rhs(self) -> Callable:
         """``f(t, x, u, P)`` evaluated with the parameter values in ``P`` (*batch, n_params) in
         the order of :attr:`names`; raises :class:`InputValidationError` when ``f`` returns
-        another shape than ``x``'s."""
+        another shape than ``x``'s. The same function object for as long as ``f``, the
+        parameter names and ``z0`` stay the same (compiled kernels are cached by it)."""
+        key = (id(self.f), id(self.z0), tuple(self.names), self.kind, self.nz)
+        if self._rhs_cache is not None and self._rhs_cache[0] == key:
+            return self._rhs_cache[1]
         call = self._rhs()
 
         def checked(t, x, u, P):
@@ -247,6 +262,7 @@ class GreyBoxModel:
                 )
             return dx
 
+        self._rhs_cache = (key, checked)  # the closure keeps f (and a DAE's z0) alive
         return checked
 
     def _rhs(self) -> Callable:
@@ -415,6 +431,7 @@ class GreyBoxModel:
             substeps=self.substeps,
             input_sensitivities=False,
             derivatives=derivatives,
+            compile=self.compile,
         )
         x = sens.x  # (*batch, S, L+1, nx)
         h = self.output_map(ny)

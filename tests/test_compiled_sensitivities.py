@@ -1,0 +1,110 @@
+"""The compiled interval kernel of explicit sensitivities against the eager recursion.
+
+The kernel (``integrators.sensitivities._interval_kernel``) propagates ``[A B]`` in forward
+mode (the course notes (Modelling and Simulation), eq. 8.17-8.18) and runs each output interval
+as one compiled function; it must give the eager path's states and sensitivities for every
+kind of model: a plain function, an ``nn.Module`` whose parameters a grey-box model substitutes,
+and a model calling autograd inside ``f`` (which the compiler refuses: it runs eagerly and says
+why).
+"""
+
+import pytest
+import torch
+
+import integrators.sensitivities
+from integrators.inputs import CollocationInput
+from integrators.sensitivities import sensitivities
+from sysid import GreyBoxModel, IOData, Param
+from sysid.continuous.fit import _Problem
+from sysid.zoo import SpringMassDamper, VanDerPol
+
+F64 = torch.float64
+
+
+def pendulum(t, x, u, p):
+    """Damped, forced pendulum with a time-dependent term: every argument matters."""
+    return torch.stack(
+        [
+            x[..., 1],
+            -p[..., 0] * torch.sin(x[..., 0]) - p[..., 1] * x[..., 1] + u[..., 0] + 0.1 * t,
+        ],
+        -1,
+    )
+
+
+def _collocation_case():
+    g = torch.Generator().manual_seed(3)
+    t = torch.linspace(0.0, 2.0, 21, dtype=F64)
+    coeff = torch.randn(3, 20, 2, 1, generator=g, dtype=F64)
+    u = CollocationInput(coeff, t, nodes=torch.tensor([0.0, 1.0], dtype=F64))
+    x0 = torch.tensor([[0.5, 0.0], [1.0, -0.3], [-0.2, 0.4]], dtype=F64)
+    p = torch.tensor([[9.81, 0.3], [4.0, 0.1], [1.0, 0.0]], dtype=F64)
+    return x0, t, p, u
+
+
+@pytest.mark.parametrize("derivatives", [True, False])
+def test_compiled_kernel_of_a_function_model_equals_the_eager_recursion(derivatives):
+    x0, t, p, u = _collocation_case()
+    kw = dict(u=u, method="rk4", substeps=2, input_sensitivities=False, derivatives=derivatives)
+    eager = sensitivities(pendulum, x0, t, p, compile=False, **kw)
+    fast = sensitivities(pendulum, x0, t, p, compile=True, **kw)
+    assert fast.stats.extra["compiled"] and fast.stats.extra["compile_fallback"] is None
+    assert fast.stats.n_steps == eager.stats.n_steps == 40
+    torch.testing.assert_close(fast.x, eager.x, rtol=1e-13, atol=1e-14)
+    if derivatives:
+        torch.testing.assert_close(fast.A, eager.A, rtol=1e-12, atol=1e-13)
+        torch.testing.assert_close(fast.B, eager.B, rtol=1e-12, atol=1e-13)
+    else:
+        assert fast.A is None and fast.B is None
+
+
+def _jacobian(model):
+    g = torch.Generator().manual_seed(5)
+    u = torch.randn(2, 30, 1, generator=g, dtype=F64)
+    data = IOData(u, torch.zeros(2, 30, 2, dtype=F64), Ts=0.1, intersample="foh")
+    problem = _Problem(model, data, "simulation", "estimate", None, "rk4")
+    z = problem.initial_z() + 0.1
+    r, J = problem.residuals_and_jacobian(z)
+    return r, J, problem.stats[0].extra
+
+
+def test_compiled_kernel_of_a_module_with_substituted_parameters_equals_eager():
+    """A zoo plant (``nn.Module``) whose parameter the grey-box model substitutes by
+    ``functional_call``: residuals and Jacobian of the simulation error."""
+    make = lambda c: GreyBoxModel(VanDerPol(), {"mu": Param(0.8)}, compile=c)  # noqa: E731
+    r0, J0, info0 = _jacobian(make(False))
+    r1, J1, info1 = _jacobian(make(True))
+    assert not info0["compiled"] and info1["compiled"]
+    torch.testing.assert_close(r1, r0, rtol=1e-12, atol=1e-13)
+    torch.testing.assert_close(J1, J0, rtol=1e-12, atol=1e-13)
+
+
+def test_a_model_with_autograd_inside_runs_eagerly_and_says_why():
+    """A Lagrangian plant forms its equations of motion by autograd: the kernel cannot be
+    compiled; the run falls back to the eager recursion with the same numbers."""
+    make = lambda c: GreyBoxModel(SpringMassDamper(), {"K": Param(3.0)}, compile=c)  # noqa: E731
+    r0, J0, _ = _jacobian(make(False))
+    r1, J1, info = _jacobian(make(True))
+    assert not info["compiled"] and info["compile_fallback"]
+    torch.testing.assert_close(r1, r0, rtol=0, atol=0)
+    torch.testing.assert_close(J1, J0, rtol=0, atol=0)
+
+
+def test_auto_compiles_only_past_its_threshold(monkeypatch):
+    """``compile="auto"`` runs short simulations eagerly (nothing to report) and compiles a
+    model once it has taken :data:`AUTO_COMPILE_MIN_STEPS` steps (lowered here)."""
+    monkeypatch.setattr(integrators.sensitivities, "AUTO_COMPILE_MIN_STEPS", 100)
+    x0, t, p, u = _collocation_case()
+
+    def model(t, x, u, p):  # a model object of its own: a fresh count
+        return pendulum(t, x, u, p)
+
+    kw = dict(u=u, input_sensitivities=False, derivatives=False)
+    short = sensitivities(model, x0, t, p, compile="auto", **kw)
+    assert not short.stats.extra["compiled"] and short.stats.extra["compile_fallback"] is None
+    for _ in range(4):
+        last = sensitivities(model, x0, t, p, compile="auto", **kw)
+        if last.stats.extra["compiled"]:
+            break
+    assert last.stats.extra["compiled"]
+    torch.testing.assert_close(last.x, short.x, rtol=1e-13, atol=1e-14)
