@@ -362,6 +362,7 @@ def test_a_killed_run_resumes_to_the_uninterrupted_table(tmp_path):
     """A subprocess running a study is killed (SIGKILL) after 3 of its 10 chunks are written;
     the rerun computes the other 7 and its table equals that of an uninterrupted run."""
     import os
+    import pathlib
     import runpy
     import signal
     import subprocess
@@ -371,7 +372,11 @@ def test_a_killed_run_resumes_to_the_uninterrupted_table(tmp_path):
     script = tmp_path / "killed_study.py"
     script.write_text(KILLED_STUDY)
     folder = tmp_path / "killed"
-    env = {**os.environ, "HANG_AFTER": "3", "PYTHONPATH": os.getcwd()}
+    env = {
+        **os.environ,
+        "HANG_AFTER": "3",
+        "PYTHONPATH": str(pathlib.Path(__file__).resolve().parents[1]),
+    }
     process = subprocess.Popen([sys.executable, str(script), str(folder)], env=env)
     try:
         while len(list((folder / "chunks").glob("*.parquet"))) < 3 and process.poll() is None:
