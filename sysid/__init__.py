@@ -1,7 +1,7 @@
 """System identification and modelling built on ``integrators``."""
 
 from . import continuous, dae, zoo
-from .continuous import GreyBoxModel, Param
+from .continuous import GreyBoxModel, HybridODE, LagrangianNetwork, NeuralODE, Param
 from .data import IOData
 from .errors import (
     ConvergenceError,
@@ -75,6 +75,9 @@ __all__ = [
     "select_order",
     "continuous",
     "GreyBoxModel",
+    "HybridODE",
+    "LagrangianNetwork",
+    "NeuralODE",
     "Param",
     "dae",
     "zoo",
