@@ -155,11 +155,6 @@ def test_neural_ode_learns_first_order_system():
     assert result.status == "completed" and bool(result.converged)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the reported SE differs from the finite-difference one by ~1% (0.00970 vs "
-    "0.00961); the cause is not found yet",
-)
 def test_hybrid_recovers_stiffness_with_standard_error():
     data = spring(300, seed=3, noise=0.01)
     model = HybridSpring(k0=3.0)

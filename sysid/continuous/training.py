@@ -424,9 +424,9 @@ def train(
         n_init, encoder_hidden: encoder window (samples) and hidden width.
         validation: :class:`IOData` for early stopping: its loss is the mean squared
             free-run error of every record from its start (from the encoder's state at
-            ``n_init`` with ``x0="encoder"``, else from the state the output selects, zero
-            for the other states). With validation the best model by validation loss is
-            returned.
+            ``n_init`` with ``x0="encoder"``, from zero with ``x0="zero"``, else from the
+            states the output selects, zero for the others). With validation the best
+            model by validation loss is returned.
         patience: stop after this many epochs without a decrease of the validation loss
             (without validation: of the criterion on the fixed windows tiling the records,
             evaluated after every epoch); None: never.
@@ -704,16 +704,16 @@ def _monitor_loss(net: _Trainable, records: _Records, T: int, kmin: int) -> floa
 
 def _record_start(net: _Trainable, records: _Records, off: int):
     """(B,) record indices, (B,) start samples and (B, nx) initial states of the free-run
-    simulation of the experiment at ``off``: from the encoder at ``n_init``, from the state
-    table's first row (``"estimate"``, training records only) or from the measured states /
-    zero."""
+    simulation of the experiment at ``off``: from the encoder at ``n_init``, zero for
+    ``x0="zero"``, else the measured states where the output selects them and zero for the
+    others (the caller takes the state table's first row on training records)."""
     b = torch.arange(records.B)
     k0 = net.n_init if net.x0_mode == "encoder" else 0
     g = torch.full((records.B,), off + k0, dtype=torch.int64)
     if net.x0_mode == "encoder":
         return b, g, net.initial_states(records, b, g)
     x0 = records.u.new_zeros(records.B, net.model.nx)
-    if _output_is_state(net.model, records.u.dtype, records.u.device):
+    if net.x0_mode == "estimate" and _output_is_state(net.model, records.u.dtype, records.u.device):
         x0[:, : net.model.ny] = records.y[:, off]
     return b, g, x0
 
