@@ -689,7 +689,7 @@ def _lbfgs_epoch(net, records, T, kmin, opt, clip):
     loss = opt.step(closure)
     if failure or not math.isfinite(float(loss.detach())):
         return math.nan, "L-BFGS: " + (failure[0] if failure else "the loss is non-finite")
-    return float(loss), None
+    return float(loss.detach()), None
 
 
 def _monitor_loss(net: _Trainable, records: _Records, T: int, kmin: int) -> float:
