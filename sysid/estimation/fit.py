@@ -52,6 +52,7 @@ def fit(
     iv_iterations: int = 2,
     x0=None,
     segment_length: int | None = None,
+    **training,
 ) -> FitResult:
     """Estimate the parameters of ``model`` from ``data`` (batched over data sets).
 
@@ -89,6 +90,13 @@ def fit(
         x0: grey-box models: the initial state, ``"zero"``, ``"estimate"`` (one per
             experiment) or a tensor (nx,) / (*batch, nx); default the model's ``x0``.
         segment_length: grey-box multiple shooting: sample intervals per segment.
+        **training: neural continuous-time models (an ``nn.Module`` with ``nx``, ``nu``,
+            ``ny``, ``method``, ``substeps``, ``output``, ``physical_parameters``, e.g.
+            ``NeuralODE``), or ``method="adam"`` / ``"lbfgs"``: the options of
+            :func:`sysid.continuous.training.train` (``horizon``, ``batch_size``,
+            ``epochs``, ``lr``, ``validation``, ``patience``, ``seed``, ``checkpoint``, ...);
+            ``criterion`` is ``"truncated"`` and ``x0`` is ``"estimate"`` (default),
+            ``"encoder"`` or ``"zero"``.
 
     Returns:
         :class:`FitResult`; ``result.model`` is the fitted model (a copy), the input model
@@ -96,6 +104,30 @@ def fit(
     """
     from ..continuous.greybox import GreyBoxModel  # the continuous package builds on this one
 
+    neural = not isinstance(model, (GreyBoxModel, PolynomialModel)) and isinstance(
+        model, torch.nn.Module
+    )
+    if neural or method in ("adam", "lbfgs"):
+        from ..continuous.training import train
+
+        if loss != "gaussian":
+            raise InputValidationError(
+                f"training a neural model minimises squared errors; loss={loss!r} is not "
+                "available: use loss='gaussian'."
+            )
+        return train(
+            model,
+            data,
+            method="adam" if method is None else method,
+            criterion="truncated" if criterion == "prediction" else criterion,
+            x0="estimate" if x0 is None else x0,
+            **training,
+        )
+    if training:
+        raise InputValidationError(
+            f"unexpected option(s) {sorted(training)}: they apply to the training of neural "
+            "models (method='adam' or 'lbfgs') only."
+        )
     if isinstance(model, GreyBoxModel):
         from ..continuous.fit import fit_greybox
 
