@@ -52,6 +52,7 @@ def fit(
     iv_iterations: int = 2,
     x0=None,
     segment_length: int | None = None,
+    progress: bool | None = None,
 ) -> FitResult:
     """Estimate the parameters of ``model`` from ``data`` (batched over data sets).
 
@@ -89,6 +90,11 @@ def fit(
         x0: grey-box models: the initial state, ``"zero"``, ``"estimate"`` (one per
             experiment) or a tensor (nx,) / (*batch, nx); default the model's ``x0``.
         segment_length: grey-box multiple shooting: sample intervals per segment.
+        progress: grey-box models: a tqdm bar over the Levenberg-Marquardt iterations with
+            the current loss (None: only when stderr is a terminal). A Ctrl-C during a
+            grey-box fit returns the last accepted iterate, flagged not converged and
+            interrupted (see :func:`sysid.continuous.fit.fit_greybox`). Polynomial fits are
+            short and show no bar.
 
     Returns:
         :class:`FitResult`; ``result.model`` is the fitted model (a copy), the input model
@@ -109,6 +115,7 @@ def fit(
             x0=x0,
             segment_length=segment_length,
             max_iter=max_iter,
+            progress=progress,
         )
     if not isinstance(model, PolynomialModel):
         raise InputValidationError(f"model must be a sysid model, got {type(model).__name__}.")
