@@ -36,10 +36,12 @@ from .lls import LLSResult, fir_lls, lls
 from .mechanics import LagrangianSystem, distributed_body, spring_potential
 from .models import ARMAX, ARX, BJ, FIR, OE, PolynomialModel
 from .validation import (
+    FitQuality,
     OrderSelection,
     ResidualTestResult,
     aic,
     fit_percent,
+    fit_quality,
     fpe,
     residual_test,
     select_order,
@@ -69,6 +71,8 @@ __all__ = [
     "ResidualTestResult",
     "aic",
     "fit_percent",
+    "fit_quality",
+    "FitQuality",
     "fpe",
     "residual_test",
     "OrderSelection",

@@ -52,6 +52,7 @@ def fit(
     iv_iterations: int = 2,
     x0=None,
     segment_length: int | None = None,
+    progress: bool | None = None,
     **training,
 ) -> FitResult:
     """Estimate the parameters of ``model`` from ``data`` (batched over data sets).
@@ -97,6 +98,12 @@ def fit(
             ``epochs``, ``lr``, ``validation``, ``patience``, ``seed``, ``checkpoint``, ...);
             ``criterion`` is ``"truncated"`` and ``x0`` is ``"estimate"`` (default),
             ``"encoder"`` or ``"zero"``.
+        progress: grey-box models: a tqdm bar over the Levenberg-Marquardt iterations with
+            the current loss; neural models: over the epochs with the training and validation
+            losses (None: only when stderr is a terminal). A Ctrl-C during a grey-box fit
+            returns the last accepted iterate, flagged not converged and interrupted (see
+            :func:`sysid.continuous.fit.fit_greybox`). Polynomial fits are short and show no
+            bar.
 
     Returns:
         :class:`FitResult`; ``result.model`` is the fitted model (a copy), the input model
@@ -121,6 +128,7 @@ def fit(
             method="adam" if method is None else method,
             criterion="truncated" if criterion == "prediction" else criterion,
             x0="estimate" if x0 is None else x0,
+            progress=progress,
             **training,
         )
     if training:
@@ -141,6 +149,7 @@ def fit(
             x0=x0,
             segment_length=segment_length,
             max_iter=max_iter,
+            progress=progress,
         )
     if not isinstance(model, PolynomialModel):
         raise InputValidationError(f"model must be a sysid model, got {type(model).__name__}.")
