@@ -57,11 +57,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 parse_early(__name__, build_parser)
 
+import json
+
 import numpy as np
 import torch
 
 from experiments._common import plt
 from sysid import ARX, OE, fit
+from sysid.errors import InputValidationError
 from sysid.montecarlo import input_signal, simulate_data
 from sysid.studies import Study
 
@@ -94,18 +97,29 @@ def simulate(noise: str):
     return draw
 
 
-def study(noise: str, ns: list[int], trials: int, sigma: float) -> Study:
-    """The declared study of one noise kind: the estimators of :data:`CASES` for it."""
+GRID = {"N": [250, 500, 1000, 2000, 4000, 8000], "sigma": [0.5]}
+TRIALS, SEED = 200, 7
+
+
+def declare(grid=None, trials=TRIALS, seed=SEED, chunk=CHUNK, noise="output") -> Study:
+    """The declared study of one noise kind (``"equation"`` or ``"output"``): the estimators
+    of :data:`CASES` for it, ``grid`` (factors ``N``, ``sigma``; default :data:`GRID`),
+    ``trials`` per grid point, master ``seed``, ``chunk`` trials per batched fit (and per
+    ``simulate`` call)."""
+    if noise not in ("equation", "output"):
+        raise InputValidationError(f"noise must be 'equation' or 'output', got {noise!r}.")
     names = [name for name, kind in CASES if kind == noise]
+    chunk = min(chunk, trials)
     return Study(
         simulate(noise),
         {name: ESTIMATORS[name] for name in names},
-        grid={"N": ns, "sigma": [sigma]},
+        grid=dict(GRID if grid is None else grid),
         trials=trials,
-        seed=7,
-        chunk=min(CHUNK, trials),
-        block=min(CHUNK, trials),
+        seed=seed,
+        chunk=chunk,
+        block=chunk,
         truth=TRUTH,
+        version=json.dumps({"study": "consistency", "noise": noise}),
     )
 
 
@@ -146,7 +160,8 @@ def main(argv=None):
     ns = [200, 800] if args.quick else args.ns
     rows = []
     for noise in ("equation", "output"):
-        done = study(noise, ns, trials, args.sigma).run(out / f"study_{noise}")
+        grid = {"N": ns, "sigma": [args.sigma]}
+        done = declare(grid, trials, noise=noise).run(out / f"study_{noise}")
         done.report(out / f"report_{noise}")
         rows += rows_of(done, noise)
     rows.sort(key=lambda r: (r["estimator"], r["noise"], r["N"]))

@@ -7,6 +7,11 @@ times wider). For every noise law the same batch of data sets is fitted by least
 residuals) and by least absolute deviations (the Laplace MLE). Reported: the mean squared
 parameter error E||theta_hat - theta||^2 of each estimator and its ratio to least squares.
 
+A declared study (:class:`sysid.studies.Study`, see :func:`declare`) over the noise laws, one
+batched fit per estimator and chunk of data sets; its chunks are kept in ``study/`` (Parquet,
+resumable; other options in the same folder are refused: use another ``--out``), its full
+report in ``report/``.
+
 Run: ``python -m experiments.sysid_fat_tails [--quick] [--out DIR]``.
 """
 
@@ -19,7 +24,6 @@ from experiments._common import (
     finish,
     output_dir,
     parse_early,
-    progress,
     save_figure,
     write_table,
 )
@@ -40,61 +44,107 @@ def build_parser() -> argparse.ArgumentParser:
 
 parse_early(__name__, build_parser)
 
+import functools
+import json
+
 import numpy as np
 import torch
 
 from experiments._common import plt
-from sysid import ARX, fit
+from sysid import ARX, IOData, fit
 from sysid.montecarlo import input_signal, simulate_data
+from sysid.studies import Study
 
 THETA = [-1.2, 0.5, 0.5, 0.3]
-NOISES = [
-    ("gaussian", {}),
-    ("student_t", {"df": 3}),
-    ("student_t", {"df": 2}),
-    ("laplace", {}),
-    ("contaminated", {"contamination": 0.1, "outlier_scale": 10.0}),
-]
+MODEL = ARX(2, 2, 1)
+NOISES = {
+    "gaussian": ("gaussian", {}),
+    "student_t(df=3)": ("student_t", {"df": 3}),
+    "student_t(df=2)": ("student_t", {"df": 2}),
+    "laplace": ("laplace", {}),
+    "contaminated": ("contaminated", {"contamination": 0.1, "outlier_scale": 10.0}),
+}
+GRID = {"noise": list(NOISES), "N": [500], "sigma": [0.2]}
+TRIALS, SEED, CHUNK = 500, 3, 100
+LOSSES = {"ls": "gaussian", "fair": "fair", "laplace": "laplace"}  # estimator -> MLE loss
+
+
+def fit_mle(data: IOData, loss: str):
+    """The ARX(2, 2) maximum-likelihood fit of ``data`` with ``loss`` (one batched call)."""
+    return fit(MODEL, data, method="mle", loss=loss)
+
+
+ESTIMATORS = {name: functools.partial(fit_mle, loss=loss) for name, loss in LOSSES.items()}
+
+
+def simulate(point: dict, n: int, generator: torch.Generator) -> IOData:
+    """``n`` ARX(2, 2) data sets ``A y = B u + e`` with white-noise input, ``e`` of the law
+    ``point["noise"]`` (a key of :data:`NOISES`) and scale ``point["sigma"]``."""
+    kind, options = NOISES[point["noise"]]
+    u = input_signal("white", point["N"], (n,), generator=generator)
+    theta = torch.tensor(THETA, dtype=torch.float64)
+    return simulate_data(
+        MODEL,
+        u,
+        theta=theta,
+        noise_std=point["sigma"],
+        noise="model",
+        noise_kind=kind,
+        generator=generator,
+        **options,
+    )
+
+
+def declare(grid=None, trials=TRIALS, seed=SEED, chunk=CHUNK) -> Study:
+    """The declared study: ``grid`` (factors ``noise`` (keys of :data:`NOISES`), ``N``,
+    ``sigma``; default :data:`GRID`), ``trials`` per grid point, master ``seed``, ``chunk``
+    trials per batched fit (and per ``simulate`` call)."""
+    chunk = min(chunk, trials)
+    return Study(
+        simulate,
+        ESTIMATORS,
+        grid=dict(GRID if grid is None else grid),
+        trials=trials,
+        seed=seed,
+        chunk=chunk,
+        block=chunk,
+        truth=dict(zip(MODEL.parameter_names(), THETA, strict=True)),
+        version=json.dumps({"study": "fat_tails", "theta": THETA}),
+    )
+
+
+def rows_of(done: Study) -> list[dict]:
+    """One row per grid point: ``E||theta_hat - theta||^2`` (the sum of the parameters'
+    squared RMSE) of each estimator and its ratio to least squares."""
+    summary = done.summary()
+    mse = (summary["rmse"] ** 2).groupby([summary[f] for f in (*done.factors, "estimator")]).sum()
+    rows = []
+    for point in done.points:
+        key = tuple(point.values())
+        m = {name: float(mse[(*key, name)]) for name in ESTIMATORS}
+        rows.append(
+            {
+                "noise": point["noise"],
+                "N": point["N"],
+                "trials": done.trials,
+                "mse_ls": m["ls"],
+                "mse_fair": m["fair"],
+                "mse_laplace": m["laplace"],
+                "fair_over_ls": m["fair"] / m["ls"],
+                "laplace_over_ls": m["laplace"] / m["ls"],
+            }
+        )
+    return rows
 
 
 def main(argv=None):
     args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
-    trials = 40 if args.quick else args.trials
+    trials = 100 if args.quick else args.trials
     N = 200 if args.quick else args.n
-    theta = torch.tensor(THETA, dtype=torch.float64)
-    model = ARX(2, 2, 1)
-    g = torch.Generator().manual_seed(3)
-    rows = []
-    for kind, options in progress(NOISES, "noise laws"):
-        u = input_signal("white", N, (trials,), generator=g)
-        data = simulate_data(
-            model,
-            u,
-            theta=theta,
-            noise_std=args.sigma,
-            noise="model",
-            noise_kind=kind,
-            generator=g,
-            **options,
-        )
-        mse = {}
-        for loss in ("gaussian", "fair", "laplace"):
-            res = fit(model, data, method="mle", loss=loss)
-            mse[loss] = ((res.theta - theta) ** 2).sum(-1).mean().item()
-        label = kind + (f"(df={options['df']})" if "df" in options else "")
-        rows.append(
-            {
-                "noise": label,
-                "N": N,
-                "trials": trials,
-                "mse_ls": mse["gaussian"],
-                "mse_fair": mse["fair"],
-                "mse_laplace": mse["laplace"],
-                "fair_over_ls": mse["fair"] / mse["gaussian"],
-                "laplace_over_ls": mse["laplace"] / mse["gaussian"],
-            }
-        )
+    done = declare({**GRID, "N": [N], "sigma": [args.sigma]}, trials).run(out / "study")
+    done.report(out / "report")
+    rows = rows_of(done)
     markdown = write_table(rows, out / "fat_tails")
     fig, ax = plt.subplots(figsize=(9, 4))
     x = np.arange(len(rows))

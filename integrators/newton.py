@@ -58,6 +58,7 @@ class NewtonStatus(IntEnum):
     NON_FINITE = 3  # phi or the iterate became inf/nan
     LINE_SEARCH_FAILED = 4  # no step length in (0, 1] decreased the merit function
     DIVERGED = 5  # the residual grew by more than ``divergence_ratio`` in one iteration
+    INTERRUPTED = 6  # a KeyboardInterrupt stopped :func:`minimize` (``catch_interrupt=True``)
 
 
 @dataclass
@@ -695,6 +696,8 @@ def minimize(
     admissible: Callable | None = None,
     damping: float = 1e-6,
     max_backtracks: int | None = None,
+    callback: Callable | None = None,
+    catch_interrupt: bool = False,
 ) -> MinimizeResult:
     """Batched unconstrained minimisation by Newton-type steps (notes §3.5).
 
@@ -761,6 +764,13 @@ def minimize(
         damping: "levenberg_marquardt": the initial relative damping ``lam``.
         max_backtracks: step halvings tried per iteration; default 30 ("newton",
             "gauss_newton") or 11 ("levenberg_marquardt").
+        callback: ``callback(iteration, theta, loss)`` after every iteration, with the
+            largest iteration count of the batch (int), the current iterate (*batch, n) and
+            its loss (*batch,) (e.g. for a progress bar); it may raise ``KeyboardInterrupt``.
+        catch_interrupt: on ``KeyboardInterrupt`` (Ctrl-C, or raised by ``fun`` or
+            ``callback``) return the last accepted iterate, with its loss, gradient,
+            Jacobian and residual, instead of propagating the exception; the problems still
+            iterating get status ``INTERRUPTED``.
 
     Returns:
         :class:`MinimizeResult` with the estimate, the loss history, the gradient, the
@@ -813,95 +823,123 @@ def minimize(
         active = torch.ones(batch, dtype=torch.bool, device=dev)
         lam = torch.full(batch, float(damping), dtype=theta.dtype, device=dev)
         history = [loss_value]
-        for _ in range(max_iter + 1):
-            nonfinite = active & ~(torch.isfinite(loss_value) & torch.isfinite(grad).all(-1))
-            status[nonfinite] = NewtonStatus.NON_FINITE
-            active &= ~nonfinite
-            gnorm = grad.abs().amax(-1)
-            if adaptive:  # the curvature scale of eq. 3.61's alpha and of the gradient test
-                scale = (H.diagonal(dim1=-2, dim2=-1).sum(-1) / n).clamp_min(
-                    torch.finfo(theta.dtype).tiny
-                )
-                done = active & (gnorm <= tol * (1 + loss_value) * scale.sqrt())
-            else:
-                done = active & (gnorm <= tol)
-            status[done] = NewtonStatus.CONVERGED
-            active &= ~done
-            if not bool(active.any()) or int(iterations.max()) >= max_iter:
-                break
-            if adaptive:
-                Lc, lam, ok = _damped_cholesky(H, lam, scale)
-            else:
-                Lc, ok = _shifted_cholesky(torch.nan_to_num(H), regularization)
-            status[active & ~ok] = NewtonStatus.SINGULAR
-            active &= ok
-            step = -torch.cholesky_solve(grad.unsqueeze(-1), Lc).squeeze(-1)
-            slope = (grad * step).sum(-1)  # < 0: descent direction (Theorem 7)
-            t = torch.ones(batch, dtype=theta.dtype, device=dev)
-            accepted = torch.zeros(batch, dtype=torch.bool, device=dev)
-            trial_loss = loss_value.clone()
-            pending = active.clone()
-            for _attempt in range(trials):
-                if not bool(pending.any()):
-                    break
-                value = _loss_only(
-                    fun, theta + t[..., None] * step, frozen, method, loss, admissible
-                )
-                n_evals += 1
-                ok = pending & (value <= loss_value + _ARMIJO * t * slope)
-                ok = ok if line_search else pending
-                accepted |= ok
-                trial_loss = torch.where(ok, value, trial_loss)
-                pending &= ~ok
-                t = torch.where(pending, t / 2, t)
-            no_decrease = active & ~accepted
-            if adaptive:
-                # no decrease found where the predicted one is below the rounding error of a
-                # sum of m residual terms (about sqrt(m) eps |loss|): the minimum is reached
-                flat = no_decrease & (-slope <= 10 * eps * rounding_terms * loss_value.abs())
-                status[flat] = NewtonStatus.CONVERGED
-                active &= ~flat
-                no_decrease &= ~flat
-                full = accepted & (t == 1)
-                lam = torch.where(full, (lam / 10).clamp_min(1e-12), lam)
-                lam = torch.where(accepted & ~full, lam * 2, lam)
-                lam = torch.where(no_decrease, lam * 10, lam)
-            else:
-                # no decrease found: converged if the predicted decrease is at the rounding
-                # level of the loss, else a genuine failure
-                flat = no_decrease & (-slope <= 10 * eps * loss_value.abs().clamp(min=eps))
-                status[flat] = NewtonStatus.CONVERGED
-                status[no_decrease & ~flat] = NewtonStatus.LINE_SEARCH_FAILED
-                active &= ~no_decrease
-            move = active & accepted
-            dtheta = torch.where(move[..., None], t[..., None] * step, 0.0)
-            if adaptive:
-                small = dtheta.norm(dim=-1) <= xtol * (xtol + theta.norm(dim=-1))
-                small |= (loss_value - trial_loss) <= ftol * loss_value
-                small &= move
-            else:
-                small = dtheta.abs().amax(-1) <= xtol * (1 + theta.abs().amax(-1))
-            theta = theta + dtheta
-            iterations += active.to(torch.int64)
-            new = _loss_derivatives(fun, theta, frozen, method, jacobian, loss)
-            n_evals += 1
-            keep = ~move
-            loss_value, grad, H = (
-                torch.where(keep, loss_value, new[0]),
-                torch.where(keep[..., None], grad, new[1]),
-                torch.where(keep[..., None, None], H, new[2]),
+
+        def snapshot():
+            # the state of the last accepted iterate, stored in one assignment so that an
+            # interrupt never sees half of an update
+            return (
+                theta,
+                loss_value,
+                grad,
+                H,
+                J,
+                r,
+                iterations.clone(),
+                status.clone(),
+                active.clone(),
+                len(history),
             )
-            if method != "newton":
-                J = torch.where(keep[..., None, None], J, new[3])
-                r = torch.where(keep[..., None], r, new[4])
-            history.append(loss_value)
-            stalled = active & small & torch.isfinite(loss_value)
-            status[stalled] = NewtonStatus.CONVERGED
-            active &= ~stalled
-            if adaptive:
-                failed = no_decrease & (lam > 1e10)
-                status[failed] = NewtonStatus.LINE_SEARCH_FAILED
-                active &= ~failed
+
+        committed = snapshot()
+        try:
+            for _ in range(max_iter + 1):
+                nonfinite = active & ~(torch.isfinite(loss_value) & torch.isfinite(grad).all(-1))
+                status[nonfinite] = NewtonStatus.NON_FINITE
+                active &= ~nonfinite
+                gnorm = grad.abs().amax(-1)
+                if adaptive:  # the curvature scale of eq. 3.61's alpha and of the gradient test
+                    scale = (H.diagonal(dim1=-2, dim2=-1).sum(-1) / n).clamp_min(
+                        torch.finfo(theta.dtype).tiny
+                    )
+                    done = active & (gnorm <= tol * (1 + loss_value) * scale.sqrt())
+                else:
+                    done = active & (gnorm <= tol)
+                status[done] = NewtonStatus.CONVERGED
+                active &= ~done
+                if not bool(active.any()) or int(iterations.max()) >= max_iter:
+                    break
+                if adaptive:
+                    Lc, lam, ok = _damped_cholesky(H, lam, scale)
+                else:
+                    Lc, ok = _shifted_cholesky(torch.nan_to_num(H), regularization)
+                status[active & ~ok] = NewtonStatus.SINGULAR
+                active &= ok
+                step = -torch.cholesky_solve(grad.unsqueeze(-1), Lc).squeeze(-1)
+                slope = (grad * step).sum(-1)  # < 0: descent direction (Theorem 7)
+                t = torch.ones(batch, dtype=theta.dtype, device=dev)
+                accepted = torch.zeros(batch, dtype=torch.bool, device=dev)
+                trial_loss = loss_value.clone()
+                pending = active.clone()
+                for _attempt in range(trials):
+                    if not bool(pending.any()):
+                        break
+                    value = _loss_only(
+                        fun, theta + t[..., None] * step, frozen, method, loss, admissible
+                    )
+                    n_evals += 1
+                    ok = pending & (value <= loss_value + _ARMIJO * t * slope)
+                    ok = ok if line_search else pending
+                    accepted |= ok
+                    trial_loss = torch.where(ok, value, trial_loss)
+                    pending &= ~ok
+                    t = torch.where(pending, t / 2, t)
+                no_decrease = active & ~accepted
+                if adaptive:
+                    # no decrease found where the predicted one is below the rounding error of a
+                    # sum of m residual terms (about sqrt(m) eps |loss|): the minimum is reached
+                    flat = no_decrease & (-slope <= 10 * eps * rounding_terms * loss_value.abs())
+                    status[flat] = NewtonStatus.CONVERGED
+                    active &= ~flat
+                    no_decrease &= ~flat
+                    full = accepted & (t == 1)
+                    lam = torch.where(full, (lam / 10).clamp_min(1e-12), lam)
+                    lam = torch.where(accepted & ~full, lam * 2, lam)
+                    lam = torch.where(no_decrease, lam * 10, lam)
+                else:
+                    # no decrease found: converged if the predicted decrease is at the rounding
+                    # level of the loss, else a genuine failure
+                    flat = no_decrease & (-slope <= 10 * eps * loss_value.abs().clamp(min=eps))
+                    status[flat] = NewtonStatus.CONVERGED
+                    status[no_decrease & ~flat] = NewtonStatus.LINE_SEARCH_FAILED
+                    active &= ~no_decrease
+                move = active & accepted
+                dtheta = torch.where(move[..., None], t[..., None] * step, 0.0)
+                if adaptive:
+                    small = dtheta.norm(dim=-1) <= xtol * (xtol + theta.norm(dim=-1))
+                    small |= (loss_value - trial_loss) <= ftol * loss_value
+                    small &= move
+                else:
+                    small = dtheta.abs().amax(-1) <= xtol * (1 + theta.abs().amax(-1))
+                new = _loss_derivatives(fun, theta + dtheta, frozen, method, jacobian, loss)
+                theta = theta + dtheta
+                iterations = iterations + active.to(torch.int64)
+                n_evals += 1
+                keep = ~move
+                loss_value, grad, H = (
+                    torch.where(keep, loss_value, new[0]),
+                    torch.where(keep[..., None], grad, new[1]),
+                    torch.where(keep[..., None, None], H, new[2]),
+                )
+                if method != "newton":
+                    J = torch.where(keep[..., None, None], J, new[3])
+                    r = torch.where(keep[..., None], r, new[4])
+                history.append(loss_value)
+                stalled = active & small & torch.isfinite(loss_value)
+                status[stalled] = NewtonStatus.CONVERGED
+                active &= ~stalled
+                if adaptive:
+                    failed = no_decrease & (lam > 1e10)
+                    status[failed] = NewtonStatus.LINE_SEARCH_FAILED
+                    active &= ~failed
+                committed = snapshot()
+                if callback is not None:
+                    callback(int(iterations.max()), theta, loss_value)
+        except KeyboardInterrupt:
+            if not catch_interrupt:
+                raise
+            theta, loss_value, grad, H, J, r, iterations, status, active, n_history = committed
+            del history[n_history:]
+            status[active] = NewtonStatus.INTERRUPTED
     converged = status == NewtonStatus.CONVERGED
     messages = _describe(status, grad.abs().amax(-1), label="gradient norm")
     if raise_on_failure and not bool(converged.all()):

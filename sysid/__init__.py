@@ -1,7 +1,7 @@
 """System identification and modelling built on ``integrators``."""
 
 from . import continuous, dae, zoo
-from .continuous import GreyBoxModel, Param
+from .continuous import GreyBoxModel, HybridODE, LagrangianNetwork, NeuralODE, Param
 from .data import IOData
 from .errors import (
     ConvergenceError,
@@ -36,10 +36,12 @@ from .lls import LLSResult, fir_lls, lls
 from .mechanics import LagrangianSystem, distributed_body, spring_potential
 from .models import ARMAX, ARX, BJ, FIR, OE, PolynomialModel
 from .validation import (
+    FitQuality,
     OrderSelection,
     ResidualTestResult,
     aic,
     fit_percent,
+    fit_quality,
     fpe,
     residual_test,
     select_order,
@@ -69,12 +71,17 @@ __all__ = [
     "ResidualTestResult",
     "aic",
     "fit_percent",
+    "fit_quality",
+    "FitQuality",
     "fpe",
     "residual_test",
     "OrderSelection",
     "select_order",
     "continuous",
     "GreyBoxModel",
+    "HybridODE",
+    "LagrangianNetwork",
+    "NeuralODE",
     "Param",
     "dae",
     "zoo",

@@ -438,9 +438,10 @@ class LagrangianSystem(nn.Module):
         return torch.as_tensor(value, dtype=like.dtype, device=like.device)
 
     def _masses_of(self, points, q):
-        """The point masses (n_p,) in q's dtype, checked against points (*batch, n_p, D)."""
+        """The point masses (n_p,) or per batch member (*batch, n_p) in q's dtype, checked
+        against points (*batch, n_p, D)."""
         masses = self._cast(self.point_masses(), q)
-        if masses.shape != points.shape[-2:-1]:
+        if masses.shape[-1:] != points.shape[-2:-1]:
             raise InputValidationError(
                 f"{type(self).__name__}: point_masses has shape {tuple(masses.shape)} but "
                 f"positions(q) gives {points.shape[-2]} points (shape (*batch, n_p, D) = "
@@ -504,7 +505,7 @@ class LagrangianSystem(nn.Module):
             masses, p = self.point_masses(), self.positions(q)
             if masses is None or p is None:
                 raise InputValidationError("gravity needs point_masses and positions")
-            height = (p * self._cast(g, q)).sum(-1)  # g . p_i
+            height = (p * self._cast(g, q).unsqueeze(-2)).sum(-1)  # g . p_i, g (D,) or (*batch, D)
             v = v - (self._masses_of(p, q) * height).sum(-1)
         return v
 
@@ -614,7 +615,7 @@ class LagrangianSystem(nn.Module):
         jac = torch.stack(columns, -1)  # (*batch, n_p * D, nq)
         masses = self._masses_of(p, q)
         dim = p.shape[-1]
-        weights = masses.repeat_interleave(dim)  # per coordinate of flat
+        weights = masses.repeat_interleave(dim, dim=-1)  # per coordinate of flat
         mass = jac.transpose(-1, -2) @ (weights.unsqueeze(-1) * jac)
         convective = (jac.transpose(-1, -2) @ (weights * accel).unsqueeze(-1)).squeeze(-1)
         if not create:

@@ -521,11 +521,8 @@ class Study:
             the sample mean), ``"reported"`` (mean of the reported covariances) and
             ``"theory"`` (None without ``theory``): float64 tensors ``(p, p)``.
         """
-        rows = self.results
-        mask = rows["estimator"] == estimator
-        for factor, value in self.points[point].items():
-            mask &= rows[factor] == value
-        rows = rows[mask]
+        rows = _at(self.results, self.points[point])
+        rows = rows[rows["estimator"] == estimator]
         names = list(dict.fromkeys(rows["parameter"]))
         p = len(names)
         estimates = torch.tensor(
@@ -573,11 +570,16 @@ class Study:
 
         For a consistent estimator with the usual rate, ``std`` falls like ``N^(-1/2)``
         (slope -1/2) and ``|bias|`` falls at least as fast; a bias that does not shrink
-        (slope near 0, with ``|bias|`` well above ``bias_se``) marks an inconsistent one.
+        (slope near 0, with ``|bias|`` well above ``bias_se``) marks an inconsistent one. The
+        ``|bias|`` of a consistent estimator is often below its Monte-Carlo error
+        ``bias_se``, and its slope then scatters widely; the RMSE, ``sqrt(bias^2 + std^2)``,
+        falls like ``N^(-1/2)`` for a consistent estimator and levels off at ``|bias|`` for an
+        inconsistent one, with little scatter in either case.
 
         Returns:
             One row per combination of the other factors x estimator x parameter: those
-            columns, ``points`` (values of ``factor`` used), ``bias_slope``, ``std_slope``.
+            columns, ``points`` (values of ``factor`` used), ``bias_slope``, ``std_slope``,
+            ``rmse_slope`` (NaN where a value is 0 or NaN, e.g. without truth).
 
         Raises:
             InputValidationError: ``factor`` is not a numeric grid factor with >= 2 values.
@@ -601,20 +603,97 @@ class Study:
                 float(np.polyfit(x, np.log(bias), 1)[0]) if np.all(bias > 0) else math.nan
             )
             row["std_slope"] = float(np.polyfit(x, np.log(group["std"].to_numpy()), 1)[0])
+            rmse = group["rmse"].to_numpy()
+            row["rmse_slope"] = (
+                float(np.polyfit(x, np.log(rmse), 1)[0]) if np.all(rmse > 0) else math.nan
+            )
             rows.append(row)
         return pd.DataFrame(rows)
 
+    def normalized_errors(self):
+        """Normalised errors ``z = (estimate - truth) / se`` of every trial.
+
+        For an unbiased estimator whose reported standard errors are right, ``z`` is close to
+        N(0, 1) (exactly Student's t with N - p degrees of freedom for least squares with
+        Gaussian noise and an estimated noise variance, eq. 4.92-4.93).
+
+        Returns:
+            One row per grid point x estimator x parameter x trial with a declared truth and a
+            positive standard error: the factors, ``estimator``, ``parameter``, ``trial``, ``z``.
+        """
+        keys = [*self.factors, "estimator", "parameter", "trial"]
+        frame = self.results[[*keys, "estimate", "se"]].merge(
+            self._truth_table(), on=[*self.factors, "parameter"], how="inner"
+        )
+        frame = frame[frame["se"] > 0]
+        frame = frame.assign(z=(frame["estimate"] - frame["truth"]) / frame["se"])
+        return frame[[*keys, "z"]].reset_index(drop=True)
+
+    def normalized_error_summary(self):
+        """Mean, standard deviation and Kolmogorov-Smirnov distance to N(0, 1) of the
+        normalised errors (:meth:`normalized_errors`) per grid point x estimator x parameter.
+
+        Columns: the factors, ``estimator``, ``parameter``, ``trials``, ``mean``, ``std``,
+        ``ks_statistic``, ``ks_pvalue`` (:func:`scipy.stats.kstest` against N(0, 1)).
+        """
+        from scipy.stats import kstest
+
+        pd = _pandas()
+        keys = [*self.factors, "estimator", "parameter"]
+        rows = []
+        for key, group in self.normalized_errors().groupby(keys, sort=False):
+            z = group["z"].to_numpy()
+            test = kstest(z, "norm")
+            rows.append(
+                {
+                    **dict(zip(keys, key, strict=True)),
+                    "trials": len(z),
+                    "mean": float(z.mean()),
+                    "std": float(z.std(ddof=1)),
+                    "ks_statistic": float(test.statistic),
+                    "ks_pvalue": float(test.pvalue),
+                }
+            )
+        return pd.DataFrame(
+            rows, columns=[*keys, "trials", "mean", "std", "ks_statistic", "ks_pvalue"]
+        )
+
     # ------------------------------------------------------------------ report
-    def report(self, out_dir, factor: str = "N") -> pathlib.Path:
+    def report(
+        self,
+        out_dir,
+        factor: str = "N",
+        ellipse: tuple[str, str] | None = None,
+        level: float = 0.95,
+    ) -> pathlib.Path:
         """Write ``report.md`` with the summary tables (also as CSV) and figures.
 
-        Figures: ``bias_std_vs_<factor>.png`` (``|bias|`` and ``std`` against ``factor`` on
-        log-log axes with the ``factor^(-1/2)`` reference, when ``factor`` is a numeric grid
-        factor with >= 2 values) and ``se_vs_std.png`` (mean reported standard error against
-        the empirical standard deviation, with the line of equality).
+        Tables: ``summary``, ``covariance``, ``normalized_errors``
+        (:meth:`normalized_error_summary`) and, when ``factor`` is a numeric grid factor with
+        >= 2 values, ``consistency``. Figures (PNG, matplotlib's Agg backend):
+
+        * ``bias_std_vs_<factor>.png``: ``|bias|`` and ``std`` against ``factor`` on log-log
+          axes with the ``factor^(-1/2)`` reference (numeric ``factor`` only);
+        * ``coverage_vs_<factor>.png``: coverage of the ``level`` intervals against
+          ``factor``, the nominal level and its binomial band ``level +- z sqrt(level
+          (1 - level) / trials)`` (``z`` the normal quantile of ``level``; numeric ``factor``
+          only);
+        * ``normalized_histograms.png`` and ``normalized_qq.png``: histograms and QQ plots of
+          the normalised errors ``(estimate - truth) / se`` against N(0, 1), one panel per
+          estimator x parameter, one curve per grid point (needs ``truth``);
+        * ``ellipses_<a>_<b>.png``: for the parameters ``ellipse = (a, b)`` (default: the first
+          two of the first estimator), one panel per estimator x grid point: the estimates and
+          the ``level`` ellipses ``{x: (x - m)' C^-1 (x - m) = chi2_2(level)}`` of the
+          empirical, the mean reported and (where ``theory`` gives one) the theoretical
+          covariance, all centred on the sample mean ``m``, and the truth;
+        * ``se_vs_std.png``: mean reported standard error against the empirical standard
+          deviation, with the line of equality.
 
         Returns:
             The path of ``report.md``.
+
+        Raises:
+            InputValidationError: ``ellipse`` names a parameter no estimator has.
         """
         import matplotlib
 
@@ -623,7 +702,11 @@ class Study:
 
         folder = pathlib.Path(out_dir)
         folder.mkdir(parents=True, exist_ok=True)
-        tables = {"summary": self.summary(), "covariance": self.covariance_summary()}
+        tables = {
+            "summary": self.summary(level),
+            "covariance": self.covariance_summary(),
+            "normalized_errors": self.normalized_error_summary(),
+        }
         values = self.grid.get(factor)
         by_factor = values is not None and len(set(values)) > 1
         by_factor = by_factor and not isinstance(values[0], (str, bool))
@@ -633,26 +716,177 @@ class Study:
         for name, table in tables.items():
             table.to_csv(folder / f"{name}.csv", index=False)
             text.append(f"## {name}\n\n{_markdown(table)}")
-        summary = tables["summary"]
-        others = [f for f in self.factors if f != factor]
+        figures = []
         if by_factor:
-            fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-            for key, group in summary.groupby([*others, "estimator", "parameter"], sort=False):
-                label = " ".join(str(k) for k in key)
-                axes[0].loglog(group[factor], group["bias"].abs(), "o-", label=label)
-                axes[1].loglog(group[factor], group["std"], "o-", label=label)
-            n = np.array(sorted(set(values)), dtype=float)
-            first = summary[summary[factor] == n[0]]["std"].max()
-            axes[1].loglog(n, first * np.sqrt(n[0] / n), "k:", label=f"{factor}^(-1/2)")
-            axes[0].set_title("|bias|")
-            axes[1].set_title("standard deviation")
-            for ax in axes:
-                ax.set_xlabel(factor)
-                ax.legend(fontsize=6)
-            fig.tight_layout()
-            fig.savefig(folder / f"bias_std_vs_{factor}.png", dpi=150)
+            figures.append(self._plot_bias_std(plt, tables["summary"], factor))
+            figures.append(self._plot_coverage(plt, tables["summary"], factor, level))
+        if len(tables["normalized_errors"]):
+            figures += self._plot_normalized(plt)
+        figures.append(self._plot_ellipses(plt, ellipse, level))
+        figures.append(self._plot_se_vs_std(plt, tables["summary"]))
+        text.append("## figures\n")
+        for fig, name, caption in (f for f in figures if f is not None):
+            fig.savefig(folder / name, dpi=150)
             plt.close(fig)
-            text.append(f"![bias and std vs {factor}](bias_std_vs_{factor}.png)\n")
+            text.append(f"![{caption}]({name})\n")
+        path = folder / "report.md"
+        path.write_text("\n".join(text))
+        return path
+
+    def _point_label(self, point: dict) -> str:
+        return ", ".join(f"{k}={v}" for k, v in point.items()) or "all"
+
+    def _plot_bias_std(self, plt, summary, factor: str):
+        others = [f for f in self.factors if f != factor]
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+        for key, group in summary.groupby([*others, "estimator", "parameter"], sort=False):
+            label = " ".join(str(k) for k in key)
+            axes[0].loglog(group[factor], group["bias"].abs(), "o-", label=label)
+            axes[1].loglog(group[factor], group["std"], "o-", label=label)
+        n = np.array(sorted(set(self.grid[factor])), dtype=float)
+        first = summary[summary[factor] == n[0]]["std"].max()
+        axes[1].loglog(n, first * np.sqrt(n[0] / n), "k:", label=f"{factor}^(-1/2)")
+        axes[0].set_title("|bias|")
+        axes[1].set_title("standard deviation")
+        axes[0].set_ylabel("|mean estimate - truth|")
+        axes[1].set_ylabel("sample standard deviation")
+        for ax in axes:
+            ax.set_xlabel(factor)
+            ax.legend(fontsize=6)
+        fig.tight_layout()
+        return fig, f"bias_std_vs_{factor}.png", f"bias and std vs {factor}"
+
+    def _plot_coverage(self, plt, summary, factor: str, level: float):
+        from scipy.stats import norm
+
+        others = [f for f in self.factors if f != factor]
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for key, group in summary.groupby([*others, "estimator", "parameter"], sort=False):
+            if group["coverage"].notna().any():
+                ax.semilogx(group[factor], group["coverage"], "o-", label=" ".join(map(str, key)))
+        per_value = summary.groupby(factor)["trials"].min()
+        n = per_value.index.to_numpy(dtype=float)
+        half = norm.ppf(0.5 + level / 2) * np.sqrt(level * (1 - level) / per_value.to_numpy())
+        ax.fill_between(n, level - half, level + half, color="0.85", label="binomial band")
+        ax.semilogx(n, np.full_like(n, level), "k:", label=f"nominal {level:g}")
+        ax.set_xlabel(factor)
+        ax.set_ylabel(f"coverage of {level:g} intervals")
+        ax.legend(fontsize=6)
+        fig.tight_layout()
+        return fig, f"coverage_vs_{factor}.png", f"coverage vs {factor}"
+
+    def _plot_normalized(self, plt):
+        """Histograms and QQ plots of the normalised errors: rows estimators, columns
+        parameters, one curve per grid point (QQ: at most 200 evenly spaced quantiles)."""
+        from scipy.stats import norm
+
+        z = self.normalized_errors()
+        estimators = list(dict.fromkeys(z["estimator"]))
+        parameters = {
+            e: list(dict.fromkeys(z[z["estimator"] == e]["parameter"])) for e in estimators
+        }
+        cols = max(len(p) for p in parameters.values())
+        size = (3.2 * cols, 2.8 * len(estimators))
+        hist, hist_axes = plt.subplots(len(estimators), cols, figsize=size, squeeze=False)
+        qq, qq_axes = plt.subplots(len(estimators), cols, figsize=size, squeeze=False)
+        edges = np.linspace(-5, 5, 41)
+        grid = np.linspace(-5, 5, 201)
+        for r, estimator in enumerate(estimators):
+            for c in range(cols, len(parameters[estimator]), -1):
+                hist_axes[r, c - 1].set_visible(False)
+                qq_axes[r, c - 1].set_visible(False)
+            for c, parameter in enumerate(parameters[estimator]):
+                h, q = hist_axes[r, c], qq_axes[r, c]
+                rows = z[(z["estimator"] == estimator) & (z["parameter"] == parameter)]
+                for point in self.points:
+                    values = _at(rows, point)["z"].to_numpy()
+                    if not len(values):
+                        continue
+                    label = self._point_label(point)
+                    h.hist(
+                        np.clip(values, -5, 5),
+                        bins=edges,
+                        density=True,
+                        histtype="step",
+                        label=label,
+                    )
+                    probabilities = (np.arange(min(len(values), 200)) + 0.5) / min(len(values), 200)
+                    q.plot(
+                        norm.ppf(probabilities),
+                        np.quantile(values, probabilities),
+                        ".",
+                        ms=3,
+                        label=label,
+                    )
+                h.plot(grid, norm.pdf(grid), "k:", label="N(0, 1)")
+                q.plot([-4, 4], [-4, 4], "k:", label="y = x")
+                for ax, ylabel in ((h, "density"), (q, "sample quantile")):
+                    ax.set_title(f"{estimator}: {parameter}", fontsize=9)
+                    ax.set_ylabel(ylabel)
+                    ax.legend(fontsize=6)
+                h.set_xlabel("(estimate - truth) / SE")
+                q.set_xlabel("N(0, 1) quantile")
+        for fig in (hist, qq):
+            fig.tight_layout()
+        return [
+            (hist, "normalized_histograms.png", "histograms of normalised errors"),
+            (qq, "normalized_qq.png", "QQ plots of normalised errors against N(0, 1)"),
+        ]
+
+    def _plot_ellipses(self, plt, ellipse, level: float):
+        """The covariance ellipses of two parameters (see :meth:`report`), or None when no
+        estimator has two parameters."""
+        from scipy.stats import chi2
+
+        names = {
+            e: list(dict.fromkeys(g["parameter"]))
+            for e, g in self.results.groupby("estimator", sort=False)
+        }
+        if ellipse is None:
+            first = names[next(iter(self.estimators))]
+            if len(first) < 2:
+                return None
+            ellipse = (first[0], first[1])
+        a, b = ellipse
+        estimators = [e for e in self.estimators if a in names[e] and b in names[e]]
+        if not estimators:
+            raise InputValidationError(
+                f"report(ellipse={ellipse!r}): no estimator has both parameters; their "
+                f"parameters are {names}."
+            )
+        radius = math.sqrt(chi2.ppf(level, 2))
+        angle = np.linspace(0, 2 * np.pi, 121)
+        circle = np.stack([np.cos(angle), np.sin(angle)])
+        rows, cols = len(estimators), len(self.points)
+        fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 3.2 * rows), squeeze=False)
+        for r, estimator in enumerate(estimators):
+            ia, ib = names[estimator].index(a), names[estimator].index(b)
+            for i, point in enumerate(self.points):
+                ax = axes[r, i]
+                c = self.covariances(i, estimator)
+                rows_i = _at(self.results, point)
+                rows_i = rows_i[rows_i["estimator"] == estimator]
+                est = rows_i["estimate"].to_numpy().reshape(-1, len(names[estimator]))[:, [ia, ib]]
+                mean = est.mean(0)
+                ax.plot(est[:500, 0], est[:500, 1], ".", ms=2, color="0.6", label="estimates")
+                for key, style in (("empirical", "-"), ("reported", "--"), ("theory", ":")):
+                    if c[key] is None:
+                        continue
+                    cov = c[key].numpy()[np.ix_([ia, ib], [ia, ib])]
+                    w, v = np.linalg.eigh(cov)
+                    xy = mean[:, None] + radius * (v * np.sqrt(np.clip(w, 0, None))) @ circle
+                    ax.plot(xy[0], xy[1], style, label=f"{key} {level:g}")
+                truth = _at(self._truth_table(), point).set_index("parameter")["truth"]
+                if a in truth and b in truth:
+                    ax.plot([truth[a]], [truth[b]], "k+", ms=10, label="truth")
+                ax.set_title(f"{estimator}, {self._point_label(point)}", fontsize=9)
+                ax.set_xlabel(a)
+                ax.set_ylabel(b)
+                ax.legend(fontsize=6)
+        fig.tight_layout()
+        return fig, f"ellipses_{a}_{b}.png", f"covariance ellipses of {a} and {b}"
+
+    def _plot_se_vs_std(self, plt, summary):
         fig, ax = plt.subplots(figsize=(5, 4))
         for name, group in summary.groupby("estimator", sort=False):
             ax.loglog(group["std"], group["mean_se"], "o", label=name)
@@ -662,12 +896,15 @@ class Study:
         ax.set_ylabel("mean reported standard error")
         ax.legend(fontsize=7)
         fig.tight_layout()
-        fig.savefig(folder / "se_vs_std.png", dpi=150)
-        plt.close(fig)
-        text.append("![reported SE vs empirical std](se_vs_std.png)\n")
-        path = folder / "report.md"
-        path.write_text("\n".join(text))
-        return path
+        return fig, "se_vs_std.png", "reported SE vs empirical std"
+
+
+def _at(frame, point: dict):
+    """The rows of ``frame`` at grid point ``point`` (factor -> value)."""
+    mask = np.ones(len(frame), dtype=bool)
+    for factor, value in point.items():
+        mask &= (frame[factor] == value).to_numpy()
+    return frame[mask]
 
 
 def _relative_frobenius(a: torch.Tensor, b: torch.Tensor) -> float:

@@ -16,6 +16,10 @@ the noise variance):
 
 * ``fit_percent``: ``100 (1 - ||y - yhat|| / ||y - mean(y)||)`` per output channel (MATLAB's
   ``compare``: 100 is a perfect fit, 0 is no better than the mean, negative is worse).
+* ``fit_quality``: that fit with the root-mean-square error ``sqrt(mean (y - yhat)^2)`` and
+  the coefficient of determination ``R^2 = 1 - ||y - yhat||^2 / ||y - mean(y)||^2``
+  (``= 1 - (1 - fit/100)^2``), all computed after leaving out the first ``skip`` samples
+  (the transient of an unknown initial state).
 * ``aic``: ``N log V + 2 d + N (log 2 pi + 1)`` = ``-2 log L + 2 d`` for Gaussian residuals
   with the maximised log-likelihood ``log L = -N/2 (log(2 pi V) + 1)`` (Akaike 1974; the
   constant term matches MATLAB's raw AIC for a single output).
@@ -46,10 +50,12 @@ from .estimation import FitResult, fit
 from .models import PolynomialModel
 
 __all__ = [
+    "FitQuality",
     "OrderSelection",
     "ResidualTestResult",
     "aic",
     "fit_percent",
+    "fit_quality",
     "fpe",
     "residual_test",
     "select_order",
@@ -57,6 +63,7 @@ __all__ = [
 
 
 _USAGE = {
+    "fit_quality": "fit_quality(y, yhat, skip=0) with tensors/arrays (*batch, N, ny)",
     "fit_percent": "fit_percent(y, yhat) with tensors/arrays (*batch, N, ny), or "
     "fit_percent(model, data) with a fitted model (or FitResult) and IOData",
     "aic": "aic(residuals, n_params) with residuals (*batch, N, ny) and an int, or "
@@ -113,7 +120,7 @@ def _as_sequences(x, name: str, func: str) -> torch.Tensor:
     return x
 
 
-def fit_percent(y, yhat) -> torch.Tensor:
+def fit_percent(y, yhat, skip: int = 0) -> torch.Tensor:
     """MATLAB's fit: ``100 (1 - ||y - yhat|| / ||y - mean(y)||)`` per output channel.
 
     Call as ``fit_percent(y, yhat)`` or ``fit_percent(model, data)``.
@@ -125,36 +132,100 @@ def fit_percent(y, yhat) -> torch.Tensor:
             or, with a model as first argument, the :class:`sysid.IOData` to compare on: the
             fit is then that of the model's noise-free simulated output ``model.simulate(data)``
             to ``data.y`` (MATLAB's ``compare``), computed without gradient.
+        skip: samples left out at the start (``0 <= skip <= N - 2``), e.g. the transient of an
+            unknown initial state; the mean of ``y`` is that of the remaining samples.
 
     Returns:
         Fit in percent, shape ``(*batch, ny)``.
 
     Raises:
         InputValidationError: other argument types (the message states the signature),
-            shapes do not match, non-finite values, or a constant ``y`` (the normalisation
-            ``||y - mean(y)||`` is zero).
+            shapes do not match, non-finite values, a bad ``skip``, or a constant ``y`` (the
+            normalisation ``||y - mean(y)||`` is zero).
     """
     pair = _model_and_data(y, yhat, "fit_percent")
     if pair is not None:
         model, data = pair
         with torch.no_grad():
             y, yhat = data.y, model.predict(data, horizon=math.inf)
-    y = _as_sequences(y, "y", "fit_percent")
-    yhat = _as_sequences(yhat, "yhat", "fit_percent").to(dtype=y.dtype, device=y.device)
-    try:
-        torch.broadcast_shapes(y.shape, yhat.shape)
-    except RuntimeError as exc:
+    return _quality(y, yhat, skip, "fit_percent").fit_percent
+
+
+@dataclass
+class FitQuality:
+    """Fit statistics of model outputs against measured ones, per data set and output channel.
+
+    Attributes:
+        fit_percent: MATLAB's fit ``100 (1 - ||y - yhat|| / ||y - mean(y)||)``, (*batch, ny).
+        rmse: root-mean-square error ``sqrt(mean_k (y_k - yhat_k)^2)`` (output units),
+            (*batch, ny).
+        r_squared: ``1 - ||y - yhat||^2 / ||y - mean(y)||^2``, (*batch, ny).
+        skip: samples left out at the start of each experiment.
+        n_samples: samples per channel that entered the statistics.
+    """
+
+    fit_percent: torch.Tensor
+    rmse: torch.Tensor
+    r_squared: torch.Tensor
+    skip: int
+    n_samples: int
+
+
+def fit_quality(y, yhat, skip: int = 0) -> FitQuality:
+    """Fit percentage, RMSE and R^2 of ``yhat`` against ``y`` after ``skip`` samples.
+
+    Args:
+        y: measured outputs ``(*batch, N, ny)`` (or ``(N,)``).
+        yhat: model outputs (e.g. a free-run simulation), broadcastable to ``y``.
+        skip: samples left out at the start (``0 <= skip <= N - 2``), e.g. the transient of
+            an unknown initial state.
+
+    Returns:
+        :class:`FitQuality` with ``(*batch, ny)`` tensors.
+
+    Raises:
+        InputValidationError: shapes do not match, non-finite values, a bad ``skip``, or a
+            constant ``y`` after the skipped samples.
+    """
+    return _quality(y, yhat, skip, "fit_quality")
+
+
+def _quality(y, yhat, skip, func: str, check: bool = True) -> FitQuality:
+    """The statistics of :class:`FitQuality` (formulas in the module docstring); ``check``
+    False skips the argument checks and gives NaN/inf where the numbers are undefined."""
+    if check:
+        y = _as_sequences(y, "y", func)
+        yhat = _as_sequences(yhat, "yhat", func).to(dtype=y.dtype, device=y.device)
+        try:
+            torch.broadcast_shapes(y.shape, yhat.shape)
+        except RuntimeError as exc:
+            raise InputValidationError(
+                f"{func}: y {tuple(y.shape)} and yhat {tuple(yhat.shape)} do not match."
+            ) from exc
+        N = y.shape[-2]
+        if isinstance(skip, bool) or int(skip) != skip or not 0 <= skip <= N - 2:
+            raise InputValidationError(
+                f"{func}: skip must be an integer in [0, N - 2] = [0, {N - 2}] (samples left "
+                f"out at the start), got {skip!r}."
+            )
+    skip = int(skip)
+    y, yhat = y[..., skip:, :], yhat[..., skip:, :]
+    e2 = ((y - yhat) ** 2).sum(-2)
+    d2 = ((y - y.mean(dim=-2, keepdim=True)) ** 2).sum(-2)
+    if check and bool((d2 == 0).any()):
         raise InputValidationError(
-            f"fit_percent: y {tuple(y.shape)} and yhat {tuple(yhat.shape)} do not match."
-        ) from exc
-    num = torch.linalg.vector_norm(y - yhat, dim=-2)
-    den = torch.linalg.vector_norm(y - y.mean(dim=-2, keepdim=True), dim=-2)
-    if bool((den == 0).any()):
-        raise InputValidationError(
-            "fit_percent: y is constant in time for some batch member/channel, so the fit "
-            "is undefined; compare on a data set with a varying output."
+            f"{func}: y is constant in time for some batch member/channel (after the first "
+            f"{skip} samples), so the fit is undefined; compare on a data set with a varying "
+            "output."
         )
-    return 100.0 * (1.0 - num / den)
+    n = y.shape[-2]
+    return FitQuality(
+        fit_percent=100.0 * (1.0 - e2.sqrt() / d2.sqrt()),
+        rmse=(e2 / n).sqrt(),
+        r_squared=1.0 - e2 / d2,
+        skip=skip,
+        n_samples=n,
+    )
 
 
 def _residuals_and_size(residuals, n_params, func: str) -> tuple[torch.Tensor, int]:

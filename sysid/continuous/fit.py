@@ -38,13 +38,14 @@ import torch
 from integrators.errors import InputValidationError
 from integrators.newton import NewtonStatus, minimize
 
+from .._progress import progress_bar
 from ..data import IOData
 from ..errors import ConvergenceWarning, PoorExcitationWarning
 from ..estimation.losses import LOSSES, GaussianLoss, make_loss
 from ..estimation.results import STATIONARY_TOL, FitResult, covariance, remaining_step
 from .greybox import GreyBoxModel, Segments
 
-__all__ = ["CRITERIA", "fit_greybox"]
+__all__ = ["CRITERIA", "fit_greybox", "simulation_quality"]
 
 CRITERIA = ("simulation", "multiple_shooting", "one_step")
 
@@ -326,8 +327,30 @@ def _scatter_columns(
     Jt.scatter_add_(-1, index, d_dnode * free)
 
 
-def _minimise(problem: _Problem, z0: torch.Tensor, loss, max_iter, xtol, ftol):
-    """Levenberg-Marquardt on ``sum rho(r(z))`` with the sensitivity Jacobian."""
+class _Monitor:
+    """The progress bar over the Levenberg-Marquardt iterations of a fit (the callback of
+    :func:`~integrators.newton.minimize`): one bar across all runs of the fit, showing the
+    current loss summed over the data sets."""
+
+    def __init__(self, total: int, progress):
+        self.bar = progress_bar(total, "grey-box fit", progress, unit="iter")
+        self.done = 0  # iterations of the finished runs
+        self.last = 0  # iterations of the current run already shown
+
+    def start_run(self) -> None:
+        self.done += self.last
+        self.last = 0
+
+    def __call__(self, iteration: int, z: torch.Tensor, f: torch.Tensor) -> None:
+        self.bar.update(iteration - self.last)
+        self.last = iteration
+        self.bar.set_postfix(loss=f"{float(f.sum()):.6g}", refresh=False)
+
+
+def _minimise(problem: _Problem, z0: torch.Tensor, loss, max_iter, xtol, ftol, monitor):
+    """Levenberg-Marquardt on ``sum rho(r(z))`` with the sensitivity Jacobian; a
+    KeyboardInterrupt returns the last accepted iterate (status ``INTERRUPTED``)."""
+    monitor.start_run()
     return minimize(
         problem.residuals,
         z0,
@@ -337,7 +360,13 @@ def _minimise(problem: _Problem, z0: torch.Tensor, loss, max_iter, xtol, ftol):
         max_iter=max_iter,
         xtol=xtol,
         ftol=ftol,
+        callback=monitor,
+        catch_interrupt=True,
     )
+
+
+def _interrupted(lm) -> bool:
+    return bool((lm.status == NewtonStatus.INTERRUPTED).any())
 
 
 def _check_start(problem: _Problem, z0: torch.Tensor) -> None:
@@ -369,9 +398,16 @@ def fit_greybox(
     max_iter: int = 100,
     xtol: float = 1e-10,
     ftol: float = 1e-12,
+    progress: bool | None = None,
 ) -> FitResult:
     """Estimate the free parameters (and initial states) of a grey-box model; see
-    :func:`sysid.fit` for the arguments and the module docstring for the criteria."""
+    :func:`sysid.fit` for the arguments and the module docstring for the criteria.
+
+    ``progress``: a tqdm bar over the Levenberg-Marquardt iterations with the current loss
+    (None: only when stderr is a terminal). A KeyboardInterrupt (Ctrl-C) during the
+    iterations ends the fit with the last accepted iterate: ``converged`` is False,
+    ``info["interrupted"]`` True and ``messages`` say so for the data sets still iterating.
+    """
     if criterion not in CRITERIA:
         raise InputValidationError(
             f"criterion must be one of {CRITERIA} for a continuous-time model, got {criterion!r}."
@@ -405,29 +441,40 @@ def fit_greybox(
     problem.method = integrator
     _check_start(problem, z0)
     gauss = GaussianLoss()
-    z_sim, history, iterations = z0, [], 0
-    if criterion == "multiple_shooting":
-        z, history, iterations = _multiple_shooting(problem, z0, gauss, max_iter, xtol, ftol)
-        # polish by the simulation criterion from the fitted parameters and first node
-        final = _Problem(model, data, "simulation", x0, None, integrator)
-        z_sim = _carry_over(problem, final, z)
-        problem = final
-        _check_start(problem, z_sim)
-    lm = _minimise(problem, z_sim, gauss, max_iter, xtol, ftol)
-    history = history + [lm.loss_history]
-    iterations = iterations + lm.iterations
-    the_loss = gauss
-    if loss != "gaussian":
-        the_loss = make_loss(loss, lm.residual, alpha)
-        budget = max(max_iter, 500) if loss == "laplace" else max_iter
-        lm = _minimise(problem, lm.theta, the_loss, budget, xtol, ftol)
-        history.append(lm.loss_history)
+    shooting_runs = len(_PENALTY_CONTINUATION) if criterion == "multiple_shooting" else 0
+    runs = 1 + shooting_runs + (loss != "gaussian")
+    monitor = _Monitor(runs * max_iter, progress)
+    with monitor.bar:
+        z_sim, history, iterations = z0, [], 0
+        if criterion == "multiple_shooting":
+            lm, history, iterations = _multiple_shooting(
+                problem, z0, gauss, max_iter, xtol, ftol, monitor
+            )
+            if _interrupted(lm):
+                return _result(
+                    problem, lm, gauss, method, loss, history, iterations, integrator, reason
+                )
+            # polish by the simulation criterion from the fitted parameters and first node
+            final = _Problem(model, data, "simulation", x0, None, integrator)
+            z_sim = _carry_over(problem, final, lm.theta)
+            problem = final
+            _check_start(problem, z_sim)
+        lm = _minimise(problem, z_sim, gauss, max_iter, xtol, ftol, monitor)
+        history = history + [lm.loss_history]
         iterations = iterations + lm.iterations
+        the_loss = gauss
+        if loss != "gaussian" and not _interrupted(lm):
+            the_loss = make_loss(loss, lm.residual, alpha)
+            budget = max(max_iter, 500) if loss == "laplace" else max_iter
+            lm = _minimise(problem, lm.theta, the_loss, budget, xtol, ftol, monitor)
+            history.append(lm.loss_history)
+            iterations = iterations + lm.iterations
     return _result(problem, lm, the_loss, method, loss, history, iterations, integrator, reason)
 
 
-def _multiple_shooting(problem: _Problem, z0, loss, max_iter, xtol, ftol):
-    """Penalty continuation over :data:`_PENALTY_CONTINUATION` (see the module docstring)."""
+def _multiple_shooting(problem: _Problem, z0, loss, max_iter, xtol, ftol, monitor):
+    """Penalty continuation over :data:`_PENALTY_CONTINUATION` (see the module docstring);
+    returns the last run's result, the loss histories and the iterations."""
     y = problem.data.y
     y_scale = y.std(dim=-2).mean(-1).clamp_min(torch.finfo(y.dtype).tiny)  # (*batch,)
     with torch.no_grad():
@@ -436,11 +483,13 @@ def _multiple_shooting(problem: _Problem, z0, loss, max_iter, xtol, ftol):
     history, iterations, z = [], 0, z0
     for mu in _PENALTY_CONTINUATION:
         problem.defect_weight = math.sqrt(mu) * y_scale[..., None] / state_scale
-        lm = _minimise(problem, z, loss, max_iter, xtol, ftol)
+        lm = _minimise(problem, z, loss, max_iter, xtol, ftol, monitor)
         z = lm.theta
         history.append(lm.loss_history)
         iterations = iterations + lm.iterations
-    return z, history, iterations
+        if _interrupted(lm):
+            break
+    return lm, history, iterations
 
 
 def _carry_over(ms: _Problem, sim: _Problem, z: torch.Tensor) -> torch.Tensor:
@@ -471,7 +520,8 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
     se = torch.diagonal(cov, dim1=-2, dim2=-1).clamp_min(0).sqrt()
     d, zstat = remaining_step(J, r, the_loss, factor)
     tiny = d.norm(dim=-1) <= math.sqrt(torch.finfo(d.dtype).eps) * (1 + z.norm(dim=-1))
-    converged = (zstat <= STATIONARY_TOL) | tiny
+    interrupted = lm.status == NewtonStatus.INTERRUPTED
+    converged = ((zstat <= STATIONARY_TOL) | tiny) & ~interrupted
     names = [problem.column_names[c] for c in keep]
     model = problem.model
     params = {}
@@ -502,16 +552,25 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
         tuple(i) for i in torch.nonzero(~converged.reshape(converged.shape or (1,))).tolist()
     ]:
         key = idx if converged.dim() else ()
-        why = (
-            "the line search found no decrease"
-            if bool(failed[key])
-            else "the iteration limit was reached or it stopped away from a stationary point"
-        )
+        if bool(interrupted[key]):
+            why = (
+                f"interrupted (KeyboardInterrupt) after {int(lm.iterations[key])} iterations of "
+                f"the {problem.criterion!r} criterion; the estimate is its last accepted "
+                "iterate"
+            )
+        elif bool(failed[key]):
+            why = "the line search found no decrease"
+        else:
+            why = "the iteration limit was reached or it stopped away from a stationary point"
         messages.append(
             f"batch index {key}: did not converge: {why}; a Gauss-Newton step would still move "
             f"the estimate by {float(zstat[key]):.3g} standard errors (converged means <= "
-            f"{STATIONARY_TOL}). Start closer, raise max_iter, or use "
-            "criterion='multiple_shooting'."
+            f"{STATIONARY_TOL}). "
+            + (
+                "Run the fit again from it (Param values from result.params) to finish."
+                if bool(interrupted[key])
+                else "Start closer, raise max_iter, or use criterion='multiple_shooting'."
+            )
         )
     if messages:
         warnings.warn(
@@ -523,6 +582,9 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
         )
     _warn_unidentifiable(cov, names)
     stats = problem.stats
+    fitted = model.with_values(params, x0_est if isinstance(x0_est, torch.Tensor) else None)
+    starts = [problem.nodes(z, e)[..., 0, :] for e in range(len(problem.parts))]
+    quality = simulation_quality(fitted, problem.data, params, starts)
     result = FitResult(
         theta=theta,
         covariance=cov,
@@ -536,7 +598,7 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
         parameter_names=names,
         n_samples=r.shape[-1],
         residuals=r,
-        model=model.with_values(params, x0_est if isinstance(x0_est, torch.Tensor) else None),
+        model=fitted,
         info={
             "criterion": problem.criterion,
             "integrator": integrator if isinstance(integrator, str) else integrator.name,
@@ -552,13 +614,44 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
             "damping": lm.damping,
             "step_in_standard_errors": zstat,
             "line_search_failed": failed,
+            "interrupted": interrupted,
         },
         stable=None,
         messages=messages,
+        quality=quality,
     )
     result.params = params
     result.x0 = x0_est
     return result
+
+
+def simulation_quality(
+    model: GreyBoxModel, data: IOData, params: dict | None = None, x0=None, skip: int = 0
+):
+    """:class:`~sysid.validation.FitQuality` (fit %, RMSE, R^2 per data set and output
+    channel) of the model's free-run simulation on ``data``, leaving out the first ``skip``
+    samples of every experiment (the statistics pool the experiments of a data set).
+
+    ``params`` and ``x0`` as in :meth:`GreyBoxModel.simulate`. A simulation that diverges
+    gives non-finite statistics for its data set instead of an error.
+    """
+    from ..validation import _quality
+
+    yhat = model.simulate(data, params, x0)
+    parts, begin = [], 0
+    for part in data.experiment_list:
+        if isinstance(skip, bool) or int(skip) != skip or not 0 <= skip <= part.N - 2:
+            raise InputValidationError(
+                f"skip = {skip!r} leaves fewer than 2 samples of an experiment with N = "
+                f"{part.N}; use 0 <= skip <= {part.N - 2}."
+            )
+        parts.append((begin + int(skip), begin + part.N))
+        begin += part.N
+    keep = torch.cat([torch.arange(a, b) for a, b in parts]).to(yhat.device)
+    y = data.y.index_select(-2, keep)
+    quality = _quality(y, yhat.to(y).index_select(-2, keep), 0, "validate", check=False)
+    quality.skip = skip
+    return quality
 
 
 def _warn_unidentifiable(cov: torch.Tensor, names: list[str]) -> None:

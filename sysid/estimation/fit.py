@@ -52,6 +52,8 @@ def fit(
     iv_iterations: int = 2,
     x0=None,
     segment_length: int | None = None,
+    progress: bool | None = None,
+    **training,
 ) -> FitResult:
     """Estimate the parameters of ``model`` from ``data`` (batched over data sets).
 
@@ -89,6 +91,19 @@ def fit(
         x0: grey-box models: the initial state, ``"zero"``, ``"estimate"`` (one per
             experiment) or a tensor (nx,) / (*batch, nx); default the model's ``x0``.
         segment_length: grey-box multiple shooting: sample intervals per segment.
+        **training: neural continuous-time models (an ``nn.Module`` with ``nx``, ``nu``,
+            ``ny``, ``method``, ``substeps``, ``output``, ``physical_parameters``, e.g.
+            ``NeuralODE``), or ``method="adam"`` / ``"lbfgs"``: the options of
+            :func:`sysid.continuous.training.train` (``horizon``, ``batch_size``,
+            ``epochs``, ``lr``, ``validation``, ``patience``, ``seed``, ``checkpoint``, ...);
+            ``criterion`` is ``"truncated"`` and ``x0`` is ``"estimate"`` (default),
+            ``"encoder"`` or ``"zero"``.
+        progress: grey-box models: a tqdm bar over the Levenberg-Marquardt iterations with
+            the current loss; neural models: over the epochs with the training and validation
+            losses (None: only when stderr is a terminal). A Ctrl-C during a grey-box fit
+            returns the last accepted iterate, flagged not converged and interrupted (see
+            :func:`sysid.continuous.fit.fit_greybox`). Polynomial fits are short and show no
+            bar.
 
     Returns:
         :class:`FitResult`; ``result.model`` is the fitted model (a copy), the input model
@@ -96,6 +111,31 @@ def fit(
     """
     from ..continuous.greybox import GreyBoxModel  # the continuous package builds on this one
 
+    neural = not isinstance(model, (GreyBoxModel, PolynomialModel)) and isinstance(
+        model, torch.nn.Module
+    )
+    if neural or method in ("adam", "lbfgs"):
+        from ..continuous.training import train
+
+        if loss != "gaussian":
+            raise InputValidationError(
+                f"training a neural model minimises squared errors; loss={loss!r} is not "
+                "available: use loss='gaussian'."
+            )
+        return train(
+            model,
+            data,
+            method="adam" if method is None else method,
+            criterion="truncated" if criterion == "prediction" else criterion,
+            x0="estimate" if x0 is None else x0,
+            progress=progress,
+            **training,
+        )
+    if training:
+        raise InputValidationError(
+            f"unexpected option(s) {sorted(training)}: they apply to the training of neural "
+            "models (method='adam' or 'lbfgs') only."
+        )
     if isinstance(model, GreyBoxModel):
         from ..continuous.fit import fit_greybox
 
@@ -109,6 +149,7 @@ def fit(
             x0=x0,
             segment_length=segment_length,
             max_iter=max_iter,
+            progress=progress,
         )
     if not isinstance(model, PolynomialModel):
         raise InputValidationError(f"model must be a sysid model, got {type(model).__name__}.")

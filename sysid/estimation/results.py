@@ -70,6 +70,10 @@ class FitResult:
         messages: one line per data set that did not converge or whose estimate is
             unstable, naming its batch index and the reason (also issued as
             :class:`ConvergenceWarning` / :class:`UnstableModelWarning`).
+        quality: grey-box fits: :class:`~sysid.validation.FitQuality` (fit %, RMSE, R^2
+            per data set and output channel) of the fitted model's free-run simulation on
+            the estimation data, from the estimated (or given) initial states; None for
+            the polynomial models (use :meth:`validate`).
     """
 
     theta: torch.Tensor
@@ -88,6 +92,30 @@ class FitResult:
     info: dict = field(default_factory=dict)
     stable: torch.Tensor | None = None
     messages: list[str] = field(default_factory=list)
+    quality: object | None = None
+
+    def validate(self, data, skip: int = 0, x0=None):
+        """Fit %, RMSE and R^2 (:class:`~sysid.validation.FitQuality`, per data set and output
+        channel) of the fitted model's free-run simulation on ``data`` (e.g. validation data),
+        leaving out the first ``skip`` samples of every experiment, where the unknown initial
+        state still shows.
+
+        ``x0``: grey-box models: the initial state on ``data``, (nx,) / (*batch, nx) or one per
+        experiment (a list); None starts from zeros (an initial state estimated by the fit
+        belongs to the estimation data: ``result.quality`` holds the statistics there).
+        Polynomial models always start from rest.
+        """
+        from ..continuous.greybox import GreyBoxModel
+        from ..validation import fit_quality
+
+        if isinstance(self.model, GreyBoxModel):
+            from ..continuous.fit import simulation_quality
+
+            start = torch.zeros(self.model.nx, dtype=torch.float64) if x0 is None else x0
+            return simulation_quality(self.model, data, None, start, skip)
+        with torch.no_grad():
+            yhat = self.model.predict(data, horizon=math.inf)
+        return fit_quality(data.y, yhat, skip)
 
     @property
     def batch_shape(self) -> torch.Size:

@@ -42,6 +42,16 @@ def like_component(param: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return param[..., 0] if param.dim() > 0 else param
 
 
+def stack_last(*params: torch.Tensor) -> torch.Tensor:
+    """Scalar parameters as the entries of a last axis: ``(k,)`` when all are scalars,
+    ``(*batch, k)`` when some have the per-member shape ``(*batch, 1)`` (the others are
+    broadcast), e.g. the point masses ``(M, m)`` of a batch of cranes."""
+    if all(p.dim() == 0 for p in params):
+        return torch.stack(params)
+    columns = [p if p.dim() > 0 else p.reshape(1) for p in params]
+    return torch.cat(torch.broadcast_tensors(*columns), -1)
+
+
 def check_state(x: torch.Tensor, n: int, plant: str) -> None:
     """Raise InputValidationError unless ``x`` has shape ``(*batch, n)``."""
     if not isinstance(x, torch.Tensor) or x.dim() < 1 or x.shape[-1] != n:

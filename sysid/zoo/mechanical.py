@@ -22,7 +22,7 @@ inf/NaN from the division where it is), which the integrators report as NON_FINI
 import torch
 
 from ..mechanics import LagrangianSystem, distributed_body, spring_potential
-from ._params import as_parameter, like
+from ._params import as_parameter, like, like_component, stack_last
 
 
 def _u(u, q):
@@ -107,7 +107,7 @@ class _CartCrane(LagrangianSystem):
     point masses, and the input u is a horizontal force on the cart (eq. 2.115)."""
 
     def gravity(self):
-        return torch.stack([torch.zeros_like(self.g), -self.g])
+        return stack_last(torch.zeros_like(self.g), -self.g)
 
     def force_points(self, q):
         return self.positions(q)[..., :1, :]
@@ -130,10 +130,10 @@ class Crane(_CartCrane):
         self.L, self.g = as_parameter(L, "L", positive=True), as_parameter(g, "g")
 
     def point_masses(self):
-        return torch.stack([self.M, self.m])
+        return stack_last(self.M, self.m)
 
     def positions(self, q):
-        x, th, length = q[..., 0], q[..., 1], like(self.L, q)
+        x, th, length = q[..., 0], q[..., 1], like_component(self.L, q)
         cart = torch.stack([x, torch.zeros_like(x)], -1)
         bob = torch.stack([x + length * torch.sin(th), -length * torch.cos(th)], -1)
         return torch.stack([cart, bob], -2)
@@ -172,7 +172,7 @@ class ElasticCranePolar(_CartCrane):
         self.L0, self.K, self.g = as_parameter(L0, "L0"), as_parameter(K, "K"), as_parameter(g, "g")
 
     def point_masses(self):
-        return torch.stack([self.M, self.m])
+        return stack_last(self.M, self.m)
 
     def positions(self, q):
         x, th, length = q[..., 0], q[..., 1], q[..., 2]
@@ -181,7 +181,8 @@ class ElasticCranePolar(_CartCrane):
         return torch.stack([cart, bob], -2)
 
     def potential(self, q):
-        return 0.5 * like(self.K, q) * (q[..., 2] - like(self.L0, q)) ** 2  # eq. (2.71)
+        K, L0 = like_component(self.K, q), like_component(self.L0, q)
+        return 0.5 * K * (q[..., 2] - L0) ** 2  # eq. (2.71)
 
     def closed_form_mass_matrix(self, q):
         M, m = like(self.M, q), like(self.m, q)
@@ -232,13 +233,14 @@ class ElasticCraneCartesian(LagrangianSystem):
         self.L0, self.K, self.g = as_parameter(L0, "L0"), as_parameter(K, "K"), as_parameter(g, "g")
 
     def diagonal_mass(self):
-        return torch.stack([self.M, self.m, self.m])
+        return stack_last(self.M, self.m, self.m)
 
     def potential(self, q):
         x, p = q[..., 0], q[..., 1:]
         anchor = torch.stack([x, torch.zeros_like(x)], -1)
-        rod = spring_potential(anchor, p, like(self.K, q), like(self.L0, q))
-        return rod - like(self.m, q) * like(self.g, q) * q[..., 2]
+        K, L0 = like_component(self.K, q), like_component(self.L0, q)
+        rod = spring_potential(anchor, p, K, L0)
+        return rod - like_component(self.m, q) * like_component(self.g, q) * q[..., 2]
 
     def generalized_force(self, q, qdot, u):
         f = _u(u, q)
@@ -274,17 +276,18 @@ class RigidCraneCartesian(LagrangianSystem):
         self.L, self.g = as_parameter(L, "L", positive=True), as_parameter(g, "g")
 
     def diagonal_mass(self):
-        return torch.stack([self.M, self.m, self.m])
+        return stack_last(self.M, self.m, self.m)
 
     def potential(self, q):
-        return -like(self.m, q) * like(self.g, q) * q[..., 2]  # eq. (2.142)
+        m, g = like_component(self.m, q), like_component(self.g, q)
+        return -m * g * q[..., 2]  # eq. (2.142)
 
     def generalized_force(self, q, qdot, u):
         return torch.cat([_u(u, q), torch.zeros_like(q[..., 1:])], -1)
 
     def constraints(self, q):
         delta = torch.stack([q[..., 1] - q[..., 0], q[..., 2]], -1)
-        return (0.5 * ((delta * delta).sum(-1) - like(self.L, q) ** 2)).unsqueeze(-1)
+        return (0.5 * ((delta * delta).sum(-1) - like_component(self.L, q) ** 2)).unsqueeze(-1)
 
     def closed_form_kkt(self, q, qdot, u=None):
         """M(q) (*batch, 4, 4) and right-hand side (*batch, 4) of eq. (2.178), typos fixed."""
@@ -334,7 +337,7 @@ class TwoPendulumCranePolar(_CartCrane):
         )
 
     def point_masses(self):
-        return torch.stack([self.m, self.m, self.m])
+        return stack_last(self.m, self.m, self.m)
 
     def positions(self, q):
         x, t1, t2, length = q[..., 0], q[..., 1], q[..., 2], like(self.L, q)
@@ -417,7 +420,8 @@ class TwoPendulumCraneCartesian(LagrangianSystem):
         return self.m * torch.ones(5, dtype=self.m.dtype)
 
     def potential(self, q):
-        return -like(self.m, q) * like(self.g, q) * (q[..., 2] + q[..., 4])
+        m, g = like_component(self.m, q), like_component(self.g, q)
+        return -m * g * (q[..., 2] + q[..., 4])
 
     def generalized_force(self, q, qdot, u):
         return torch.cat([_u(u, q), torch.zeros_like(q[..., 1:])], -1)
@@ -426,7 +430,7 @@ class TwoPendulumCraneCartesian(LagrangianSystem):
         x, p1, p2 = q[..., 0], q[..., 1:3], q[..., 3:5]
         d1 = torch.stack([x, torch.zeros_like(x)], -1) - p1
         d2 = p2 - p1
-        L2 = like(self.L, q) ** 2
+        L2 = like_component(self.L, q) ** 2
         return 0.5 * torch.stack([(d1 * d1).sum(-1) - L2, (d2 * d2).sum(-1) - L2], -1)
 
     def closed_form_kkt(self, q, qdot, u=None):
@@ -501,8 +505,9 @@ class HangingChain(LagrangianSystem):
     def potential(self, q):
         p = self._with_ends(q)
         delta = p[..., 1:, :] - p[..., :-1, :]
-        links = 0.5 * like(self.K, q) * (delta * delta).sum((-1, -2))  # eq. (2.93), L0 = 0
-        return links + like(self.m, q) * like(self.g, q) * q[..., 2::3].sum(-1)
+        K, m, g = (like_component(v, q) for v in (self.K, self.m, self.g))
+        links = 0.5 * K * (delta * delta).sum((-1, -2))  # eq. (2.93), L0 = 0
+        return links + m * g * q[..., 2::3].sum(-1)
 
     def closed_form_acceleration(self, q, qdot=None, u=None):
         p = self._with_ends(q)
@@ -533,7 +538,7 @@ class Bowl(LagrangianSystem):
         return self.m * torch.ones(3, dtype=self.m.dtype)
 
     def potential(self, q):
-        return like(self.m, q) * like(self.g, q) * q[..., 2]
+        return like_component(self.m, q) * like_component(self.g, q) * q[..., 2]
 
     def constraints(self, q):
         return (q[..., 2] - 0.25 * (q[..., 0] ** 2 + q[..., 1] ** 2)).unsqueeze(-1)
@@ -598,7 +603,7 @@ class DistributedRod(LagrangianSystem):
         return self._body()[1](q)
 
     def gravity(self):
-        return torch.stack([torch.zeros_like(self.g), -self.g])
+        return stack_last(torch.zeros_like(self.g), -self.g)
 
     def generalized_force(self, q, qdot, u):
         return _u(u, q)

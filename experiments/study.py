@@ -1,0 +1,168 @@
+"""Run a declared Monte-Carlo study from a small TOML or JSON file and write its report.
+
+The file names a study kind (one of :data:`KINDS`: the declarations of the experiments that
+define it, ``declare(grid, trials, seed, chunk, **options)``) and, optionally, its grid,
+trials, seed, chunk and the kind's options, e.g. (JSON)::
+
+    {"kind": "fir_covariance", "grid": {"input": ["white"], "N": [300], "sigma": [0.5]},
+     "trials": 2000, "seed": 1, "chunk": 500}
+
+or (TOML)::
+
+    kind = "consistency"
+    trials = 200
+    options = {noise = "output"}
+    [grid]
+    N = [250, 1000, 4000]
+    sigma = [0.5]
+
+Keys left out take the kind's defaults. The study's chunks go to ``DIR/study`` (Parquet, one
+file per finished chunk, and ``manifest.json``), its report (Markdown, CSV, figures) to
+``DIR/report``. A run refuses a ``DIR/study`` that already holds results unless ``--resume``
+is given; with ``--resume`` it computes only the missing chunks of the same declaration, and a
+different declaration (grid, trials, seed, chunk, kind, options) is refused by the study's
+manifest check instead of mixing results.
+
+Run: ``python -m experiments.study DECLARATION [--trials N] [--workers K] [--resume]
+[--out DIR] [--quick]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+
+from experiments._common import experiment_parser, finish, note, output_dir
+
+NAME = "study"
+#: study kind -> module that declares it (``declare(grid, trials, seed, chunk, **options)``)
+KINDS = {
+    "fir_covariance": "experiments.sysid_fir_covariance",
+    "fat_tails": "experiments.sysid_fat_tails",
+    "consistency": "experiments.sysid_consistency",
+}
+KEYS = ("kind", "grid", "trials", "seed", "chunk", "options")
+QUICK_TRIALS = 20
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (``--help`` lists it); built without importing torch."""
+    parser = experiment_parser(NAME, __doc__)
+    parser.add_argument(
+        "declaration",
+        type=pathlib.Path,
+        help="the study's declaration, a .toml or .json file (no default: required); "
+        f"kinds: {', '.join(KINDS)}",
+    )
+    parser.add_argument(
+        "--trials",
+        type=int,
+        default=None,
+        help=f"trials per grid point (default: the file's, else the kind's; {QUICK_TRIALS} "
+        "with --quick)",
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="processes: 1 runs the chunks here; K > 1 starts a dask LocalCluster of K "
+        "one-thread workers (pip install 'rkident[dask]')",
+    )
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the study already in DIR/study (same declaration); without it a "
+        "non-empty DIR/study is refused",
+    )
+    return parser
+
+
+def read_declaration(path: pathlib.Path) -> dict:
+    """The declaration in ``path`` (``.toml`` or ``.json``) as a dict with keys among
+    :data:`KEYS`; ``kind`` one of :data:`KINDS`.
+
+    Raises:
+        ValueError: unreadable file, unknown suffix, unknown key or kind (the message says
+            which and what is allowed).
+    """
+    path = pathlib.Path(path)
+    if path.suffix == ".json":
+        declaration = json.loads(path.read_text())
+    elif path.suffix == ".toml":
+        import tomllib
+
+        declaration = tomllib.loads(path.read_text())
+    else:
+        raise ValueError(f"{path}: a declaration is a .toml or .json file, not {path.suffix!r}.")
+    if not isinstance(declaration, dict):
+        raise ValueError(f"{path}: the declaration must be a table/object of {KEYS}.")
+    unknown = sorted(set(declaration) - set(KEYS))
+    if unknown:
+        raise ValueError(f"{path}: unknown key(s) {unknown}; a declaration has {KEYS}.")
+    if declaration.get("kind") not in KINDS:
+        raise ValueError(
+            f"{path}: kind {declaration.get('kind')!r} is not a known study kind; "
+            f"choose one of {sorted(KINDS)}."
+        )
+    return declaration
+
+
+def declare(declaration: dict, trials: int | None = None):
+    """The :class:`sysid.studies.Study` of ``declaration`` (see :func:`read_declaration`),
+    built by its kind's module; ``trials`` overrides the declaration's."""
+    import importlib
+
+    module = importlib.import_module(KINDS[declaration["kind"]])
+    keywords = {
+        key: declaration[key] for key in ("grid", "trials", "seed", "chunk") if key in declaration
+    }
+    if trials is not None:
+        keywords["trials"] = trials
+    return module.declare(**keywords, **declaration.get("options", {}))
+
+
+def main(argv=None):
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.workers < 1:
+        parser.error(f"--workers must be >= 1, got {args.workers}.")
+    try:
+        declaration = read_declaration(args.declaration)
+    except (OSError, ValueError) as err:
+        parser.error(str(err))
+    out = output_dir(args, NAME)
+    folder = out / "study"
+    if folder.exists() and any(folder.iterdir()) and not args.resume:
+        parser.error(
+            f"{folder} already holds a study; pass --resume to continue it (same declaration), "
+            "or choose another --out."
+        )
+    trials = QUICK_TRIALS if args.quick and args.trials is None else args.trials
+    study = declare(declaration, trials)
+    note(
+        f"study {declaration['kind']}: {len(study.points)} grid points x {study.trials} trials, "
+        f"{study.n_chunks} chunk(s) each, {args.workers} worker(s)"
+    )
+    if args.workers > 1:
+        from dask.distributed import Client, LocalCluster
+
+        with (
+            LocalCluster(
+                n_workers=args.workers,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+            ) as cluster,
+            Client(cluster) as client,
+        ):
+            study.run(folder, client=client)
+    else:
+        study.run(folder)
+    report = study.report(out / "report")
+    finish(out, report.read_text())
+    return study
+
+
+if __name__ == "__main__":  # every heavy import is inside main: --help answers at once
+    main()

@@ -1,0 +1,825 @@
+"""Training of neural continuous-time models by truncated simulation (``sysid.fit`` with
+``method="adam"`` or ``"lbfgs"``).
+
+A model is any ``torch.nn.Module`` with ``nx``, ``nu``, ``ny``, ``method``, ``substeps``,
+``forward(t, x, u) -> dx/dt`` (1/s), ``output(x, u)``, ``physical_parameters()`` and
+``to_physical(name, raw)`` (``NeuralODE``, ``HybridODE``, ``LagrangianNetwork``, or a user
+module following the same contract). The criterion ``"truncated"`` is the mean squared output
+error of short free-run simulations (windows of ``T`` sample intervals)
+
+    V = 1 / (W (T+1) ny) sum_w sum_{j=0..T} || y_{k_w + j} - yhat_{w, j} ||^2,
+
+each window ``w`` simulated from its own initial state at sample ``k_w`` by the model's
+fixed-step Runge-Kutta method (``substeps`` steps per interval), all windows of a minibatch
+in one batched simulation through :func:`integrators.odeint` (gradients by autograd through
+the explicit stages, by the implicit function theorem through the stage equations of implicit
+methods; the course notes (Modelling and Simulation), chapter 8). The input between samples
+follows the data's ``intersample`` (:mod:`sysid.continuous.intersample`); windows are
+simulated on a local clock ``t = 0, Ts, ..., T Ts`` (the models are time-invariant: ``t`` is
+the time since the window's start).
+
+Initial states of the windows (``x0=``): ``"estimate"`` (a free table with one row per
+possible window start, trained jointly; started at the measured outputs where the model's
+output map returns the leading states, zero elsewhere), ``"encoder"`` (a small MLP from the
+``n_init`` samples of outputs and inputs before the window, which then starts at ``k >=
+n_init``) or ``"zero"``.
+
+For models with physical parameters, the covariance of their unconstrained values is
+``sigma^2 (J'J)^{-1}`` (the eq. 4.101 form) with ``J`` the Jacobian of the full-record
+free-run residuals with respect to those values, the network and the initial states held
+fixed; it is mapped to physical units by the delta method through ``to_physical``. These
+standard errors are therefore conditional on the trained network: they ignore the
+uncertainty of the network weights and of the initial states.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import nn
+
+from integrators import odeint
+from integrators.errors import InputValidationError
+from integrators.inputs import CollocationInput
+from integrators.methods import resolve_method
+
+from .._progress import progress_bar
+from ..data import IOData
+from ..estimation.results import FitResult, inverse_normal_matrix
+from ..validation import fit_percent
+from .intersample import input_between_samples, stage_fractions
+
+__all__ = ["METHODS", "X0_MODES", "TrainingResult", "simulate", "train"]
+
+METHODS = ("adam", "lbfgs")
+X0_MODES = ("estimate", "encoder", "zero")
+_CONTRACT = ("nx", "nu", "ny", "method", "substeps", "output", "physical_parameters")
+_STATUSES = ("completed", "early_stopped", "non_finite", "stopped")
+
+
+# --------------------------------------------------------------------------- records
+class _Records:
+    """The experiments of a data set laid end to end: ``u`` (B, Ntot, nu), ``y`` (B, Ntot,
+    ny) with the batch flattened to ``B``, the input between samples ``between`` (B, Ntot, q,
+    nu) (row ``g`` holds interval ``g``; the last row of every experiment is padding) and the
+    offsets of the experiments along time."""
+
+    def __init__(self, data: IOData, model, dtype, device):
+        parts = data.experiment_list
+        tab = resolve_method(model.method).tableau(None)
+        tau = stage_fractions(tab, int(model.substeps))
+        #: nodes of the collocation input: the stage fractions and both ends of the
+        #: interval, so that the continuous interpolants (foh, cubic, bl) agree at t_k when
+        #: the solver looks the input up by time
+        self.nodes = np.unique(np.concatenate([tau, [0.0, 1.0]]))
+        self.intersample = data.intersample
+        self.Ts = data.Ts
+        us, ys, bs = [], [], []
+        self.offsets, self.lengths = [], []
+        off = 0
+        for part in parts:
+            u = part.u.to(dtype=dtype, device=device).reshape(-1, part.N, part.nu)
+            y = part.y.to(dtype=dtype, device=device).reshape(-1, part.N, part.ny)
+            us.append(u)
+            ys.append(y)
+            if self.intersample != "zoh" and part.N >= 2:
+                b = input_between_samples(u, self.intersample, self.nodes)
+                bs.append(torch.cat([b, b[..., -1:, :, :]], -3))
+            self.offsets.append(off)
+            self.lengths.append(part.N)
+            off += part.N
+        self.u = torch.cat(us, -2)
+        self.y = torch.cat(ys, -2)
+        self.between = torch.cat(bs, -3) if bs else None
+        self.B = self.u.shape[0]
+
+    def starts(self, T: int, kmin: int) -> torch.Tensor:
+        """(S,) global start indices of the windows of T intervals starting at ``k >= kmin``
+        inside one experiment."""
+        pieces = [
+            off + torch.arange(kmin, N - T, dtype=torch.int64)
+            for off, N in zip(self.offsets, self.lengths, strict=True)
+        ]
+        return torch.cat(pieces)
+
+    def tiling(self, T: int, kmin: int) -> torch.Tensor:
+        """(S,) global starts of non-overlapping windows of T intervals covering every
+        experiment from ``kmin`` (the last one shifted back to end at the record's end)."""
+        pieces = []
+        for off, N in zip(self.offsets, self.lengths, strict=True):
+            k = torch.arange(kmin, N - T, T, dtype=torch.int64)
+            if int(k[-1]) != N - 1 - T:
+                k = torch.cat([k, torch.tensor([N - 1 - T])])
+            pieces.append(off + k)
+        return torch.cat(pieces)
+
+
+class _Trainable(nn.Module):
+    """The model being trained with its initial-state parameterisation (one ``state_dict``
+    for checkpoints)."""
+
+    def __init__(self, model, x0_mode, records, n_init, hidden, generator, output_is_state):
+        super().__init__()
+        self.model, self.x0_mode, self.n_init = model, x0_mode, n_init
+        self.x0_table = None
+        self.encoder = None
+        nx, ny = model.nx, model.ny
+        dtype, device = records.u.dtype, records.u.device
+        if x0_mode == "estimate":
+            table = torch.zeros(records.B, records.u.shape[-2], nx, dtype=dtype, device=device)
+            if output_is_state:
+                table[..., :ny] = records.y
+            self.x0_table = nn.Parameter(table)
+        elif x0_mode == "encoder":
+            self.encoder = _encoder(n_init * (model.ny + model.nu), hidden, nx, generator)
+            self.encoder.to(dtype=dtype, device=device)
+
+    def initial_states(self, records: _Records, b: torch.Tensor, g: torch.Tensor):
+        """(W, nx) initial states of the windows starting at sample ``g`` of record ``b``."""
+        if self.x0_mode == "estimate":
+            return self.x0_table[b, g]
+        if self.x0_mode == "encoder":
+            return _encode(self.encoder, records, b, g, self.n_init)
+        return records.u.new_zeros(b.shape[0], self.model.nx)
+
+
+def _encode(encoder, records: _Records, b, g, n_init: int) -> torch.Tensor:
+    """(W, nx) states at sample ``g`` of record ``b`` from the ``n_init`` outputs and inputs
+    before it (samples ``g - n_init, ..., g - 1``)."""
+    dev = records.u.device
+    idx = g[:, None].to(dev) - n_init + torch.arange(n_init, device=dev)
+    bb = b[:, None].to(dev)
+    past = torch.cat([records.y[bb, idx], records.u[bb, idx]], -1)
+    return encoder(past.flatten(-2))
+
+
+def _encoder(n_in: int, hidden: int, nx: int, generator: torch.Generator) -> nn.Sequential:
+    """A one-hidden-layer tanh MLP (n_in -> hidden -> nx), initialised from ``generator``
+    (PyTorch's default uniform bounds, 1/sqrt(fan_in))."""
+    net = nn.Sequential(nn.Linear(n_in, hidden), nn.Tanh(), nn.Linear(hidden, nx))
+    with torch.no_grad():
+        for layer in (net[0], net[2]):
+            bound = 1.0 / math.sqrt(layer.in_features)
+            layer.weight.uniform_(-bound, bound, generator=generator)
+            layer.bias.uniform_(-bound, bound, generator=generator)
+    return net
+
+
+# --------------------------------------------------------------------------- simulation
+def _simulate_windows(model, records: _Records, x0, b, g, T: int) -> torch.Tensor:
+    """Outputs (W, T+1, ny) of the windows of T intervals from sample ``g`` of record ``b``
+    (W,), started at ``x0`` (W, nx); one batched fixed-step simulation."""
+    dev = records.u.device
+    idx = g[:, None].to(dev) + torch.arange(T + 1, device=dev)
+    bb = b[:, None].to(dev)
+    u_win = records.u[bb, idx]  # (W, T+1, nu)
+    t = records.Ts * torch.arange(T + 1, dtype=records.u.dtype, device=dev)
+    if records.intersample == "zoh":
+        u = u_win  # held over the closed step (notes eq. 8.34)
+    else:
+        coeff = records.between[bb, idx[:, :-1]]  # (W, T, q, nu)
+        u = CollocationInput(coeff, t, nodes=records.nodes)
+    options = {"adaptive": False, "substeps": int(model.substeps)}
+    if resolve_method(model.method).tableau(None).is_explicit:
+        options["compile"] = False
+    sol = odeint(model, x0, t, method=model.method, u=u, **options)
+    return model.output(sol.x, u_win)
+
+
+def simulate(model, data: IOData, *, x0=None, encoder=None, n_init: int = 0) -> torch.Tensor:
+    """Free-run outputs of a neural continuous-time model on the inputs of ``data``.
+
+    Args:
+        model: a module following the neural-model contract (module docstring).
+        data: :class:`IOData`; its ``u``, ``Ts``, ``intersample`` and experiments.
+        x0: initial state (nx,) or (*batch, nx) at sample 0 of every experiment (default
+            zero); ignored when ``encoder`` is given.
+        encoder: the initial-state encoder of a training with ``x0="encoder"``: the states
+            at sample ``n_init`` come from the ``n_init`` samples before it.
+        n_init: samples before the simulation's start (with ``encoder``).
+
+    Returns:
+        (*batch, N, ny) outputs (experiments concatenated along time, like ``data.y``); the
+        first ``n_init`` samples of every experiment are NaN when an encoder is used.
+    """
+    p = next(iter(model.parameters()), None)
+    dtype = p.dtype if p is not None else data.dtype
+    records = _Records(data, model, dtype, data.device)
+    out = []
+    with torch.no_grad():
+        for off, N in zip(records.offsets, records.lengths, strict=True):
+            k0 = n_init if encoder is not None else 0
+            b = torch.arange(records.B)
+            g = torch.full((records.B,), off + k0, dtype=torch.int64)
+            if encoder is not None:
+                start = _encode(encoder, records, b, g, n_init)
+            elif x0 is None:
+                start = records.u.new_zeros(records.B, model.nx)
+            else:
+                start = torch.as_tensor(x0, dtype=dtype, device=data.device)
+                start = start.expand(*data.batch_shape, model.nx).reshape(-1, model.nx)
+            y = _simulate_windows(model, records, start, b, g, N - 1 - k0)
+            pad = y.new_full((records.B, k0, model.ny), math.nan)
+            out.append(torch.cat([pad, y], -2))
+    y = torch.cat(out, -2)
+    return y.reshape(*data.batch_shape, records.u.shape[-2], model.ny)
+
+
+# --------------------------------------------------------------------------- result
+@dataclass
+class TrainingResult(FitResult):
+    """:class:`~sysid.estimation.results.FitResult` of a training, with
+
+    Attributes:
+        status: ``"completed"`` (every epoch ran), ``"early_stopped"`` (the validation loss
+            did not improve for ``patience`` epochs), ``"non_finite"`` (a non-finite loss or
+            gradient: the best model so far was restored and the training stopped) or
+            ``"stopped"`` (the callback asked to stop).
+        train_loss: (epochs_run,) mean training loss of every epoch.
+        validation_loss: (epochs_run,) free-run validation loss per epoch (NaN without
+            ``validation``).
+        params: name -> physical value of the physical parameters (empty for a network).
+        x0_table: (*batch, Ntot, nx) estimated initial states (``x0="estimate"``) or None.
+        encoder: the initial-state encoder (``x0="encoder"``) or None; n_init: its window.
+    """
+
+    status: str = "completed"
+    train_loss: torch.Tensor | None = None
+    validation_loss: torch.Tensor | None = None
+    params: dict = field(default_factory=dict)
+    x0_table: torch.Tensor | None = None
+    encoder: nn.Module | None = None
+    n_init: int = 0
+
+    def simulate(self, data: IOData, x0=None) -> torch.Tensor:
+        """Free-run outputs (*batch, N, ny) of the trained model on ``data`` (from the
+        encoder's state at ``n_init`` where one was trained, else from ``x0``, default
+        zero); see :func:`simulate`."""
+        return simulate(self.model, data, x0=x0, encoder=self.encoder, n_init=self.n_init)
+
+    def validate(self, data: IOData, skip: int | None = None, x0=None) -> dict:
+        """Free-run diagnostics on ``data``, skipping the first ``skip`` samples of every
+        experiment (default ``n_init``; an initialisation window that absorbs the transient
+        of a wrong initial state).
+
+        Returns:
+            dict of (*batch, ny) tensors: ``"fit_percent"`` (MATLAB's fit,
+            :func:`sysid.validation.fit_percent`), ``"rmse"`` (output units) and ``"r2"``
+            (coefficient of determination, ``1 - SSE/SST`` per channel).
+        """
+        skip = self.n_init if skip is None else int(skip)
+        _check_data(data, self.model, "validate")
+        yhat = self.simulate(data, x0=x0)
+        keep = torch.cat(
+            [
+                off + torch.arange(skip, N)
+                for off, N in zip(_offsets(data), data.lengths, strict=True)
+            ]
+        ).to(data.device)
+        if keep.numel() < 2:
+            raise InputValidationError(
+                f"validate: skip = {skip} leaves fewer than 2 samples of {data.lengths}."
+            )
+        y = data.y[..., keep, :].to(yhat.dtype)
+        yh = yhat[..., keep, :]
+        e = y - yh
+        sse = (e * e).sum(-2)
+        sst = ((y - y.mean(-2, keepdim=True)) ** 2).sum(-2)
+        return {
+            "fit_percent": fit_percent(y, yh),
+            "rmse": (sse / keep.numel()).sqrt(),
+            "r2": 1 - sse / sst,
+        }
+
+
+def _offsets(data: IOData) -> list[int]:
+    return list(np.cumsum([0] + data.lengths[:-1]).tolist())
+
+
+# --------------------------------------------------------------------------- checks
+def _check_model(model) -> None:
+    missing = [a for a in _CONTRACT if not hasattr(model, a)]
+    if not isinstance(model, nn.Module) or missing:
+        raise InputValidationError(
+            f"method 'adam' / 'lbfgs' trains a neural continuous-time model: an nn.Module "
+            f"with {', '.join(_CONTRACT)}, forward(t, x, u) and to_physical(name, raw) "
+            f"(NeuralODE, HybridODE, LagrangianNetwork); {type(model).__name__} lacks "
+            f"{missing or 'being an nn.Module'}."
+        )
+
+
+def _check_data(data, model, where: str) -> None:
+    if not isinstance(data, IOData):
+        raise InputValidationError(f"{where}: data must be IOData, got {type(data).__name__}.")
+    if data.nu != model.nu or data.ny != model.ny:
+        raise InputValidationError(
+            f"{where}: the data have nu = {data.nu} inputs and ny = {data.ny} outputs but the "
+            f"model has nu = {model.nu}, ny = {model.ny}; build the model for these channels."
+        )
+    for name, x in (("u", data.u), ("y", data.y)):
+        bad = ~torch.isfinite(x)
+        if bool(bad.any()):
+            first = tuple(torch.nonzero(bad)[0].tolist())
+            raise InputValidationError(
+                f"{where}: {name} contains a non-finite value at index {first} (time index "
+                f"{first[-2]}); clean or interpolate the data before training."
+            )
+
+
+def _positive_int(value, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise InputValidationError(f"{name} must be an integer >= 1, got {value!r}.")
+    return int(value)
+
+
+def _curriculum(horizon) -> list[tuple[int, int]]:
+    """``horizon`` as a sorted list of (first epoch, T)."""
+    if isinstance(horizon, (int, np.integer)) and not isinstance(horizon, bool):
+        return [(0, _positive_int(horizon, "horizon"))]
+    try:
+        stages = sorted((int(e), _positive_int(T, "horizon T")) for e, T in horizon)
+    except (TypeError, ValueError) as exc:
+        raise InputValidationError(
+            f"horizon must be an integer T >= 1 or a list of (epoch, T) pairs such as "
+            f"[(0, 10), (200, 50)], got {horizon!r}."
+        ) from exc
+    if not stages or stages[0][0] != 0:
+        raise InputValidationError(
+            f"horizon: the curriculum {horizon!r} must start at epoch 0, e.g. [(0, 10), ...]."
+        )
+    return stages
+
+
+def _horizon_at(stages, epoch: int) -> int:
+    return [T for e, T in stages if e <= epoch][-1]
+
+
+def _output_is_state(model, dtype, device) -> bool:
+    """Whether ``model.output(x, u)`` returns the leading ``ny`` states (probed at one
+    point)."""
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(2, model.nx, generator=gen, dtype=dtype).to(device)
+    u = torch.randn(2, model.nu, generator=gen, dtype=dtype).to(device)
+    with torch.no_grad():
+        y = model.output(x, u)
+    return model.ny <= model.nx and torch.equal(y, x[..., : model.ny])
+
+
+# --------------------------------------------------------------------------- training
+def train(
+    model,
+    data: IOData,
+    *,
+    method: str = "adam",
+    criterion: str = "truncated",
+    horizon=10,
+    batch_size: int = 32,
+    epochs: int = 100,
+    steps_per_epoch: int | None = None,
+    lr: float = 1e-2,
+    schedule=None,
+    weight_decay: float = 0.0,
+    clip: float | None = None,
+    x0: str = "estimate",
+    n_init: int = 10,
+    encoder_hidden: int = 32,
+    validation: IOData | None = None,
+    patience: int | None = None,
+    seed: int = 0,
+    checkpoint: str | os.PathLike | None = None,
+    checkpoint_every: int = 1,
+    callback=None,
+    lbfgs_max_iter: int = 20,
+    progress: bool | None = None,
+) -> TrainingResult:
+    """Train a neural continuous-time model on ``data`` by the truncated simulation error.
+
+    Args:
+        model: an ``nn.Module`` following the neural-model contract (module docstring). It is
+            never modified: the trained model is ``result.model``, a deep copy moved to the
+            data's device and dtype.
+        data: :class:`IOData` ``(*batch, N, nu)`` / ``(*batch, N, ny)``, one or several
+            experiments; every batch member and experiment is a record of the same system.
+        method: ``"adam"`` (minibatches of random windows; ``torch.optim.Adam``) or
+            ``"lbfgs"`` (``torch.optim.LBFGS`` with strong-Wolfe line search, full batch: the
+            fixed windows tiling every record, one ``step`` of ``lbfgs_max_iter`` iterations
+            per epoch).
+        criterion: ``"truncated"`` (the only one for neural models).
+        horizon: window length ``T`` in sample intervals, or a curriculum ``[(epoch, T),
+            ...]`` (from each listed epoch on, that ``T``; the first at epoch 0).
+        batch_size: windows per minibatch (``"adam"``).
+        epochs: number of epochs (the total, also when resuming).
+        steps_per_epoch: minibatches per epoch; default ``ceil(B * Ntot / (batch_size *
+            T))``, about one pass over the samples.
+        lr: learning rate. schedule: None, ``"cosine"`` (cosine annealing to 0 over
+            ``epochs``) or a factory ``optimizer -> torch.optim.lr_scheduler.*``, stepped once
+            per epoch. weight_decay: Adam's L2 penalty.
+        clip: clip the gradient to this global norm (None: no clipping).
+        x0: ``"estimate"``, ``"encoder"`` or ``"zero"`` (module docstring).
+        n_init, encoder_hidden: encoder window (samples) and hidden width.
+        validation: :class:`IOData` for early stopping: its loss is the mean squared
+            free-run error of every record from its start (from the encoder's state at
+            ``n_init`` with ``x0="encoder"``, from zero with ``x0="zero"``, else from the
+            states the output selects, zero for the others). With validation the best
+            model by validation loss is returned.
+        patience: stop after this many epochs without a decrease of the validation loss
+            (without validation: of the criterion on the fixed windows tiling the records,
+            evaluated after every epoch); None: never.
+        seed: seeds the ``torch.Generator`` that draws the windows and initialises the
+            encoder: two runs with the same seed give identical parameters.
+        checkpoint: path of a checkpoint file: model, initial states, optimiser, scheduler,
+            generator state, history and early-stopping state, written atomically every
+            ``checkpoint_every`` epochs and at the end. If the file exists, training resumes
+            from it and ends bit-identical to an uninterrupted run with the same arguments.
+        callback: ``callback(epoch, result_so_far: dict) -> bool | None`` after every epoch
+            (after the checkpoint); True stops the training (status ``"stopped"``).
+        lbfgs_max_iter: L-BFGS iterations per epoch.
+        progress: tqdm bar over the epochs with train / validation loss: None (when stderr
+            is a terminal), True or False.
+
+    Returns:
+        :class:`TrainingResult`.
+
+    Non-finite guard: a non-finite loss or gradient restores the best model so far (the
+    initial one before any finite epoch), stops and sets status ``"non_finite"`` with a
+    message naming the epoch and step.
+
+    Raises:
+        InputValidationError: a model off the contract, data whose channels do not match the
+            model or that hold NaN, an unknown method / criterion / x0 mode, a horizon
+            longer than the shortest record allows, bad integer options, a checkpoint of
+            another configuration.
+    """
+    _check_model(model)
+    if method not in METHODS:
+        raise InputValidationError(f"method must be one of {METHODS} for a neural model.")
+    if criterion != "truncated":
+        raise InputValidationError(
+            f"criterion must be 'truncated' for a neural model (windows of `horizon` "
+            f"intervals simulated from their own initial states), got {criterion!r}."
+        )
+    if x0 not in X0_MODES:
+        raise InputValidationError(f"x0 must be one of {X0_MODES}, got {x0!r}.")
+    _check_data(data, model, "fit")
+    if validation is not None:
+        _check_data(validation, model, "fit (validation)")
+    batch_size = _positive_int(batch_size, "batch_size")
+    epochs = _positive_int(epochs, "epochs")
+    checkpoint_every = _positive_int(checkpoint_every, "checkpoint_every")
+    n_init = _positive_int(n_init, "n_init") if x0 == "encoder" else 0
+    stages = _curriculum(horizon)
+    shortest = min(data.lengths)
+    longest_T = max(T for _, T in stages)
+    if longest_T > shortest - 1 - n_init:
+        after = f" after the encoder's n_init = {n_init}" if n_init else ""
+        raise InputValidationError(
+            f"horizon T = {longest_T} intervals does not fit the shortest experiment of "
+            f"N = {shortest} samples{after}: T must be <= {shortest - 1 - n_init}. Shorten "
+            "the horizon."
+        )
+    if validation is not None and min(validation.lengths) < n_init + 2:
+        raise InputValidationError(
+            f"validation experiments need more than n_init + 1 = {n_init + 1} samples."
+        )
+
+    dtype, device = data.dtype, data.device
+    trained = copy.deepcopy(model).to(dtype=dtype, device=device)
+    generator = torch.Generator().manual_seed(int(seed))
+    records = _Records(data, trained, dtype, device)
+    out_is_state = _output_is_state(trained, dtype, device)
+    net = _Trainable(trained, x0, records, n_init, encoder_hidden, generator, out_is_state)
+    val_records = None if validation is None else _Records(validation, trained, dtype, device)
+    params = [p for p in net.parameters() if p.requires_grad]
+    if method == "adam":
+        opt = torch.optim.Adam(params, lr=lr, weight_decay=weight_decay)
+    else:
+        opt = torch.optim.LBFGS(
+            params, lr=lr, max_iter=lbfgs_max_iter, line_search_fn="strong_wolfe"
+        )
+    scheduler = _scheduler(schedule, opt, epochs)
+
+    state = {
+        "epoch": 0,
+        "train": [],
+        "val": [],
+        "best": math.inf,
+        "best_state": copy.deepcopy(net.state_dict()),
+        "bad_epochs": 0,
+        "status": None,
+        "messages": [],
+    }
+    config = dict(
+        method=method, horizon=stages, batch_size=batch_size, x0=x0, n_init=n_init, seed=seed
+    )
+    if checkpoint is not None and os.path.exists(checkpoint):
+        saved = torch.load(checkpoint, map_location=device, weights_only=False)
+        if saved["config"] != config:
+            raise InputValidationError(
+                f"checkpoint {os.fspath(checkpoint)!r} was written by a training with "
+                f"{saved['config']}, not {config}; use another path to start afresh."
+            )
+        net.load_state_dict(saved["net"])
+        opt.load_state_dict(saved["optimizer"])
+        if scheduler is not None:
+            scheduler.load_state_dict(saved["scheduler"])
+        generator.set_state(saved["generator"])
+        state = saved["state"]
+
+    bar = progress_bar(epochs, "epochs", progress, unit="epoch")
+    bar.update(state["epoch"])
+    with bar:
+        while state["epoch"] < epochs and state["status"] is None:
+            epoch = state["epoch"]
+            T = _horizon_at(stages, epoch)
+            if method == "adam":
+                loss, failure = _adam_epoch(
+                    net, records, T, n_init, batch_size, steps_per_epoch, opt, clip, generator
+                )
+            else:
+                loss, failure = _lbfgs_epoch(net, records, T, n_init, opt, clip)
+            val = watched = math.nan
+            if failure is None:
+                if val_records is not None:
+                    val = watched = _validation_loss(net, val_records)
+                else:
+                    watched = _monitor_loss(net, records, T, n_init)
+                if not math.isfinite(watched):
+                    failure = "the loss after the epoch's updates is non-finite"
+            if failure is not None:
+                net.load_state_dict(state["best_state"])
+                state["status"] = "non_finite"
+                state["messages"].append(
+                    f"epoch {epoch}, {failure}: training stopped and the best model so far "
+                    f"(loss {state['best']:.6g}) was restored; lower lr, set clip=, or "
+                    "shorten the horizon."
+                )
+                break
+            state["train"].append(loss)
+            state["val"].append(val)
+            if watched < state["best"]:
+                state["best"], state["bad_epochs"] = watched, 0
+                state["best_state"] = copy.deepcopy(net.state_dict())
+            else:
+                state["bad_epochs"] += 1
+            if scheduler is not None:
+                scheduler.step()
+            state["epoch"] = epoch + 1
+            if patience is not None and state["bad_epochs"] >= patience:
+                state["status"] = "early_stopped"
+                state["messages"].append(
+                    f"early stop after epoch {epoch}: no improvement of the "
+                    f"{'validation' if val_records is not None else 'training'} loss for "
+                    f"{patience} epochs (best {state['best']:.6g})."
+                )
+            bar.set_postfix(train=f"{loss:.3g}", val=f"{val:.3g}", T=T)
+            bar.update(1)
+            if checkpoint is not None and (
+                state["epoch"] % checkpoint_every == 0 or state["epoch"] == epochs
+            ):
+                _save(checkpoint, net, opt, scheduler, generator, state, config)
+            if callback is not None and callback(epoch, dict(state)):
+                state["status"] = "stopped"
+                state["messages"].append(f"stopped by the callback after epoch {epoch}.")
+    if state["status"] is None:
+        state["status"] = "completed"
+    if val_records is not None and state["status"] != "non_finite":
+        net.load_state_dict(state["best_state"])
+    if checkpoint is not None:
+        _save(checkpoint, net, opt, scheduler, generator, state, config)
+    return _result(net, records, data, method, state)
+
+
+def _scheduler(schedule, opt, epochs):
+    if schedule is None:
+        return None
+    if schedule == "cosine":
+        return torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=epochs)
+    if callable(schedule):
+        return schedule(opt)
+    raise InputValidationError(
+        f"schedule must be None, 'cosine' or a factory optimizer -> scheduler, got {schedule!r}."
+    )
+
+
+def _save(path, net, opt, scheduler, generator, state, config) -> None:
+    """Write the checkpoint atomically (a temporary file renamed over ``path``)."""
+    tmp = f"{os.fspath(path)}.tmp"
+    torch.save(
+        {
+            "net": net.state_dict(),
+            "optimizer": opt.state_dict(),
+            "scheduler": None if scheduler is None else scheduler.state_dict(),
+            "generator": generator.get_state(),
+            "state": state,
+            "config": config,
+        },
+        tmp,
+    )
+    os.replace(tmp, path)
+
+
+def _window_loss(net: _Trainable, records: _Records, b, g, T: int):
+    """Mean squared output error of the windows, or None where the simulation cannot start
+    (a non-finite initial state)."""
+    x0 = net.initial_states(records, b, g)
+    if not bool(torch.isfinite(x0).all()):
+        return None
+    try:
+        yhat = _simulate_windows(net.model, records, x0, b, g, T)
+    except InputValidationError as exc:
+        if "is non-finite at the initial time" in str(exc):
+            return None
+        raise
+    dev = records.y.device
+    idx = g[:, None].to(dev) + torch.arange(T + 1, device=dev)
+    e = records.y[b[:, None].to(dev), idx] - yhat
+    return (e * e).mean()
+
+
+def _finite_gradients(params, clip) -> bool:
+    norm = torch.nn.utils.clip_grad_norm_(params, math.inf if clip is None else clip)
+    return bool(torch.isfinite(norm))
+
+
+def _adam_epoch(net, records, T, kmin, batch_size, steps_per_epoch, opt, clip, generator):
+    starts = records.starts(T, kmin)
+    n = records.B * starts.shape[0]
+    steps = steps_per_epoch or max(1, math.ceil(records.B * records.u.shape[-2] / (batch_size * T)))
+    params = [p for group in opt.param_groups for p in group["params"]]
+    total = 0.0
+    for step in range(steps):  # sequential optimiser steps
+        pick = torch.randint(n, (batch_size,), generator=generator)
+        b, g = pick // starts.shape[0], starts[pick % starts.shape[0]]
+        opt.zero_grad(set_to_none=True)
+        loss = _window_loss(net, records, b, g, T)
+        if loss is None or not bool(torch.isfinite(loss)):
+            return math.nan, f"step {step}: the loss is non-finite"
+        loss.backward()
+        if not _finite_gradients(params, clip):
+            return math.nan, f"step {step}: the gradient is non-finite"
+        opt.step()
+        total += float(loss.detach())
+    return total / steps, None
+
+
+def _lbfgs_epoch(net, records, T, kmin, opt, clip):
+    starts = records.tiling(T, kmin)
+    S = starts.shape[0]
+    b = torch.arange(records.B).repeat_interleave(S)
+    g = starts.repeat(records.B)
+    params = [p for group in opt.param_groups for p in group["params"]]
+    failure = []
+
+    def closure():
+        opt.zero_grad(set_to_none=True)
+        loss = _window_loss(net, records, b, g, T)
+        if loss is None or not bool(torch.isfinite(loss)):
+            failure.append("the loss is non-finite")
+            return torch.tensor(math.nan, dtype=records.u.dtype)
+        loss.backward()
+        if not _finite_gradients(params, clip):
+            failure.append("the gradient is non-finite")
+        return loss
+
+    loss = opt.step(closure)
+    if failure or not math.isfinite(float(loss.detach())):
+        return math.nan, "L-BFGS: " + (failure[0] if failure else "the loss is non-finite")
+    return float(loss.detach()), None
+
+
+def _monitor_loss(net: _Trainable, records: _Records, T: int, kmin: int) -> float:
+    """The truncated criterion on the fixed windows tiling every record (no gradient): the
+    loss that tracks the best model when there is no validation data."""
+    starts = records.tiling(T, kmin)
+    b = torch.arange(records.B).repeat_interleave(starts.shape[0])
+    with torch.no_grad():
+        loss = _window_loss(net, records, b, starts.repeat(records.B), T)
+    return math.nan if loss is None else float(loss)
+
+
+def _record_start(net: _Trainable, records: _Records, off: int):
+    """(B,) record indices, (B,) start samples and (B, nx) initial states of the free-run
+    simulation of the experiment at ``off``: from the encoder at ``n_init``, zero for
+    ``x0="zero"``, else the measured states where the output selects them and zero for the
+    others (the caller takes the state table's first row on training records)."""
+    b = torch.arange(records.B)
+    k0 = net.n_init if net.x0_mode == "encoder" else 0
+    g = torch.full((records.B,), off + k0, dtype=torch.int64)
+    if net.x0_mode == "encoder":
+        return b, g, net.initial_states(records, b, g)
+    x0 = records.u.new_zeros(records.B, net.model.nx)
+    if net.x0_mode == "estimate" and _output_is_state(net.model, records.u.dtype, records.u.device):
+        x0[:, : net.model.ny] = records.y[:, off]
+    return b, g, x0
+
+
+def _validation_loss(net: _Trainable, records: _Records) -> float:
+    """Mean squared free-run error of every validation record from its start."""
+    sse, count = 0.0, 0
+    with torch.no_grad():
+        for off, N in zip(records.offsets, records.lengths, strict=True):
+            b, g, x0 = _record_start(net, records, off)
+            if not bool(torch.isfinite(x0).all()):
+                return math.nan
+            T = N - 1 - (int(g[0]) - off)
+            e = records.y[:, int(g[0]) :][:, : T + 1] - _simulate_windows(
+                net.model, records, x0, b, g, T
+            )
+            sse += float((e * e).sum())
+            count += e.numel()
+    return sse / count
+
+
+def _full_residuals(net: _Trainable, records: _Records) -> torch.Tensor:
+    """(M,) free-run residuals of every training record (initial states held fixed: the
+    estimated first row, the encoder's state or zero)."""
+    pieces = []
+    for off, N in zip(records.offsets, records.lengths, strict=True):
+        b, g, x0 = _record_start(net, records, off)
+        if net.x0_mode == "estimate":
+            x0 = net.x0_table[b, g]
+        T = N - 1 - (int(g[0]) - off)
+        with torch.no_grad():
+            x0 = x0.detach()
+        y = records.y[:, int(g[0]) :][:, : T + 1]
+        pieces.append((y - _simulate_windows(net.model, records, x0, b, g, T)).reshape(-1))
+    return torch.cat(pieces)
+
+
+def _physical_statistics(net: _Trainable, records: _Records):
+    """Names, physical values (p,), covariance (p, p), sigma^2 and residuals (M,) of the
+    physical parameters (module docstring: conditional on the network)."""
+    model = net.model
+    raw = dict(model.physical_parameters())
+    names, columns, values = [], [], []
+    for name, p in raw.items():
+        phys = model.to_physical(name, p.detach()).reshape(-1)
+        for i in range(p.numel()):
+            names.append(name if p.numel() == 1 else f"{name}[{i}]")
+        values.append(phys)
+        columns.append(p)
+    r = _full_residuals(net, records)
+    M = r.numel()
+    if not names:
+        return names, r.new_zeros(0), r.new_zeros(0, 0), (r.detach() ** 2).sum() / M, r.detach()
+    grads = torch.autograd.grad(
+        r,
+        columns,
+        grad_outputs=torch.eye(M, dtype=r.dtype, device=r.device),
+        is_grads_batched=True,
+    )
+    J = torch.cat([gr.reshape(M, -1) for gr in grads], -1)  # (M, p) d r / d raw
+    p = J.shape[-1]
+    r = r.detach()
+    sigma2 = (r * r).sum() / max(M - p, 1)
+    cov_raw = sigma2 * inverse_normal_matrix(J)
+    blocks = [  # d physical / d raw, one block per named parameter (delta method)
+        torch.autograd.functional.jacobian(
+            lambda z, n=name, s=prm.shape: model.to_physical(n, z.reshape(s)).reshape(-1),
+            prm.detach().reshape(-1),
+        )
+        for name, prm in raw.items()
+    ]
+    G = torch.block_diag(*blocks)
+    return names, torch.cat(values), G @ cov_raw @ G.T, sigma2, r
+
+
+def _result(net: _Trainable, records: _Records, data: IOData, method: str, state):
+    names, theta, cov, sigma2, r = _physical_statistics(net, records)
+    se = torch.diagonal(cov).clamp_min(0).sqrt()
+    status = state["status"]
+    train_loss = torch.tensor(state["train"], dtype=torch.float64)
+    table = None
+    if net.x0_table is not None:
+        table = net.x0_table.detach().reshape(*data.batch_shape, records.u.shape[-2], -1)
+    model = net.model
+    model.zero_grad(set_to_none=True)
+    return TrainingResult(
+        theta=theta.detach(),
+        covariance=cov.detach(),
+        standard_errors=se.detach(),
+        sigma2=sigma2.detach(),
+        loss_history=train_loss,
+        iterations=torch.tensor(len(state["train"])),
+        converged=torch.tensor(status in ("completed", "early_stopped")),
+        method=method,
+        loss="gaussian",
+        parameter_names=names,
+        n_samples=r.numel(),
+        residuals=r,
+        model=model,
+        info={"criterion": "truncated", "best_loss": state["best"]},
+        messages=list(state["messages"]),
+        status=status,
+        train_loss=train_loss,
+        validation_loss=torch.tensor(state["val"], dtype=torch.float64),
+        params={n: float(v) for n, v in zip(names, theta, strict=True)},
+        x0_table=table,
+        encoder=net.encoder,
+        n_init=net.n_init,
+    )

@@ -1,0 +1,372 @@
+"""Training of neural continuous-time models through ``sysid.fit(method="adam" | "lbfgs")``
+(:mod:`sysid.continuous.training`), with stand-in modules that follow the neural-model
+contract."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pytest
+import scipy.linalg
+import torch
+from torch import nn
+
+import sysid
+from integrators.errors import InputValidationError
+from sysid.continuous.training import simulate
+
+
+# --------------------------------------------------------------------------- stand-ins
+class MLPRHS(nn.Module):
+    """dx/dt = net([x, u]) / Ts (an MLP scaled to the sample rate); y = x[..., :ny]."""
+
+    def __init__(self, nx=1, nu=1, ny=1, hidden=16, Ts=0.1, method="rk4", seed=0):
+        super().__init__()
+        self.nx, self.nu, self.ny, self.method, self.substeps, self.Ts = nx, nu, ny, method, 1, Ts
+        torch.manual_seed(seed)
+        self.net = nn.Sequential(nn.Linear(nx + nu, hidden), nn.Tanh(), nn.Linear(hidden, nx))
+        self.double()
+
+    def forward(self, t, x, u):
+        return self.net(torch.cat([x, u], -1)) / self.Ts
+
+    def output(self, x, u):
+        return x[..., : self.ny]
+
+    def physical_parameters(self):
+        return {}
+
+    def to_physical(self, name, raw):
+        raise KeyError(name)
+
+
+class HybridSpring(nn.Module):
+    """Mass-spring-damper x1' = x2, x2' = -k x1 - c x2 + u plus a zero-initialised residual
+    MLP on x2'; k = exp(log_k) is the physical parameter; y = x1."""
+
+    def __init__(self, k0=2.0, c=0.5, method="rk4"):
+        super().__init__()
+        self.nx, self.nu, self.ny, self.method, self.substeps = 2, 1, 1, method, 1
+        self.c = c
+        self.log_k = nn.Parameter(torch.tensor(math.log(k0), dtype=torch.float64))
+        torch.manual_seed(1)
+        self.res = nn.Sequential(nn.Linear(3, 8), nn.Tanh(), nn.Linear(8, 1)).double()
+        with torch.no_grad():
+            self.res[2].weight.zero_()
+            self.res[2].bias.zero_()
+
+    def forward(self, t, x, u):
+        k = self.log_k.exp()
+        acc = -k * x[..., 0] - self.c * x[..., 1] + u[..., 0]
+        acc = acc + self.res(torch.cat([x, u], -1))[..., 0]
+        return torch.stack([x[..., 1], acc], -1)
+
+    def output(self, x, u):
+        return x[..., :1]
+
+    def physical_parameters(self):
+        return {"k": self.log_k}
+
+    def to_physical(self, name, raw):
+        return raw.exp()
+
+
+class LinearRHS(nn.Module):
+    """dx/dt = diag(a) x + b u (a, b trainable); y = x."""
+
+    def __init__(self, a, b, method="rk4"):
+        super().__init__()
+        self.a = nn.Parameter(torch.as_tensor(a, dtype=torch.float64))
+        self.b = nn.Parameter(torch.as_tensor(b, dtype=torch.float64))
+        self.nx = self.ny = self.a.shape[0]
+        self.nu, self.method, self.substeps = 1, method, 1
+
+    def forward(self, t, x, u):
+        return self.a * x + self.b * u
+
+    def output(self, x, u):
+        return x
+
+    def physical_parameters(self):
+        return {}
+
+    def to_physical(self, name, raw):
+        raise KeyError(name)
+
+
+# --------------------------------------------------------------------------- data
+def zoh_data(A, B, C, N, Ts, seed, noise=0.0, hold=5):
+    """Exact zero-order-hold response of x' = A x + B u, y = C x from x(0) = 0 to a random
+    piecewise-constant input (held ``hold`` samples): IOData (N, 1) / (N, ny)."""
+    rng = np.random.default_rng(seed)
+    n = A.shape[0]
+    u = np.repeat(rng.uniform(-1, 1, (N + hold) // hold), hold)[:N, None]
+    M = scipy.linalg.expm(np.block([[A, B], [np.zeros((1, n + 1))]]) * Ts)
+    Ad, Bd = M[:n, :n], M[:n, n:]
+    x = np.zeros((N, n))
+    for k in range(N - 1):  # reference recursion of the test data
+        x[k + 1] = Ad @ x[k] + Bd @ u[k]
+    y = x @ C.T + noise * rng.standard_normal((N, C.shape[0]))
+    return sysid.IOData(torch.tensor(u), torch.tensor(y), Ts)
+
+
+def first_order(N=300, seed=0, noise=0.0):
+    return zoh_data(np.array([[-1.0]]), np.array([[1.0]]), np.eye(1), N, 0.1, seed, noise)
+
+
+def spring(N=300, seed=0, k=4.0, c=0.5, noise=0.01):
+    A = np.array([[0.0, 1.0], [-k, -c]])
+    return zoh_data(A, np.array([[0.0], [1.0]]), np.array([[1.0, 0.0]]), N, 0.1, seed, noise)
+
+
+def params_of(model):
+    return [p.detach().clone() for p in model.parameters()]
+
+
+# --------------------------------------------------------------------------- tests
+def test_neural_ode_learns_first_order_system():
+    data, val = first_order(300, seed=0), first_order(200, seed=1)
+    model = MLPRHS()
+    rmse_untrained = float((simulate(model, val) - val.y).pow(2).mean().sqrt())
+    result = sysid.fit(
+        model,
+        data,
+        method="adam",
+        horizon=20,
+        batch_size=16,
+        epochs=50,
+        steps_per_epoch=5,
+        lr=1e-2,
+        schedule="cosine",
+        x0="estimate",
+        seed=0,
+        validation=val,
+    )
+    diag = result.validate(val)
+    rmse = float(diag["rmse"][0])
+    # the output amplitude is ~0.5; the untrained network misses it by far more than 0.1
+    assert rmse_untrained > 0.1
+    assert rmse < 0.05
+    assert float(diag["fit_percent"][0]) > 80
+    assert float(diag["r2"][0]) > 0.95
+    assert result.validation_loss.shape == result.train_loss.shape
+    assert result.status == "completed" and bool(result.converged)
+
+
+def test_hybrid_recovers_stiffness_with_standard_error():
+    data = spring(300, seed=3, noise=0.01)
+    model = HybridSpring(k0=3.0)
+    result = sysid.fit(
+        model, data, method="lbfgs", horizon=299, epochs=4, lr=1.0, x0="zero", seed=0
+    )
+    k, se = result.params["k"], float(result.standard_errors[0])
+    assert result.parameter_names == ["k"]
+    assert 0 < se < 0.05
+    assert abs(k - 4.0) < 3 * se
+    # the same standard error from a central finite-difference Jacobian of the free-run
+    # residuals with respect to log k (the network fixed), mapped by dk/dlog k = k
+    h = 1e-5
+    cols = []
+    for sign in (1, -1):
+        m = copy.deepcopy(result.model)
+        with torch.no_grad():
+            m.log_k += sign * h
+        cols.append((data.y - simulate(m, data)).reshape(-1))
+    J = (cols[0] - cols[1]) / (2 * h)
+    r = (data.y - simulate(result.model, data)).reshape(-1)
+    sigma2 = (r @ r) / (r.numel() - 1)
+    se_fd = float(torch.sqrt(sigma2 / (J @ J))) * k
+    assert se == pytest.approx(se_fd, rel=1e-4)
+    assert float(result.sigma2) == pytest.approx(float(sigma2), rel=1e-10)
+
+
+def _small_run(**kw):
+    data = first_order(120, seed=2, noise=0.01)
+    options = dict(
+        method="adam",
+        horizon=10,
+        batch_size=8,
+        epochs=4,
+        steps_per_epoch=3,
+        lr=1e-2,
+        x0="encoder",
+        n_init=3,
+        seed=5,
+    )
+    options.update(kw)
+    return sysid.fit(MLPRHS(hidden=8), data, **options)
+
+
+def test_bit_reproducible_from_seed():
+    a, b = _small_run(), _small_run()
+    for p, q in zip(a.model.parameters(), b.model.parameters(), strict=True):
+        assert torch.equal(p, q)
+    for p, q in zip(a.encoder.parameters(), b.encoder.parameters(), strict=True):
+        assert torch.equal(p, q)
+    assert torch.equal(a.train_loss, b.train_loss)
+    c = _small_run(seed=6)
+    assert not torch.equal(next(a.model.parameters()), next(c.model.parameters()))
+
+
+def test_checkpoint_resume_equals_uninterrupted_run(tmp_path):
+    common = dict(epochs=6, schedule="cosine", x0="estimate")
+    full = _small_run(**common)
+    path = tmp_path / "train.ckpt"
+
+    def interrupt(epoch, state):
+        if epoch == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        _small_run(checkpoint=path, checkpoint_every=2, callback=interrupt, **common)
+    assert torch.load(path, weights_only=False)["state"]["epoch"] == 2
+    resumed = _small_run(checkpoint=path, checkpoint_every=2, **common)
+    for p, q in zip(full.model.parameters(), resumed.model.parameters(), strict=True):
+        assert torch.equal(p, q)
+    assert torch.equal(full.x0_table, resumed.x0_table)
+    assert torch.equal(full.train_loss, resumed.train_loss)
+    with pytest.raises(InputValidationError, match="checkpoint"):
+        _small_run(checkpoint=path, **{**common, "batch_size": 4})
+
+
+def test_non_finite_guard_restores_best_model():
+    # RK4 at h a = 50 * 0.1 (or -5.1) diverges over 200 steps: the first Adam step (about lr
+    # = 50) makes every later loss overflow
+    data = first_order(260, seed=0)
+    model = LinearRHS([-1.0], [1.0])
+    result = sysid.fit(
+        model,
+        data,
+        method="adam",
+        horizon=200,
+        batch_size=4,
+        epochs=5,
+        steps_per_epoch=1,
+        lr=50.0,
+        x0="zero",
+        seed=0,
+    )
+    assert result.status == "non_finite" and not bool(result.converged)
+    assert any("non-finite" in m and "restored" in m for m in result.messages)
+    assert torch.equal(result.model.a, model.a) and torch.equal(result.model.b, model.b)
+    assert result.train_loss.numel() == 0
+
+
+def test_early_stopping_on_validation_plateau():
+    data, val = first_order(100, seed=0), first_order(80, seed=1)
+    result = sysid.fit(
+        MLPRHS(hidden=4),
+        data,
+        method="adam",
+        horizon=5,
+        batch_size=4,
+        epochs=50,
+        steps_per_epoch=1,
+        lr=0.0,
+        x0="zero",
+        validation=val,
+        patience=3,
+    )
+    # lr = 0: the validation loss is the same every epoch, so it stops after 1 + patience
+    assert result.status == "early_stopped"
+    assert result.train_loss.numel() == 4
+    assert torch.all(result.validation_loss == result.validation_loss[0])
+
+
+def test_input_model_untouched():
+    model = MLPRHS(hidden=8)
+    before = params_of(model)
+    result = sysid.fit(
+        model,
+        first_order(100),
+        method="adam",
+        horizon=5,
+        epochs=2,
+        steps_per_epoch=2,
+        batch_size=4,
+        x0="zero",
+    )
+    assert result.model is not model
+    for p, q in zip(before, model.parameters(), strict=True):
+        assert torch.equal(p, q) and q.grad is None
+    assert any(
+        not torch.equal(p, q) for p, q in zip(before, result.model.parameters(), strict=True)
+    )
+
+
+def test_implicit_method_training_decreases_loss():
+    # stiff diagonal plant (eigenvalues -1 and -200, h lambda = -20: RK4 would diverge)
+    A, B = np.diag([-1.0, -200.0]), np.array([[1.0], [200.0]])
+    data = zoh_data(A, B, np.eye(2), 80, 0.1, seed=4)
+    model = LinearRHS([-0.5, -100.0], [1.5, 120.0], method="radau_iia")
+    result = sysid.fit(
+        model,
+        data,
+        method="adam",
+        horizon=10,
+        batch_size=8,
+        epochs=6,
+        steps_per_epoch=2,
+        lr=0.05,
+        x0="zero",
+        seed=0,
+    )
+    assert result.status == "completed"
+    mse0 = float((simulate(model, data) - data.y).pow(2).mean())
+    mse1 = float((simulate(result.model, data) - data.y).pow(2).mean())
+    assert mse1 < 0.5 * mse0
+
+
+def test_foh_input_between_samples_matches_closed_form():
+    # x' = -x + u with u linear between samples: exact x_{k+1} = e^{-h} x_k
+    # + u_k (1 - e^{-h}) + (u_{k+1} - u_k)/h (h - 1 + e^{-h})
+    rng = np.random.default_rng(0)
+    N, h = 40, 0.1
+    u = rng.uniform(-1, 1, N)
+    exact = [0.0]
+    for k in range(N - 1):  # reference recursion
+        slope = (u[k + 1] - u[k]) / h
+        exact.append(
+            np.exp(-h) * exact[-1] + u[k] * (1 - np.exp(-h)) + slope * (h - 1 + np.exp(-h))
+        )
+    data = sysid.IOData(torch.tensor(u)[:, None], torch.zeros(N, 1), h, intersample="foh")
+    model = LinearRHS([-1.0], [1.0])
+    model.substeps = 4  # RK4 error ~1e-6 at one step per interval, / 4^4 here
+    y = simulate(model, data)[:, 0].numpy()
+    assert np.abs(y - np.array(exact)).max() < 1e-8
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "words"),
+    [
+        (dict(horizon=500), "horizon T = 500"),
+        (dict(method="sgd"), "method"),
+        (dict(criterion="simulation"), "criterion"),
+        (dict(x0="bogus"), "x0 must be one of"),
+        (dict(horizon=[(5, 10)]), "start at epoch 0"),
+        (dict(batch_size=0), "batch_size"),
+    ],
+)
+def test_bad_options(kwargs, words):
+    data = first_order(100)
+    options = dict(method="adam", horizon=5, epochs=1)
+    options.update(kwargs)
+    with pytest.raises(InputValidationError, match=words):
+        sysid.fit(MLPRHS(hidden=4), data, **options)
+
+
+def test_bad_data():
+    model = MLPRHS(hidden=4)
+    two_outputs = sysid.IOData(torch.zeros(50, 1), torch.zeros(50, 2), 0.1)
+    with pytest.raises(InputValidationError, match="ny = 2"):
+        sysid.fit(model, two_outputs, method="adam", horizon=5, epochs=1)
+    data = first_order(50)
+    data.y[7, 0] = math.nan
+    with pytest.raises(InputValidationError, match="non-finite value at index"):
+        sysid.fit(model, data, method="adam", horizon=5, epochs=1)
+    with pytest.raises(InputValidationError, match="nn.Module"):
+        sysid.fit(sysid.ARX(1, 1, 1), first_order(50), method="adam")
+    with pytest.raises(InputValidationError, match="neural models"):
+        sysid.fit(sysid.ARX(1, 1, 1), first_order(50), horizon=5)
