@@ -95,10 +95,10 @@ __all__ = ["SensitivityResult", "sensitivities", "variational_sensitivities"]
 _SLOW_CONTRACTION = 0.5
 _MAX_NEWTON_ITER = 50
 #: ``compile="auto"`` compiles the explicit interval kernel once this many steps were taken
-#: with the same model and configuration (over all calls): an eager step costs about a
-#: millisecond of per-operation overhead, a compiled one a tenth of that, and the one-off
-#: compile a few seconds.
-AUTO_COMPILE_MIN_STEPS = 20_000
+#: with the same model and configuration (over all calls): an eager step with derivatives
+#: costs about a millisecond of per-operation overhead, a compiled one a tenth of that or
+#: less, and the one-off compile about as long as these steps run eagerly (seconds).
+AUTO_COMPILE_MIN_STEPS = 5_000
 
 
 @dataclass
@@ -533,7 +533,7 @@ def sensitivities(
             configuration over all calls (compiled kernels are cached per ``f``). A model the
             compiler or forward-mode differentiation cannot handle (one calling autograd or a
             Newton solver inside ``f``) runs eagerly; ``stats.extra`` reports ``compiled``,
-            ``compile_fallback`` (why not) and ``compile_s``.
+            ``compile_fallback`` (why a wanted compile did not happen) and ``compile_s``.
 
     Returns:
         :class:`SensitivityResult` with ``x``, ``A = dx_k/dx_0``, ``B = dx_k/dp``, ``C`` (the
@@ -664,8 +664,9 @@ def sensitivities(
         Bs_out.append(B)
         Cs_out.append(C)
     stats = SolverStats(n_f_evals=n_f, n_steps=n_steps, n_jac_evals=n_jac)
-    if fast is not None:
-        stats.extra.update(fast.stats())
+    stats.extra.update(
+        fast.stats() if fast is not None else dict(compiled=False, compile_fallback=None)
+    )
     if solver is not None:
         stats.n_f_evals, stats.n_jac_evals = solver.n_f, solver.n_jac
         stats.n_newton_iters, stats.n_factorizations = solver.n_iter, solver.n_lu

@@ -21,6 +21,18 @@ def fresh_dynamo():
     yield
 
 
+@pytest.fixture(autouse=True)
+def eager_sensitivities_unless_asked(monkeypatch):
+    """Sensitivities compile only when a test asks (``compile=True`` or a lowered
+    threshold): ``compile="auto"`` would otherwise compile every model a test module fits
+    long enough, for every batch shape, at seconds each. The compiled kernel is checked
+    against the eager recursion in tests/test_compiled_sensitivities.py."""
+    import importlib
+
+    module = importlib.import_module("integrators.sensitivities")  # not the function
+    monkeypatch.setattr(module, "AUTO_COMPILE_MIN_STEPS", 2**62)
+
+
 @pytest.fixture
 def float64_default():
     """Run a test with float64 as torch's default dtype, restoring the previous default."""
