@@ -32,7 +32,15 @@ from integrators.errors import InputValidationError, SingularMatrixError
 from .errors import PoorExcitationWarning
 from .filters import fir_filter
 
-__all__ = ["DEFAULT_COND_WARN", "ROUNDING_WARN", "LLSResult", "fir_lls", "lls"]
+__all__ = [
+    "DEFAULT_COND_WARN",
+    "NORMAL_EQUATIONS_ROUNDING",
+    "ROUNDING_WARN",
+    "LLSResult",
+    "accurate_normal_equations",
+    "fir_lls",
+    "lls",
+]
 
 #: Condition number of the column-scaled ``A'WA`` above which :func:`lls` warns of poor
 #: excitation. At 1e4 the standard deviation of the estimate in the worst excited direction is
@@ -50,6 +58,13 @@ DEFAULT_COND_WARN = 1e4
 #: Loan, Matrix Computations, Thm. 5.3.1); ``eps`` is the dtype's: 1.2e-7 in float32,
 #: 2.2e-16 in float64.
 ROUNDING_WARN = 1e-2
+
+#: :func:`accurate_normal_equations` (the normal-equation route of ``sysid.fit(...,
+#: method="lls")``) is used only where the rounding-error bound ``eps cond`` of the
+#: normal equations is at most this (at least 10 correct digits; in float64 a scaled condition
+#: number up to 4.5e5, white-noise and PRBS regressors have a few units to a few hundred);
+#: elsewhere, and always in float32, the estimate comes from :func:`lls`'s QR factorisation.
+NORMAL_EQUATIONS_ROUNDING = 1e-10
 
 
 @dataclass
@@ -415,6 +430,19 @@ class _ScaledInverse:
         return self.scaled_diagonal() * self.dinv.square()
 
 
+def _equilibrated_cholesky(G: torch.Tensor):
+    """Cholesky factor ``L`` of ``S = D G D``, ``D = diag(G)^{-1/2}`` (``G = A'WA``), with
+    ``S``, ``diag(D)`` and ``cholesky_ex``'s ``info``; raises :class:`SingularMatrixError`
+    where a diagonal entry of ``G`` is not positive (an all-zero regressor)."""
+    d = torch.diagonal(G, dim1=-2, dim2=-1)
+    if bool((d <= 0).any()):
+        _raise_if_singular(d.min(dim=-1).values <= 0)
+    dinv = d.rsqrt()
+    S = G * (dinv.unsqueeze(-1) * dinv.unsqueeze(-2))
+    L, info = torch.linalg.cholesky_ex(S)
+    return L, S, dinv, info
+
+
 def _solve_normal_equations(G: torch.Tensor, rhs: torch.Tensor, M: int, cond_warn: float):
     """Solve ``G theta = rhs`` (``G = A'WA``) by Cholesky of ``S = D G D``,
     ``D = diag(G)^{-1/2}``.
@@ -426,12 +454,7 @@ def _solve_normal_equations(G: torch.Tensor, rhs: torch.Tensor, M: int, cond_war
     """
     p = G.shape[-1]
     eps = torch.finfo(G.dtype).eps
-    d = torch.diagonal(G, dim1=-2, dim2=-1)
-    if bool((d <= 0).any()):
-        _raise_if_singular(d.min(dim=-1).values <= 0)
-    dinv = d.rsqrt()
-    S = G * (dinv.unsqueeze(-1) * dinv.unsqueeze(-2))
-    L, info = torch.linalg.cholesky_ex(S)
+    L, S, dinv, info = _equilibrated_cholesky(G)
     _raise_if_singular(info != 0)
     inverse = _ScaledInverse(L, dinv)
     singular_limit = 1.0 / (eps * max(M, p))
@@ -439,6 +462,47 @@ def _solve_normal_equations(G: torch.Tensor, rhs: torch.Tensor, M: int, cond_war
     _raise_if_singular(screened >= singular_limit)
     theta = torch.cholesky_solve((rhs * dinv).unsqueeze(-1), L).squeeze(-1) * dinv
     return theta, inverse, screened, estimate_all
+
+
+def accurate_normal_equations(
+    G: torch.Tensor, rhs: torch.Tensor, *, cond_warn: float = DEFAULT_COND_WARN
+):
+    """Least-squares estimate from the normal equations ``G theta = rhs`` (``G = A'A``,
+    ``rhs = A'y``, ``(*batch, p, p)`` and ``(*batch, p)``) where they are as accurate as
+    a QR factorisation of ``A`` needs to be, else ``None``.
+
+    The rule: the relative rounding error of the normal-equation estimate is bounded by
+    ``eps cond`` (``cond`` the condition number of the column-scaled ``G``, see
+    :data:`ROUNDING_WARN`); this solves them (Cholesky of the equilibrated ``G``) when that
+    bound is at most :data:`NORMAL_EQUATIONS_ROUNDING` for every batch member, and returns
+    ``None`` otherwise (a Cholesky failure, a numerically singular or an ill-conditioned
+    member; the caller then uses :func:`lls`'s QR, which also reports singular problems).
+    Warns like :func:`lls` (:class:`PoorExcitationWarning`) above ``cond_warn``.
+
+    Returns:
+        ``(theta, inverse, scaled_condition)``: the estimate ``(*batch, p)``, ``G^{-1}``
+        (``(*batch, p, p)``) and a callable giving the scaled condition numbers
+        ``(*batch,)`` (power-iteration estimates, see :func:`_condition_estimate`), or None.
+    """
+    eps = torch.finfo(G.dtype).eps
+    if eps > NORMAL_EQUATIONS_ROUNDING or not bool(torch.isfinite(G.sum() + rhs.sum())):
+        return None  # float32 never meets the rule (cond >= 1); non-finite data: lls locates it
+    d = torch.diagonal(G, dim1=-2, dim2=-1)
+    if bool((d <= 0).any()):
+        return None
+    L, S, dinv, info = _equilibrated_cholesky(G)
+    if bool((info != 0).any()):
+        return None
+    inverse = _ScaledInverse(L, dinv)
+    limit = NORMAL_EQUATIONS_ROUNDING / eps
+    screened, estimate_all = _screened_condition(
+        S, inverse, min(_warn_threshold(cond_warn, G.dtype), limit)
+    )
+    if not bool((screened <= limit).all()):  # also catches NaN
+        return None
+    _warn_poor_excitation(screened, cond_warn, eps * screened, G.dtype)
+    theta = torch.cholesky_solve((rhs * dinv).unsqueeze(-1), L).squeeze(-1) * dinv
+    return theta, inverse.inverse(), estimate_all
 
 
 def _screened_condition(S: torch.Tensor, inverse: _ScaledInverse, limit: float):

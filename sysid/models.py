@@ -484,14 +484,19 @@ class PolynomialModel(nn.Module):
     def _max_lag(self) -> int:
         return max([self.na] + [k + n - 1 for k, n in zip(self.nk, self.nb, strict=True)])
 
-    def regression(self, data: IOData) -> tuple[torch.Tensor, torch.Tensor]:
-        """Linear regression form ``target = Phi theta`` (FIR/ARX only, eq. 4.111).
+    def _regressor_columns(self) -> list[tuple[int, int, float]]:
+        """``(signal, lag, sign)`` of each column of :meth:`regression`'s ``Phi``, signal 0
+        being ``y`` and signal ``i + 1`` the input ``u_i``: column ``(s, l, sign)`` holds
+        ``sign * signal_s[t - l]`` in the row of sample ``t``."""
+        cols = [(0, lag, -1.0) for lag in range(1, self.na + 1)]
+        for i, (k, n) in enumerate(zip(self.nk, self.nb, strict=True)):
+            cols += [(i + 1, lag, 1.0) for lag in range(k, k + n)]
+        return cols
 
-        Row for sample t (only where every lag is inside the experiment, t >= max lag):
-        ``[-y_{t-1}, ..., -y_{t-na}, u1_{t-nk1}, ..., u1_{t-nk1-nb1+1}, u2_..]``,
-        target ``y_t``. Experiments are stacked. Returns ``Phi (*batch, M, p)``,
-        ``target (*batch, M)``.
-        """
+    def _regression_parts(self, data: IOData) -> tuple[IOData, int, list[list[torch.Tensor]]]:
+        """Checked data, the first regression row ``start`` (the largest lag) and, per
+        experiment, the signals of :meth:`_regressor_columns` (``y`` then the inputs, each
+        ``(*batch, N)`` with unit stride: a view of single-input data, else a copy)."""
         if not self.is_linear_in_parameters:
             raise InputValidationError(
                 f"{type(self).__name__} is not linear in its parameters; regression() exists "
@@ -499,32 +504,120 @@ class PolynomialModel(nn.Module):
             )
         data = self._check_data(data)
         start = self._max_lag()
-        lags_y = list(range(1, self.na + 1))
-        rows, targets = [], []
+        signals = []
         for e, part in enumerate(data.experiment_list):
-            N = part.N
-            if N <= start:
+            if part.N <= start:
                 raise InputValidationError(
-                    f"experiment {e} has {N} samples but the regressors need {start + 1} "
+                    f"experiment {e} has {part.N} samples but the regressors need {start + 1} "
                     f"(max lag {start}); use a longer experiment or lower orders."
                 )
-            y = part.y[..., 0]
-            cols = [-self._lagged(y, lags_y, start)]
-            for i, (k, n) in enumerate(zip(self.nk, self.nb, strict=True)):
-                cols.append(self._lagged(part.u[..., i], list(range(k, k + n)), start))
-            rows.append(torch.cat(cols, dim=-1))
-            targets.append(y[..., start:])
-        return torch.cat(rows, dim=-2), torch.cat(targets, dim=-1)
+            signals.append([x.contiguous() for x in (part.y[..., 0], *part.u.unbind(-1))])
+        return data, start, signals
+
+    def regression(self, data: IOData) -> tuple[torch.Tensor, torch.Tensor]:
+        """Linear regression form ``target = Phi theta`` (FIR/ARX only, eq. 4.111).
+
+        Row for sample t (only where every lag is inside the experiment, t >= max lag):
+        ``[-y_{t-1}, ..., -y_{t-na}, u1_{t-nk1}, ..., u1_{t-nk1-nb1+1}, u2_..]``,
+        target ``y_t``. Experiments are stacked. Returns ``Phi (*batch, M, p)``,
+        ``target (*batch, M)``. ``Phi`` is stored column by column (each column one
+        contiguous copy of a shifted signal; the column-major layout LAPACK's QR reads
+        without a copy).
+        """
+        data, start, signals = self._regression_parts(data)
+        cols = self._regressor_columns()
+        M = sum(x[0].shape[-1] - start for x in signals)
+        x0 = signals[0][0]
+        PhiT = x0.new_empty(*x0.shape[:-1], len(cols), M)
+        row = 0
+        for x in signals:  # loop over experiments
+            N = x[0].shape[-1]
+            rows = slice(row, row + N - start)
+            for j, (s, lag, sign) in enumerate(cols):  # loop over the p columns
+                src = x[s][..., start - lag : N - lag]
+                if sign < 0:
+                    torch.neg(src, out=PhiT[..., j, rows])
+                else:
+                    PhiT[..., j, rows].copy_(src)
+            row = rows.stop
+        target = torch.cat([x[0][..., start:] for x in signals], dim=-1)
+        return PhiT.transpose(-1, -2), target
+
+    def normal_equations(self, data: IOData) -> tuple[torch.Tensor, int]:
+        """Gram matrix ``Z'Z`` of the augmented regressor ``Z = [Phi, target]`` of
+        :meth:`regression` (FIR/ARX), without forming ``Phi``: ``(*batch, p + 1, p + 1)``
+        holding ``Phi'Phi``, ``Phi'target`` and ``target'target``, and the number of rows
+        ``M``.
+
+        Each entry is a lagged product of two signals summed over the rows ``t >= start``:
+        ``sum_t a_{t-l} b_{t-m}``. The sum over every ``t`` where both samples exist (the
+        signals' correlation at lag ``m - l``, :func:`sysid.lls._lagged_products`: ``O(N)``
+        matmul work per lag, no copy of the signals) minus the rows ``t < start`` and
+        ``t >= N`` of the zero-padded regressor (``start`` rows each, built from the first
+        and last ``start`` samples) gives it. Experiments add.
+        """
+        from .lls import _lagged_products  # lls builds on the filters, as this module does
+
+        data, start, signals = self._regression_parts(data)
+        cols = [*self._regressor_columns(), (0, 0, 1.0)]
+        sign = torch.tensor([c[2] for c in cols], dtype=data.dtype, device=data.device)
+        sign = sign.unsqueeze(-1) * sign
+        # (w, z) -> largest lag d of sum_m w_m z_{m+d} needed: the pair of columns (i, j)
+        # with d = l_j - l_i >= 0 is sum_m s_j[m] s_i[m + d], otherwise sum_m s_i[m] s_j[m - d]
+        need: dict[tuple[int, int], int] = {}
+        pairs = []
+        for i, (si, li, _) in enumerate(cols):
+            for j, (sj, lj, _) in enumerate(cols[i:], start=i):
+                w, z, d = (sj, si, lj - li) if lj >= li else (si, sj, li - lj)
+                need[(w, z)] = max(need.get((w, z), 0), d)
+                pairs.append((i, j, w, z, d))
+        G = None
+        for x in signals:  # loop over experiments
+            N = x[0].shape[-1]
+            lagged = {(w, z): _lagged_products(x[w], x[z], d + 1) for (w, z), d in need.items()}
+            full = torch.stack([lagged[(w, z)][..., d] for _, _, w, z, d in pairs], dim=-1)
+            Gx = x[0].new_zeros(*full.shape[:-1], len(cols), len(cols))
+            iu = torch.tensor([(i, j) for i, j, *_ in pairs], device=full.device).T
+            Gx[..., iu[0], iu[1]] = full
+            Gx[..., iu[1], iu[0]] = full
+            Gx = Gx * sign
+            if start:
+                first = [F.pad(s[..., :start], (start, 0)) for s in x]
+                last = [F.pad(s[..., N - start :], (0, start)) for s in x]
+                head, tail = (self._edge_rows(e, cols, start) for e in (first, last))
+                Gx = Gx - head.transpose(-1, -2) @ head - tail.transpose(-1, -2) @ tail
+            G = Gx if G is None else G + Gx
+        return G, sum(x[0].shape[-1] - start for x in signals)
 
     @staticmethod
-    def _lagged(x: torch.Tensor, lags: list[int], start: int) -> torch.Tensor:
-        """``(*batch, N - start, len(lags))`` with entries ``x_{t - lag}`` for t >= start."""
-        N = x.shape[-1]
-        if not lags:
-            return x.new_zeros(*x.shape[:-1], N - start, 0)
-        windows = x.unfold(-1, start + 1, 1)  # window t-start holds x_{t-start} .. x_t
-        idx = torch.tensor([start - lag for lag in lags], device=x.device)
-        return windows[..., idx]
+    def _edge_rows(edge: list[torch.Tensor], cols, start: int) -> torch.Tensor:
+        """Rows of the zero-padded augmented regressor outside ``[start, N)``,
+        ``(*batch, start, p + 1)``: for ``edge`` the first ``start`` samples after ``start``
+        zeros, the rows ``t = 0 .. start - 1``; for the last ``start`` samples before
+        ``start`` zeros, the rows ``t = N .. N + start - 1`` (``edge``:
+        ``(*batch, 2 start)`` per signal; row ``tau``, column ``(s, l, sign)`` holds
+        ``sign * edge[s][tau + start - l]`` in both cases)."""
+        tau = torch.arange(start, device=edge[0].device)
+        out = [sign * edge[s][..., tau + start - lag] for s, lag, sign in cols]
+        return torch.stack(out, dim=-1)
+
+    def regression_residuals(self, data: IOData, theta: torch.Tensor) -> torch.Tensor:
+        """``target - Phi theta`` of :meth:`regression` (FIR/ARX) for ``theta``
+        (``(*batch, p)``), ``(*batch, M)``, without forming ``Phi``: one in-place
+        multiply-add of a shifted signal per column of :meth:`_regressor_columns`."""
+        data, start, signals = self._regression_parts(data)
+        cols = self._regressor_columns()
+        signs = torch.tensor([-sign for *_, sign in cols], dtype=theta.dtype, device=theta.device)
+        coef = theta * signs
+        out = []
+        for x in signals:  # loop over experiments
+            N = x[0].shape[-1]
+            batch = torch.broadcast_shapes(x[0].shape[:-1], coef.shape[:-1])
+            r = x[0][..., start:].expand(*batch, N - start).clone()
+            for j, (s, lag, _) in enumerate(cols):  # loop over the p columns
+                r.addcmul_(coef[..., j : j + 1], x[s][..., start - lag : N - lag])
+            out.append(r)
+        return out[0] if len(out) == 1 else torch.cat(out, dim=-1)
 
     def extra_repr(self) -> str:
         orders = f"na={self.na}, nb={self.nb}, nc={self.nc}, nd={self.nd}, nf={self.nf}"

@@ -6,16 +6,21 @@ least_squares (Huber loss), scipy linear programs (LAD and the uniform-noise pol
 brute-force grid search.
 """
 
+import warnings
+
 import numpy as np
 import pytest
 import scipy.optimize
 import scipy.signal
 import statsmodels.api as sm
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from integrators.errors import InputValidationError
 from integrators.newton import minimize
 from sysid.data import IOData
+from sysid.errors import PoorExcitationWarning
 from sysid.estimation import fit, uniform_noise_mle_set
 from sysid.estimation.prediction_error import _jacobian, _OutputError
 from sysid.filters import iir_filter
@@ -589,3 +594,105 @@ def test_covariance_of_a_degenerate_member_is_inf_not_a_crash():
     assert bool(torch.isinf(P[1:]).all())
     exact = torch.linalg.inv(J[0].T @ J[0])
     assert torch.allclose(P[0], exact, rtol=1e-12)
+
+
+def _numpy_arx_rows(u: np.ndarray, y: np.ndarray, na: int, nb: int, nk: int):
+    """Explicit ARX/FIR regressor rows ``[-y_{t-1}..-y_{t-na}, u_{t-nk}..u_{t-nk-nb+1}]`` and
+    targets ``y_t`` for ``t >= max lag`` (one experiment, 1-D signals), by plain indexing."""
+    start = max(na, nk + nb - 1)
+    rows = [
+        [-y[t - i] for i in range(1, na + 1)] + [u[t - nk - j] for j in range(nb)]
+        for t in range(start, len(y))
+    ]
+    return np.array(rows), y[start:]
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    na=st.integers(0, 3),
+    nb=st.integers(1, 4),
+    nk=st.integers(0, 2),
+    N=st.integers(16, 60),
+    batch=st.integers(1, 3),
+    n_exp=st.integers(1, 2),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_lls_fit_equals_numpy_lstsq_per_data_set(na, nb, nk, N, batch, n_exp, seed):
+    """The batched direct fit (normal equations from lagged products, residuals without a
+    regressor matrix) equals numpy's lstsq on the explicit regressor of each data set:
+    estimate, residuals, sigma^2 = r'r / (M - p) and covariance sigma^2 (Phi'Phi)^-1
+    (eq. 4.101); several experiments stack their rows."""
+    rng = np.random.default_rng(seed)
+    parts = [(rng.standard_normal((batch, n)), rng.standard_normal((batch, n))) for n in (N, N + 5)]
+    parts = parts[:n_exp]
+    data = IOData.experiments(
+        [IOData(torch.tensor(u).unsqueeze(-1), torch.tensor(y).unsqueeze(-1)) for u, y in parts]
+    )
+    model = ARX(na, nb, nk) if na else FIR(nb, nk)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # random data may give an unstable ARX estimate
+        res = fit(model, data, method="lls")
+    for b in range(batch):
+        rows = [_numpy_arx_rows(u[b], y[b], na, nb, nk) for u, y in parts]
+        Phi = np.concatenate([r[0] for r in rows])
+        target = np.concatenate([r[1] for r in rows])
+        theta, *_ = np.linalg.lstsq(Phi, target, rcond=None)
+        r = target - Phi @ theta
+        s2 = r @ r / (len(target) - Phi.shape[1])
+        np.testing.assert_allclose(res.theta[b].numpy(), theta, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(res.residuals[b].numpy(), r, rtol=0, atol=1e-11)
+        np.testing.assert_allclose(res.sigma2[b].item(), s2, rtol=1e-10)
+        cov = s2 * np.linalg.inv(Phi.T @ Phi)
+        np.testing.assert_allclose(res.covariance[b].numpy(), cov, rtol=1e-9, atol=1e-13)
+
+
+def test_normal_equations_and_residuals_equal_the_explicit_regressor():
+    """``normal_equations`` (lagged products minus the edge rows) is ``Z'Z`` of the augmented
+    regressor ``Z = [Phi, target]`` and ``regression_residuals`` is ``target - Phi theta``,
+    for two inputs with different delays and two experiments (numpy on explicit rows)."""
+    rng = np.random.default_rng(3)
+    model = ARX(2, [3, 1], [0, 2], n_inputs=2)
+    u1, y1 = rng.standard_normal((4, 30, 2)), rng.standard_normal((4, 30, 1))
+    u2, y2 = rng.standard_normal((4, 21, 2)), rng.standard_normal((4, 21, 1))
+    data = IOData.experiments(
+        [IOData(torch.tensor(u1), torch.tensor(y1)), IOData(torch.tensor(u2), torch.tensor(y2))]
+    )
+    theta = torch.tensor(rng.standard_normal((4, 6)))
+    G, M = model.normal_equations(data)
+    r = model.regression_residuals(data, theta)
+    for b in range(4):
+        Z = []
+        for u, y in ((u1, y1), (u2, y2)):
+            start = 2
+            for t in range(start, u.shape[1]):
+                Z.append(
+                    [-y[b, t - 1, 0], -y[b, t - 2, 0]]
+                    + [u[b, t - j, 0] for j in range(3)]
+                    + [u[b, t - 2, 1], y[b, t, 0]]
+                )
+        Z = np.array(Z)
+        assert M == len(Z)
+        np.testing.assert_allclose(G[b].numpy(), Z.T @ Z, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(
+            r[b].numpy(), Z[:, -1] - Z[:, :-1] @ theta[b].numpy(), rtol=0, atol=1e-12
+        )
+
+
+def test_ill_conditioned_lls_fit_keeps_qr_accuracy():
+    """Nearly noise-free ARX data from slowly varying inputs: the scaled condition number of
+    Phi'Phi is above 1e6, where the normal equations' rounding bound eps cond exceeds 1e-10
+    (solving them here misses numpy's lstsq by ~3e-8), so the fit uses QR and agrees with
+    lstsq on the explicit regressor to 1e-10."""
+    k = torch.arange(400, dtype=torch.float64)
+    u = torch.stack([torch.sin(0.003 * k), torch.sin(0.004 * k + 1.0)]).unsqueeze(-1)
+    true = torch.tensor([-1.5, 0.7, 1.0, 0.5], dtype=torch.float64)
+    g = torch.Generator().manual_seed(0)
+    y = ARX(2, 2, 1).simulate(u, theta=true)
+    y = y + 1e-9 * torch.randn(y.shape, generator=g, dtype=torch.float64)
+    with pytest.warns(PoorExcitationWarning):
+        res = fit(ARX(2, 2, 1), IOData(u, y), method="lls")
+    assert (res.info["scaled_condition_number"] > 1e6).all()
+    for b in range(2):
+        Phi, target = _numpy_arx_rows(u[b, :, 0].numpy(), y[b, :, 0].numpy(), 2, 2, 1)
+        ref, *_ = np.linalg.lstsq(Phi, target, rcond=None)
+        np.testing.assert_allclose(res.theta[b].numpy(), ref, rtol=1e-10)

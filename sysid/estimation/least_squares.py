@@ -21,7 +21,7 @@ from integrators.errors import SingularMatrixError
 
 from ..data import IOData
 from ..errors import PoorExcitationWarning
-from ..lls import lls
+from ..lls import _condition_estimate, accurate_normal_equations, lls
 from ..models import PolynomialModel
 from ._data import _regression_rows, _with_outputs
 from .results import FitResult
@@ -80,30 +80,56 @@ def _instrumental_variables(aux: PolynomialModel, data: IOData, n_iter: int = 2)
 
 
 def _fit_lls(model, data, w, method) -> FitResult:
+    """Least squares of eq. 4.112. Unweighted: the normal equations from the Gram matrix of
+    :meth:`~sysid.models.PolynomialModel.normal_equations` (no regressor matrix) wherever
+    :func:`~sysid.lls.accurate_normal_equations` finds them accurate (every data set's
+    rounding-error bound ``eps cond <= 1e-10``); otherwise, and with weights, :func:`lls`
+    (QR of the regressor of eq. 4.111)."""
+    if w is None:
+        G, M = model.normal_equations(data)
+        p = G.shape[-1] - 1
+        solved = accurate_normal_equations(G[..., :p, :p], G[..., :p, p]) if M > p else None
+        if solved is not None:
+            theta, normal_inverse, scaled_condition = solved
+            residuals = model.regression_residuals(data, theta)
+            rss = (residuals * residuals).sum(-1)
+            sigma2 = rss / (M - p)
+            covariance = sigma2[..., None, None] * normal_inverse
+            info = {
+                "condition_number": _condition_estimate(G[..., :p, :p], normal_inverse),
+                "scaled_condition_number": scaled_condition(),
+            }
+            return _lls_result(theta, covariance, sigma2, residuals, 0.5 * rss, method, info)
     Phi, target = model.regression(data)
     W = None
     if w is not None:
         W = torch.cat([w[..., sl] for sl in _regression_rows(data, target.shape[-1])], dim=-1)
     res = lls(Phi, target, W=W)
-    batch = res.theta.shape[:-1]
     f = 0.5 * (res.residuals**2 * (1 if W is None else W)).sum(-1)
+    info = {
+        "condition_number": res.condition_number,
+        "scaled_condition_number": res.scaled_condition_number,
+    }
+    return _lls_result(res.theta, res.covariance, res.sigma2, res.residuals, f, method, info)
+
+
+def _lls_result(theta, covariance, sigma2, residuals, f, method, info) -> FitResult:
+    """The :class:`FitResult` of a direct least-squares solve (one step, converged)."""
+    batch = theta.shape[:-1]
     return FitResult(
-        theta=res.theta,
-        covariance=res.covariance,
-        standard_errors=res.standard_errors,
-        sigma2=res.sigma2,
+        theta=theta,
+        covariance=covariance,
+        standard_errors=torch.diagonal(covariance, dim1=-2, dim2=-1).clamp_min(0).sqrt(),
+        sigma2=sigma2,
         loss_history=f.unsqueeze(0),
         iterations=torch.zeros(batch, dtype=torch.int64, device=f.device),
         converged=torch.ones(batch, dtype=torch.bool, device=f.device),
         method=method,
         loss="gaussian",
         parameter_names=[],
-        n_samples=target.shape[-1],
-        residuals=res.residuals,
-        info={
-            "condition_number": res.condition_number,
-            "scaled_condition_number": res.scaled_condition_number,
-        },
+        n_samples=residuals.shape[-1],
+        residuals=residuals,
+        info=info,
     )
 
 
