@@ -1,0 +1,34 @@
+"""experiments/bench_neural.py --quick: ours and torchdiffeq's odeint train the same network
+on the same minibatches through the same 3/8-rule grid, so their losses agree to rounding;
+the adjoint saves (almost) nothing for backward in its forward pass."""
+
+import pytest
+
+from experiments.bench_neural import PEERS, main
+
+
+@pytest.fixture(scope="module")
+def rows(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench_neural")
+    return {r["peer"]: r for r in main(["--quick", "--out", str(out)])}
+
+
+def test_table_complete(rows):
+    assert set(rows) == set(PEERS)
+    for row in rows.values():
+        assert row["seconds_per_epoch"] > 0 and row["saved_mb_long_gradient"] > 0
+    assert rows["ours"]["time_vs_ours"] == 1.0
+
+
+def test_losses_agree(rows):
+    ours = rows["ours"]["loss_after_epochs"]
+    assert rows["torchdiffeq odeint"]["loss_after_epochs"] == pytest.approx(ours, rel=1e-9)
+    # the discretised adjoint's gradient differs slightly from backpropagation's
+    assert rows["torchdiffeq odeint_adjoint"]["loss_after_epochs"] == pytest.approx(ours, rel=1e-3)
+
+
+def test_adjoint_saves_little(rows):
+    assert (
+        rows["torchdiffeq odeint_adjoint"]["saved_mb_long_gradient"]
+        < 0.01 * (rows["ours"]["saved_mb_long_gradient"])
+    )
