@@ -83,8 +83,9 @@ class _Records:
         self.offsets, self.lengths = [], []
         off = 0
         for part in parts:
-            u = part.u.to(dtype=dtype, device=device).reshape(-1, part.N, part.nu)
-            y = part.y.to(dtype=dtype, device=device).reshape(-1, part.N, part.ny)
+            B = math.prod(part.batch_shape)  # explicit: an input-free record (nu = 0) is empty
+            u = part.u.to(dtype=dtype, device=device).reshape(B, part.N, part.nu)
+            y = part.y.to(dtype=dtype, device=device).reshape(B, part.N, part.ny)
             us.append(u)
             ys.append(y)
             if self.intersample != "zoh" and part.N >= 2:
@@ -437,7 +438,10 @@ def train(
             ``checkpoint_every`` epochs and at the end. If the file exists, training resumes
             from it and ends bit-identical to an uninterrupted run with the same arguments.
         callback: ``callback(epoch, result_so_far: dict) -> bool | None`` after every epoch
-            (after the checkpoint); True stops the training (status ``"stopped"``).
+            (after the checkpoint); True stops the training (status ``"stopped"``). The dict
+            holds the history (``"train"``, ``"val"``, ``"best"``, ...) and ``"model"``, the
+            model being trained (read it, e.g. to evaluate a metric of your own; do not
+            modify it).
         lbfgs_max_iter: L-BFGS iterations per epoch.
         progress: tqdm bar over the epochs with train / validation loss: None (when stderr
             is a terminal), True or False.
@@ -582,7 +586,7 @@ def train(
                 state["epoch"] % checkpoint_every == 0 or state["epoch"] == epochs
             ):
                 _save(checkpoint, net, opt, scheduler, generator, state, config)
-            if callback is not None and callback(epoch, dict(state)):
+            if callback is not None and callback(epoch, {**state, "model": net.model}):
                 state["status"] = "stopped"
                 state["messages"].append(f"stopped by the callback after epoch {epoch}.")
     if state["status"] is None:
