@@ -6,18 +6,25 @@ is the seconds-long variant the tests use.
 1. Plant: the spring-mass-damper of the zoo, m y'' + xi y' + K y = u (notes eq. 1.26-1.28),
    driven by a random binary force held between samples (zero-order hold, eq. 8.34) and
    simulated with the differentiable fixed-step RK4 integrator.
-2. Data: ``trials`` data sets with white output noise, generated in one batched call from a
-   seeded ``torch.Generator``.
+2. Data: ``trials`` data sets with white output noise, drawn by a declared Monte-Carlo study
+   (:class:`sysid.studies.Study`, :func:`declare`): chunks of ``CHUNK`` data sets, each
+   simulated in one batched call from a generator derived from the master seed and the
+   chunk's coordinates, kept as Parquet files in ``study_black_box/`` and ``study_grey_box/``
+   (a rerun resumes; a rerun with other options in the same folder is refused: use another
+   ``--out``).
 3. Truth: the exact ZOH discretisation (eq. 1.55) is an output-error model
    y = B(q)/F(q) u + e with nb = nf = 2, nk = 1.
-4. Black-box identification of all data sets in one call each: ARX(2, 2, 1) by least squares
-   (biased under output noise, notes §4.6) and OE(2, 2, 1) by Gauss-Newton (consistent),
-   with bias, standard deviation and the coverage of the reported standard errors.
+4. Black-box identification, one batched call per chunk and estimator: ARX(2, 2, 1) by least
+   squares (biased under output noise, notes §4.6) and OE(2, 2, 1) by Gauss-Newton
+   (consistent), with bias, standard deviation and the coverage of the reported standard
+   errors (the study's summary).
 5. Grey-box identification: the physical parameters (m, xi, K) of the zoo plant estimated
    directly by ``fit`` of a ``GreyBoxModel``: Gauss-Newton on the simulation error of the ODE
    with Jacobians from the forward sensitivities of the RK4 recursion (notes eq. 8.17-8.18),
-   batched over data sets.
-6. Validation: fit on fresh data, residual whiteness test, Bode plots of true vs identified.
+   batched over data sets (a second, smaller study of the same generator; its consistency
+   in N is ``experiments/greybox_consistency.py``).
+6. Validation: an OE fit of one further data set, its fit on fresh data, residual whiteness
+   test, Bode plots of true vs identified.
 """
 
 from __future__ import annotations
@@ -59,6 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 parse_early(__name__, build_parser)
 
+import json
+import math
+
 import control
 import numpy as np
 import torch
@@ -76,6 +86,7 @@ from sysid import (
     zoh_discretize,
 )
 from sysid.montecarlo import input_signal
+from sysid.studies import Study
 from sysid.zoo import SpringMassDamper
 
 TRUE_PHYSICAL = {"m": 1.0, "xi": 0.5, "K": 4.0}
@@ -108,24 +119,83 @@ def true_oe_parameters(Ts: float) -> dict[str, float]:
     return {"b1": num[0], "b2": num[1], "f1": den[1] / den[0], "f2": den[2] / den[0]}
 
 
-def _summarise(label, theta, se, names, truth) -> list[dict]:
+#: Sample time (s) and RK4 steps per sample (h = 0.05 s: relative error ~1e-6, far below the
+#: noise) of every simulation and grey-box fit.
+TS, SUBSTEPS = 0.1, 2
+#: The estimators a study may declare, by the label they carry in the tables.
+ARX_LS, OE_GN, GREY_BOX = "ARX least squares", "OE Gauss-Newton", "grey-box (m, xi, K)"
+ESTIMATORS = {
+    ARX_LS: lambda data: fit(ARX(2, 2, 1, Ts=TS), data),
+    OE_GN: lambda data: fit(OE(2, 2, 1, Ts=TS), data, method="gauss_newton"),
+    GREY_BOX: lambda data: grey_box_fit(data, SUBSTEPS),
+}
+#: 3-sigma intervals: the coverage the tables report, 2 Phi(3) - 1.
+LEVEL_3SE = math.erf(3 / math.sqrt(2))
+_OE = ["b1", "b2", "f1", "f2"]  # OE coefficient order of the tables
+CHUNK = 100  # data sets per batched fit, per simulate call and per checkpoint file
+
+
+def simulate_data(point: dict, n: int, generator: torch.Generator) -> IOData:
+    """``n`` data sets of the plant at grid point ``point`` (``N`` samples, output noise std
+    ``noise`` m): random binary forces held 3 samples, simulated from rest, plus white noise.
+    Shapes: u, y (n, N, 1)."""
+    u = input_signal("prbs", point["N"], (n,), hold=3, generator=generator)
+    p_true = torch.tensor([TRUE_PHYSICAL[k] for k in PHYSICAL_NAMES], dtype=torch.float64)
+    y = simulate_plant(p_true, u, TS, SUBSTEPS)
+    noise = torch.randn(y.shape, generator=generator, dtype=y.dtype)
+    return IOData(u, y + point["noise"] * noise, Ts=TS)
+
+
+def truth(point: dict) -> dict[str, float]:
+    """True values of every declared parameter: the OE coefficients of the exact ZOH model
+    (ARX's a_i are its f_i), and the physical (m, xi, K)."""
+    oe = true_oe_parameters(TS)
+    return {**oe, "a1": oe["f1"], "a2": oe["f2"], **TRUE_PHYSICAL}
+
+
+def declare(grid=None, trials=500, seed=0, chunk=CHUNK, estimators=(ARX_LS, OE_GN)) -> Study:
+    """The declared Monte-Carlo study of the plant: ``estimators`` (labels of
+    :data:`ESTIMATORS`) on ``trials`` data sets per point of ``grid`` (factors ``N`` and
+    ``noise``; default ``N = 1000``, ``noise = 0.02``), master ``seed``, ``chunk`` data sets per
+    batched fit and per ``simulate`` call."""
+    chunk = min(chunk, trials)
+    return Study(
+        simulate_data,
+        {name: ESTIMATORS[name] for name in estimators},
+        grid=dict({"N": [1000], "noise": [0.02]} if grid is None else grid),
+        trials=trials,
+        seed=seed,
+        chunk=chunk,
+        block=chunk,
+        truth=truth,
+        version=json.dumps({"study": NAME, "Ts": TS, "substeps": SUBSTEPS}),
+    )
+
+
+def estimate_rows(study: Study) -> list[dict]:
+    """The ``estimates`` table: per estimator and parameter the truth, mean, bias, std, mean
+    reported SE and the coverage of the 3-SE intervals (ARX coefficients named in OE order,
+    ``b1, b2, f1, f2``, its ``a_i`` being the ``f_i``)."""
+    summary = study.summary(LEVEL_3SE)
+    rename = {"a1": "f1", "a2": "f2"}
     rows = []
-    for j, name in enumerate(names):
-        true = truth[name]
-        est = theta[:, j]
-        covered = ((est - true).abs() <= 3 * se[:, j]).double().mean()
-        rows.append(
-            {
-                "estimator": label,
-                "parameter": name,
-                "true": true,
-                "mean": float(est.mean()),
-                "bias": float(est.mean() - true),
-                "std": float(est.std()),
-                "mean_reported_se": float(se[:, j].mean()),
-                "coverage_3se": float(covered),
-            }
-        )
+    for estimator, group in summary.groupby("estimator", sort=False):
+        sel = group.assign(parameter=group["parameter"].replace(rename))
+        if estimator == ARX_LS:
+            sel = sel.set_index("parameter").loc[_OE].reset_index()
+        for r in sel.itertuples(index=False):
+            rows.append(
+                {
+                    "estimator": estimator,
+                    "parameter": r.parameter,
+                    "true": float(r.truth),
+                    "mean": float(r.mean),
+                    "bias": float(r.bias),
+                    "std": float(r.std),
+                    "mean_reported_se": float(r.mean_se),
+                    "coverage_3se": float(r.coverage),
+                }
+            )
     return rows
 
 
@@ -143,57 +213,43 @@ def main(argv=None):
     trials = args.trials or (24 if args.quick else 500)
     N = args.samples or (200 if args.quick else 1000)
     grey_trials = min(trials, 3 if args.quick else 50)
-    Ts, substeps = 0.1, 2  # RK4 at h = 0.05 s: relative error ~1e-6, far below the noise
-    gen = torch.Generator().manual_seed(args.seed)
-
-    note(f"simulating {trials} data sets of {N} samples")
-    u = input_signal("prbs", N, (trials,), hold=3, generator=gen)
-    p_true = torch.tensor([TRUE_PHYSICAL[k] for k in PHYSICAL_NAMES], dtype=torch.float64)
-    y_clean = simulate_plant(p_true, u, Ts, substeps)
-    y = y_clean + args.noise * torch.randn(y_clean.shape, generator=gen, dtype=y_clean.dtype)
-    data = IOData(u, y, Ts=Ts)
-    truth = true_oe_parameters(Ts)
-
-    note("fitting ARX(2, 2, 1) and OE(2, 2, 1) to every data set")
-    arx = fit(ARX(2, 2, 1, Ts=Ts), data)
-    oe = fit(OE(2, 2, 1, Ts=Ts), data, method="gauss_newton")
-    rows = _summarise("ARX least squares", _arx_as_oe(arx), arx.standard_errors, _OE, truth)
-    rows += _summarise("OE Gauss-Newton", oe.theta, oe.standard_errors, oe.parameter_names, truth)
-
     n_grey = min(N, 100 if args.quick else 400)
-    note(f"grey-box Gauss-Newton on {grey_trials} data sets of {n_grey} samples")
-    grey = grey_box_fit(IOData(u[:grey_trials, :n_grey], y[:grey_trials, :n_grey], Ts=Ts), substeps)
-    grey_se = grey.standard_errors
-    rows += _summarise(
-        "grey-box (m, xi, K)", grey.theta, grey_se, list(PHYSICAL_NAMES), TRUE_PHYSICAL
+
+    note(f"ARX(2, 2, 1) and OE(2, 2, 1) on {trials} data sets of {N} samples")
+    black = declare({"N": [N], "noise": [args.noise]}, trials, args.seed).run(
+        out / "study_black_box"
     )
+    note(f"grey-box Gauss-Newton on {grey_trials} data sets of {n_grey} samples")
+    grey = declare(
+        {"N": [n_grey], "noise": [args.noise]}, grey_trials, args.seed, estimators=(GREY_BOX,)
+    ).run(out / "study_grey_box")
+    rows = estimate_rows(black) + estimate_rows(grey)
     markdown = write_table(rows, out / "estimates")
 
-    note("validating on fresh data")
-    u_val = input_signal("prbs", N, (1,), hold=3, generator=gen)
-    y_val = simulate_plant(p_true, u_val, Ts, substeps)
-    val = IOData(u_val, y_val + args.noise * torch.randn(y_val.shape, generator=gen), Ts=Ts)
+    note("validating an OE fit of one further data set on fresh data")
+    gen = torch.Generator().manual_seed(args.seed)
+    point = {"N": N, "noise": args.noise}
+    data, val = simulate_data(point, 1, gen), simulate_data(point, 1, gen)
+    oe = fit(OE(2, 2, 1, Ts=TS), data, method="gauss_newton")
     model = oe.model[0]
     fit_val = float(fit_percent(val.y, model.simulate(val.u).detach()).reshape(-1)[0])
-    whiteness = residual_test(oe.residuals[:1].unsqueeze(-1), u[:1])
+    whiteness = residual_test(oe.residuals.unsqueeze(-1), data.u)
     summary = [
         {
             "trials": trials,
             "samples": N,
             "noise_std": args.noise,
-            "oe_converged": float(oe.converged.double().mean()),
-            "grey_converged": float(grey.converged.double().mean()),
+            "oe_converged": float(_converged(black, OE_GN)),
+            "grey_converged": float(_converged(grey, GREY_BOX)),
             "validation_fit_percent": fit_val,
             "residual_whiteness_p": float(np.asarray(whiteness.whiteness_pvalue).reshape(-1)[0]),
         }
     ]
     markdown += "\n\n" + write_table(summary, out / "summary")
-    _bode(model, truth, Ts, out)
+    _bode(model, true_oe_parameters(TS), TS, out)
     normalised = {
-        "OE Gauss-Newton": _normalised_errors(oe.theta, oe.standard_errors, _OE, truth),
-        "grey-box (m, xi, K)": _normalised_errors(
-            grey.theta, grey_se, PHYSICAL_NAMES, TRUE_PHYSICAL
-        ),
+        OE_GN: _normalised_errors(black, OE_GN),
+        GREY_BOX: _normalised_errors(grey, GREY_BOX),
     }
     _estimates_figure(rows, normalised, out)
     (out / f"{NAME}.md").write_text(markdown + "\n")
@@ -201,14 +257,17 @@ def main(argv=None):
     return rows, summary
 
 
-_OE = ["b1", "b2", "f1", "f2"]
+def _converged(study: Study, estimator: str) -> float:
+    """Fraction of the study's data sets on which ``estimator`` converged."""
+    results = study.results
+    return float(results[results["estimator"] == estimator]["converged"].mean())
 
 
-def _arx_as_oe(arx_result) -> torch.Tensor:
-    """ARX parameters in OE order: B(q)/A(q), so f_i = a_i (names a1, a2, b1, b2)."""
-    names = arx_result.parameter_names
-    col = {n: arx_result.theta[:, names.index(n)] for n in names}
-    return torch.stack([col["b1"], col["b2"], col["a1"], col["a2"]], -1)
+def _normalised_errors(study: Study, estimator: str) -> np.ndarray:
+    """(estimate - truth) / reported SE of every data set and parameter of ``estimator``,
+    flattened (data sets whose fit reported no positive SE are left out)."""
+    z = study.normalized_errors()
+    return z[z["estimator"] == estimator]["z"].to_numpy()
 
 
 def _bode(model, truth, Ts, out) -> None:
@@ -228,20 +287,8 @@ def _bode(model, truth, Ts, out) -> None:
     save_figure(fig, out / "bode.png")
 
 
-def _normalised_errors(theta, se, names, truth) -> np.ndarray:
-    """(estimate - truth) / reported SE of every data set and parameter, flattened; data sets
-    whose fit reported no finite SE are left out. Shapes: theta, se (trials, p)."""
-    true = torch.tensor([truth[n] for n in names], dtype=theta.dtype)
-    z = ((theta.detach() - true) / se.detach()).reshape(-1).numpy()
-    return z[np.isfinite(z)]
-
-
 #: Colour and short label of each estimator in the estimates figure.
-_ESTIMATOR_STYLE = {
-    "ARX least squares": ("C3", "ARX"),
-    "OE Gauss-Newton": ("C0", "OE"),
-    "grey-box (m, xi, K)": ("C2", "grey-box"),
-}
+_ESTIMATOR_STYLE = {ARX_LS: ("C3", "ARX"), OE_GN: ("C0", "OE"), GREY_BOX: ("C2", "grey-box")}
 
 
 def _estimates_figure(rows: list[dict], normalised: dict[str, np.ndarray], out) -> None:

@@ -41,6 +41,7 @@ KINDS = {
     "fir_covariance": "experiments.sysid_fir_covariance",
     "fat_tails": "experiments.sysid_fat_tails",
     "consistency": "experiments.sysid_consistency",
+    "greybox_consistency": "experiments.greybox_consistency",
 }
 KEYS = ("kind", "grid", "trials", "seed", "chunk", "options")
 QUICK_TRIALS = 20
