@@ -48,6 +48,7 @@ from experiments._common import (
     note,
     output_dir,
     parse_early,
+    readable_log_ticks,
     save_figure,
     write_table,
 )
@@ -332,6 +333,8 @@ def figure(rows):
     for ax, label in zip(axes, ("training time [s]", "number of parameters"), strict=True):
         ax.set_xscale("log")
         ax.set_yscale("log")
+        readable_log_ticks(ax.xaxis)
+        readable_log_ticks(ax.yaxis)
         ax.set_xlabel(label)
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel("validation error, 100 - mean fit [%]")

@@ -12,6 +12,11 @@ import torch
 from scipy.integrate import solve_ivp
 
 
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # one torch thread per pytest-xdist worker: the workers already share the cores
+    torch.set_num_threads(1)
+
+
 @pytest.fixture(autouse=True, scope="module")
 def fresh_dynamo():
     """Reset dynamo before each test module, so the graphs compiled by one module (the

@@ -31,7 +31,7 @@ def test_greybox_crane_quick_coverage_and_bias(tmp_path):
 
 def test_greybox_constrained_quick_within_3se_and_index3_refused(tmp_path):
     summary, rows = greybox_constrained.main(
-        ["--quick", "--trials", "2", "--samples", "60", "--out", str(tmp_path)]
+        ["--quick", "--trials", "2", "--samples", "40", "--out", str(tmp_path)]
     )
     assert summary["converged"] == 1.0
     assert summary["index3_form"].startswith("HighIndexError")
