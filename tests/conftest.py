@@ -11,7 +11,6 @@ import pytest
 import torch
 from scipy.integrate import solve_ivp
 
-
 if os.environ.get("PYTEST_XDIST_WORKER"):
     # one torch thread per pytest-xdist worker: the workers already share the cores
     torch.set_num_threads(1)
