@@ -6,7 +6,10 @@
    parameters (M, m, L, d) of every data set are estimated by
 
    * ours: one batched ``sysid.fit`` of a ``GreyBoxModel`` (RK4, exact forward
-     sensitivities, Levenberg-Marquardt) over all data sets;
+     sensitivities, Levenberg-Marquardt) over all data sets, by multiple shooting (twenty
+     segments with free node states, the default): over a 50 s record the pendulum swings
+     about 28 times, and from a start 30 % off the simulation error (single shooting) has
+     local minima that a full-record fit stops in, ours and scipy's alike;
    * scipy, the usual user code: ``scipy.optimize.least_squares`` (trust-region reflective,
      finite-difference Jacobian) on the simulation error from ``scipy.integrate.solve_ivp``
      (RK45 at rtol 1e-8, the force interpolated linearly by ``numpy.interp``), one data set
@@ -126,7 +129,7 @@ def crane_data(sets: int, N: int, seed: int = 0) -> IOData:
 def ours(data: IOData):
     start = {k: Param(v, min=0.0) for k, v in CRANE_START.items()}
     model = GreyBoxModel(crane, start, nx=4, output=[0, 1], substeps=2)
-    res = fit(model, data)
+    res = fit(model, data, criterion="multiple_shooting")
     return res.theta.numpy(), res
 
 
