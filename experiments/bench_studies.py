@@ -157,15 +157,15 @@ def throughput(trials: int, loop_trials: int, repeats: int, scratch) -> tuple[li
         shutil.rmtree(folder)
 
     def run_in_memory():
-        # the same chunks as run(), nothing written: the cost of checkpointing is the rest
-        return [study._compute_chunk(0, c) for c in range(study.n_chunks)]
+        # the same chunks as run(folder), nothing written: the cost of checkpointing is the rest
+        return study.run(progress=False)
 
     note(f"study: {trials} ARX data sets, N = {N}, chunks of {chunk}")
     t_study = best(run_to_folder, repeats)
     t_memory = best(run_in_memory, repeats)
     done = study.run(tempfile.mkdtemp(dir=scratch), progress=False)
     estimates = done.results["estimate"].to_numpy().reshape(trials, 4)[:loop_trials]
-    data = study._simulate_chunk(0, 0)  # the study's own first data sets
+    data = study.data(0, 0)  # the study's own first data sets
     us = data.u[:loop_trials, :, 0].numpy()
     ys = data.y[:loop_trials, :, 0].numpy()
     rows = [

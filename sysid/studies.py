@@ -294,8 +294,20 @@ class Study:
     def _chunk_trials(self, chunk: int) -> range:
         return range(chunk * self.chunk, min((chunk + 1) * self.chunk, self.trials))
 
-    def _simulate_chunk(self, point: int, chunk: int) -> IOData:
-        """The chunk's data sets, one ``simulate`` call per block, batch shape ``(n,)``."""
+    def data(self, point: int = 0, chunk: int = 0) -> IOData:
+        """The data sets the study fits in chunk ``chunk`` of grid point ``point`` (trials
+        ``chunk * self.chunk`` up to the next chunk's first), drawn from the study's seed as
+        :meth:`run` draws them; batch shape ``(n,)``, one ``simulate`` call per block.
+
+        Raises:
+            InputValidationError: ``point`` or ``chunk`` out of range, or ``simulate``
+                returned something else than an IOData of batch shape ``(n,)``.
+        """
+        if not (0 <= point < len(self.points) and 0 <= chunk < self.n_chunks):
+            raise InputValidationError(
+                f"the study has grid points 0..{len(self.points) - 1} and chunks "
+                f"0..{self.n_chunks - 1}; got point={point}, chunk={chunk}."
+            )
         trials = self._chunk_trials(chunk)
         parts = []
         for start in range(trials.start, trials.stop, self.block):
@@ -315,7 +327,7 @@ class Study:
     def _compute_chunk(self, point: int, chunk: int):
         """The results rows of one chunk (all estimators), as a DataFrame."""
         pd = _pandas()
-        data = self._simulate_chunk(point, chunk)
+        data = self.data(point, chunk)
         trials = np.asarray(self._chunk_trials(chunk))
         n = len(trials)
         frames = []
@@ -379,11 +391,12 @@ class Study:
         return None
 
     # ------------------------------------------------------------------ running
-    def run(self, out_dir, client=None, progress: bool | None = None) -> Study:
+    def run(self, out_dir=None, client=None, progress: bool | None = None) -> Study:
         """Run (or resume) the study in ``out_dir``.
 
         Args:
             out_dir: the study's folder (created): ``manifest.json`` and ``chunks/*.parquet``.
+                None runs it in memory: nothing written, nothing to resume from.
             client: a ``dask.distributed.Client``: each missing chunk becomes one task on its
                 workers, whose rows come back to this process to be written. None: chunks
                 run here, one after the other.
@@ -401,21 +414,23 @@ class Study:
         """
         from ._progress import progress_bar
 
-        folder = pathlib.Path(out_dir)
-        (folder / "chunks").mkdir(parents=True, exist_ok=True)
-        self._check_manifest(folder)
+        folder = None if out_dir is None else pathlib.Path(out_dir)
         coordinates = [(i, c) for i in range(len(self.points)) for c in range(self.n_chunks)]
         done = {}
-        for i, c in coordinates:
-            path = self._chunk_path(folder, i, c)
-            if path.exists():
-                frame = self._read_chunk(path, c)
-                if frame is not None:
-                    done[i, c] = frame
+        if folder is not None:
+            (folder / "chunks").mkdir(parents=True, exist_ok=True)
+            self._check_manifest(folder)
+            for i, c in coordinates:
+                path = self._chunk_path(folder, i, c)
+                if path.exists():
+                    frame = self._read_chunk(path, c)
+                    if frame is not None:
+                        done[i, c] = frame
         pending = [key for key in coordinates if key not in done]
 
         def finish(key, frame):
-            _atomic_write_parquet(frame, self._chunk_path(folder, *key))
+            if folder is not None:
+                _atomic_write_parquet(frame, self._chunk_path(folder, *key))
             done[key] = frame
 
         with progress_bar(len(coordinates), "study chunks", progress, unit="chunk") as bar:

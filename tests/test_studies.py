@@ -182,11 +182,21 @@ def test_results_table_is_tidy(tmp_path):
     assert len(rows) == 2 * 15 * 3
     # one batched fit per chunk gives the same numbers as a fit of each trial alone
     one = rows[(rows["N"] == 80) & (rows["trial"] == 7)]
-    data = study._simulate_chunk(1, 1)[2]  # chunk 1 = trials 5..9
+    data = study.data(1, 1)[2]  # chunk 1 = trials 5..9
     alone = fit(FIR(3, 1), data)
     torch.testing.assert_close(torch.tensor(one["estimate"].to_numpy()), alone.theta)
     torch.testing.assert_close(torch.tensor(one["se"].to_numpy()), alone.standard_errors)
     assert one["loss"].iloc[0] == pytest.approx(float(alone.loss_history[-1]))
+
+
+def test_in_memory_run_gives_the_checkpointed_table_and_writes_nothing(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    folder = small_study(chunk=5).run(tmp_path / "folder", progress=False)
+    memory = small_study(chunk=5).run(progress=False)
+    assert table(memory).equals(table(folder))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["folder"]
+    with pytest.raises(InputValidationError, match="grid points 0..1 and chunks 0..2"):
+        memory.data(2, 0)
 
 
 def test_same_trial_same_data_for_any_block_aligned_chunk(tmp_path):
