@@ -589,7 +589,8 @@ def sensitivities(
         stage_u = _stage_inputs(inputs, u, t, tab, substeps, x) if fast.active else None
         if inputs.kind in ("zoh", "collocation") and fast.active:
             stage_u = stage_u.expand(*batch, *stage_u.shape[-4:])
-        p_kernel = x.new_zeros(*batch, 0) if p is None else p.expand(*batch, n_p)
+        # materialised: forward-mode duals of a broadcast view (stride 0) fail to compile
+        p_kernel = x.new_zeros(*batch, 0) if p is None else p.expand(*batch, n_p).contiguous()
     for k in range(T - 1):
         if fast is not None and fast.active:
             S = torch.cat([A, B], -1) if derivatives else x.new_zeros(0)

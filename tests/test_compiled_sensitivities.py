@@ -80,6 +80,33 @@ def test_compiled_kernel_of_a_module_with_substituted_parameters_equals_eager():
     torch.testing.assert_close(J1, J0, rtol=1e-12, atol=1e-13)
 
 
+def test_multiple_shooting_compiles_with_parameters_broadcast_over_segments():
+    """Multiple shooting simulates every segment from its own node with the parameters
+    broadcast over the segments (a stride-0 view, which forward-mode duals refuse to
+    compile): the kernel runs compiled and gives the eager residuals and Jacobian."""
+
+    def damped_pendulum(t, x, u, p):
+        acc = -p["a"] * torch.sin(x[..., 0]) - p["b"] * x[..., 1] + u[..., 0]
+        return torch.stack([x[..., 1], acc], -1)
+
+    def evaluate(compile):
+        model = GreyBoxModel(
+            damped_pendulum, {"a": Param(9.0), "b": Param(0.2)}, nx=2, output=[0], compile=compile
+        )
+        g = torch.Generator().manual_seed(7)
+        u = torch.randn(2, 31, 1, generator=g, dtype=F64)
+        data = IOData(u, torch.randn(2, 31, 1, generator=g, dtype=F64), Ts=0.1)
+        problem = _Problem(model, data, "multiple_shooting", "estimate", 6, "rk4")
+        r, J = problem.residuals_and_jacobian(problem.initial_z() + 0.1)
+        return r, J, problem.stats[0].extra
+
+    r0, J0, _ = evaluate(False)
+    r1, J1, info = evaluate(True)
+    assert info["compiled"] and info["compile_fallback"] is None
+    torch.testing.assert_close(r1, r0, rtol=1e-12, atol=1e-13)
+    torch.testing.assert_close(J1, J0, rtol=1e-12, atol=1e-13)
+
+
 def test_a_model_with_autograd_inside_runs_eagerly_and_says_why():
     """A Lagrangian plant forms its equations of motion by autograd: the kernel cannot be
     compiled; the run falls back to the eager recursion with the same numbers."""
