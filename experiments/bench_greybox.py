@@ -20,8 +20,9 @@
    a stationary point; scipy: ``success``), and the ratio of times.
 2. The simulation-error Jacobian of a 6-parameter Duffing oscillator
    (m y'' + d y' + k1 y + k3 y^3 = u + offset, with x0 estimated) over a long record:
-   time of one residual + Jacobian evaluation and the growth of the process' peak memory,
-   at N and 2 N samples (memory linear in the record length).
+   time of one residual + Jacobian evaluation (compile included) and the growth of the peak
+   memory of a fresh process over its peak before the evaluation, at N and 2 N samples
+   (memory linear in the record length).
 
 Timings: wall clock, torch on one thread. Run with ``OMP_NUM_THREADS=1`` so numpy/scipy use
 one thread too.
@@ -32,6 +33,7 @@ Run: ``python -m experiments.bench_greybox [--quick] [--out DIR]``.
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import resource
 import time
 
@@ -236,34 +238,44 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def jacobian_rows(N: int) -> list[dict]:
-    """One residual + Jacobian evaluation of the Duffing simulation error at N and 2 N."""
+def _jacobian_in_fresh_process(n: int) -> dict:
+    """One residual + Jacobian evaluation of the 6-parameter Duffing simulation error over
+    ``n`` samples, run in a fresh process (see :func:`jacobian_rows`): its time (compile
+    included) and the growth of the process' peak resident memory over its peak before."""
+    torch.set_num_threads(1)
     params = {"m": 1.0, "d": 0.3, "k1": 2.0, "k3": 0.5, "offset": 0.1, "extra": 0.0}
 
     def duffing6(t, x, u, p):  # a sixth parameter scaling the input
         return duffing(t, x, u * (1 + p["extra"][..., None]), p)
 
     model = GreyBoxModel(duffing6, {k: Param(v) for k, v in params.items()}, nx=2, output=[0])
+    g = torch.Generator().manual_seed(n)
+    u = input_signal("white", n, (), generator=g)
+    data = IOData(u, torch.zeros(n, 1, dtype=u.dtype), Ts=0.01, intersample="foh")
+    problem = _Problem(model, data, "simulation", "estimate", None, "rk4")
+    z = problem.initial_z()
+    before = peak_rss_mb()
+    start = time.perf_counter()
+    r, J = problem.residuals_and_jacobian(z)
+    seconds = time.perf_counter() - start
+    stored = sum(values.numel() * values.element_size() for values, _ in J.groups)
+    return {
+        "case": f"Duffing simulation-error Jacobian, N = {n}",
+        "columns": J.shape[-1],
+        "seconds": seconds,
+        "peak_memory_growth_mb": peak_rss_mb() - before,
+        "jacobian_mb": stored / 2**20,
+    }
+
+
+def jacobian_rows(N: int) -> list[dict]:
+    """The Duffing case at N and 2 N samples, each in a fresh process, so that one record's
+    peak memory does not hide the other's (a process' peak never falls)."""
+    context = multiprocessing.get_context("spawn")
     rows = []
     for n in (N, 2 * N):
-        g = torch.Generator().manual_seed(n)
-        u = input_signal("white", n, (), generator=g)
-        data = IOData(u, torch.zeros(n, 1, dtype=u.dtype), Ts=0.01, intersample="foh")
-        problem = _Problem(model, data, "simulation", "estimate", None, "rk4")
-        z = problem.initial_z()
-        before = peak_rss_mb()
-        start = time.perf_counter()
-        r, J = problem.residuals_and_jacobian(z)
-        seconds = time.perf_counter() - start
-        rows.append(
-            {
-                "case": f"Duffing simulation-error Jacobian, N = {n}",
-                "columns": J.shape[-1],
-                "seconds": seconds,
-                "peak_memory_growth_mb": peak_rss_mb() - before,
-                "jacobian_mb": J.numel() * J.element_size() / 2**20,
-            }
-        )
+        with context.Pool(1) as pool:
+            rows.append(pool.apply(_jacobian_in_fresh_process, (n,)))
     return rows
 
 
@@ -275,7 +287,6 @@ def main(argv=None):
     N = args.samples or (100 if args.quick else 1000)
     scipy_sets = min(sets, args.scipy_sets or (1 if args.quick else 10))
     n_jac = args.jacobian_samples or (1000 if args.quick else 43500)
-    # the Jacobian case first: the growth of the peak memory is measured from a low start
     note(f"Duffing: residual and Jacobian over {n_jac} and {2 * n_jac} samples")
     jac = jacobian_rows(n_jac)
     rows = crane_rows(sets, N, scipy_sets)

@@ -33,6 +33,7 @@ from enum import IntEnum
 
 import torch
 
+from .block_jacobian import BlockJacobian
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
 
 __all__ = [
@@ -129,7 +130,8 @@ class MinimizeResult:
         hessian: (*batch, n, n) the Hessian used at ``theta`` (exact, or ``J^T C J`` for the
             residual methods, ``C = 1`` for Gauss-Newton; without regularisation).
         J: (*batch, m, n) residual Jacobian at ``theta`` (residual methods only), e.g. for
-            the covariance ``sigma^2 (J^T J)^{-1}`` of a least-squares estimate.
+            the covariance ``sigma^2 (J^T J)^{-1}`` of a least-squares estimate; the
+            :class:`~integrators.block_jacobian.BlockJacobian` where ``jacobian`` gave one.
         residual: (*batch, m) residual at ``theta`` (residual methods only).
         n_fun_evals: batched evaluations of the objective / residual.
         messages: lines for members that did not converge.
@@ -144,7 +146,7 @@ class MinimizeResult:
     loss_history: torch.Tensor
     grad: torch.Tensor
     hessian: torch.Tensor
-    J: torch.Tensor | None = None
+    J: torch.Tensor | BlockJacobian | None = None
     residual: torch.Tensor | None = None
     n_fun_evals: int = 0
     messages: list[str] = field(default_factory=list)
@@ -598,7 +600,8 @@ def _loss_derivatives(fun, theta, args, method, jacobian=None, loss=None):
         if jacobian is None:
             r, J = batch_jacobian(fun, theta, *args)
         else:
-            r, J = (v.detach() for v in jacobian(theta, *args))
+            r, J = jacobian(theta, *args)
+            r, J = r.detach(), J if isinstance(J, BlockJacobian) else J.detach()
             if J.shape != (*r.shape, theta.shape[-1]):
                 raise InputValidationError(
                     f"minimize: jacobian must return r (*batch, m) and J (*batch, m, n), got "
@@ -609,6 +612,11 @@ def _loss_derivatives(fun, theta, args, method, jacobian=None, loss=None):
                 f"minimize: the residual must have shape (*batch, m) with batch {tuple(batch)}, "
                 f"got {tuple(r.shape)}."
             )
+        if isinstance(J, BlockJacobian):
+            if loss is None:
+                return 0.5 * (r * r).sum(-1), J.rmatvec(r), J.normal(), J, r
+            H, grad = J.normal(loss.curvature(r)), J.rmatvec(loss.psi(r))
+            return loss.rho(r).sum(-1), grad, H, J, r
         Jt = J.transpose(-1, -2)
         if loss is None:
             return 0.5 * (r * r).sum(-1), (Jt @ r.unsqueeze(-1)).squeeze(-1), Jt @ J, J, r
@@ -755,7 +763,9 @@ def minimize(
         jacobian: residual methods: ``jacobian(theta, *args) -> (r, J)`` with ``J`` of shape
             (*batch, m, n), replacing the reverse-mode autograd Jacobian; e.g. forward
             sensitivities of a simulation (:func:`integrators.sensitivities`), which cost
-            ``n`` directions instead of ``m`` reverse passes when ``m >> n``.
+            ``n`` directions instead of ``m`` reverse passes when ``m >> n``. ``J`` may be a
+            :class:`~integrators.block_jacobian.BlockJacobian` (sparse row blocks, e.g.
+            multiple shooting): ``J'CJ`` and ``J'psi`` are then formed block by block.
         loss: "levenberg_marquardt": the per-residual loss (protocol above); None is the
             squared loss ``r^2 / 2``.
         admissible: "levenberg_marquardt": ``theta (*batch, n) -> (*batch,)`` bool; steps to
@@ -921,7 +931,11 @@ def minimize(
                     torch.where(keep[..., None, None], H, new[2]),
                 )
                 if method != "newton":
-                    J = torch.where(keep[..., None, None], J, new[3])
+                    J = (
+                        J.where(keep, new[3])
+                        if isinstance(J, BlockJacobian)
+                        else torch.where(keep[..., None, None], J, new[3])
+                    )
                     r = torch.where(keep[..., None], r, new[4])
                 history.append(loss_value)
                 stalled = active & small & torch.isfinite(loss_value)

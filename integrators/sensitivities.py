@@ -72,6 +72,7 @@ and "``Delta w``" is ``Delta K``.
 from __future__ import annotations
 
 import functools
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -99,6 +100,11 @@ _MAX_NEWTON_ITER = 50
 #: costs about a millisecond of per-operation overhead, a compiled one a tenth of that or
 #: less, and the one-off compile about as long as these steps run eagerly (seconds).
 AUTO_COMPILE_MIN_STEPS = 5_000
+#: ``compile="auto"`` also compiles once this many seconds were spent in eager runs of the
+#: same model and configuration (over all calls): about what one compile of the interval
+#: kernel takes, so a large batch, whose eager steps are slow, compiles after a few calls
+#: (rent-or-buy, see :func:`integrators._fast.compiled.compiled_stepper`)
+AUTO_COMPILE_EAGER_SECONDS = 5.0
 
 
 @dataclass
@@ -529,11 +535,13 @@ def sensitivities(
         compile: explicit tableaus without input sensitivities: True runs each output
             interval as one ``torch.compile``-d kernel (forward-mode stage derivatives, see
             :func:`_interval_kernel`), False never; ``"auto"`` (default) compiles once
-            :data:`AUTO_COMPILE_MIN_STEPS` steps were taken with the same ``f`` and
-            configuration over all calls (compiled kernels are cached per ``f``). A model the
-            compiler or forward-mode differentiation cannot handle (one calling autograd or a
-            Newton solver inside ``f``) runs eagerly; ``stats.extra`` reports ``compiled``,
-            ``compile_fallback`` (why a wanted compile did not happen) and ``compile_s``.
+            :data:`AUTO_COMPILE_MIN_STEPS` steps were taken, or
+            :data:`AUTO_COMPILE_EAGER_SECONDS` seconds spent stepping eagerly, with the same
+            ``f`` and configuration over all calls (compiled kernels are cached per ``f``). A
+            model the compiler or forward-mode differentiation cannot handle (one calling
+            autograd or a Newton solver inside ``f``) runs eagerly; ``stats.extra`` reports
+            ``compiled``, ``compile_fallback`` (why a wanted compile did not happen) and
+            ``compile_s``.
 
     Returns:
         :class:`SensitivityResult` with ``x``, ``A = dx_k/dx_0``, ``B = dx_k/dp``, ``C`` (the
@@ -585,12 +593,14 @@ def sensitivities(
                 make_chunk=functools.partial(_interval_kernel, g, tab, substeps, derivatives),
                 n_out=1,
                 auto_min_steps=AUTO_COMPILE_MIN_STEPS,
+                auto_min_eager_s=AUTO_COMPILE_EAGER_SECONDS,
             )
         stage_u = _stage_inputs(inputs, u, t, tab, substeps, x) if fast.active else None
         if inputs.kind in ("zoh", "collocation") and fast.active:
             stage_u = stage_u.expand(*batch, *stage_u.shape[-4:])
         # materialised: forward-mode duals of a broadcast view (stride 0) fail to compile
         p_kernel = x.new_zeros(*batch, 0) if p is None else p.expand(*batch, n_p).contiguous()
+    tic = time.perf_counter()
     for k in range(T - 1):
         if fast is not None and fast.active:
             S = torch.cat([A, B], -1) if derivatives else x.new_zeros(0)
@@ -664,6 +674,8 @@ def sensitivities(
         As_out.append(A)
         Bs_out.append(B)
         Cs_out.append(C)
+    if fast is not None and not fast.active:
+        fast.add_eager_seconds(time.perf_counter() - tic)
     stats = SolverStats(n_f_evals=n_f, n_steps=n_steps, n_jac_evals=n_jac)
     stats.extra.update(
         fast.stats() if fast is not None else dict(compiled=False, compile_fallback=None)

@@ -35,6 +35,7 @@ def eager_sensitivities_unless_asked(monkeypatch):
 
     module = importlib.import_module("integrators.sensitivities")  # not the function
     monkeypatch.setattr(module, "AUTO_COMPILE_MIN_STEPS", 2**62)
+    monkeypatch.setattr(module, "AUTO_COMPILE_EAGER_SECONDS", math.inf)
 
 
 @pytest.fixture

@@ -66,7 +66,7 @@ def _jacobian(model):
     problem = _Problem(model, data, "simulation", "estimate", None, "rk4")
     z = problem.initial_z() + 0.1
     r, J = problem.residuals_and_jacobian(z)
-    return r, J, problem.stats[0].extra
+    return r, J.dense(), problem.stats[0].extra
 
 
 def test_compiled_kernel_of_a_module_with_substituted_parameters_equals_eager():
@@ -98,7 +98,7 @@ def test_multiple_shooting_compiles_with_parameters_broadcast_over_segments():
         data = IOData(u, torch.randn(2, 31, 1, generator=g, dtype=F64), Ts=0.1)
         problem = _Problem(model, data, "multiple_shooting", "estimate", 6, "rk4")
         r, J = problem.residuals_and_jacobian(problem.initial_z() + 0.1)
-        return r, J, problem.stats[0].extra
+        return r, J.dense(), problem.stats[0].extra
 
     r0, J0, _ = evaluate(False)
     r1, J1, info = evaluate(True)
@@ -137,3 +137,23 @@ def test_auto_compiles_only_past_its_threshold(monkeypatch):
             break
     assert last.stats.extra["compiled"]
     torch.testing.assert_close(last.x, short.x, rtol=1e-13, atol=1e-14)
+
+
+def test_auto_compiles_once_the_eager_time_reaches_its_threshold(monkeypatch):
+    """Rent-or-buy: few steps but slow eager runs (a large batch) compile once the eager time
+    spent on the model reaches :data:`AUTO_COMPILE_EAGER_SECONDS` (lowered here to a
+    nanosecond: the first run is eager and counted, the second compiled); the step count
+    alone would not."""
+    module = importlib.import_module("integrators.sensitivities")
+    monkeypatch.setattr(module, "AUTO_COMPILE_EAGER_SECONDS", 1e-9)
+    x0, t, p, u = _collocation_case()
+
+    def model(t, x, u, p):
+        return pendulum(t, x, u, p)
+
+    kw = dict(u=u, input_sensitivities=False)
+    first = sensitivities(model, x0, t, p, compile="auto", **kw)
+    assert not first.stats.extra["compiled"]
+    second = sensitivities(model, x0, t, p, compile="auto", **kw)
+    assert second.stats.extra["compiled"]
+    torch.testing.assert_close(second.B, first.B, rtol=1e-11, atol=1e-13)

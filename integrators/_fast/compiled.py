@@ -13,6 +13,7 @@ component-major chunk compiled with the cat-forwarding graph pass (``cat_forward
 
 from __future__ import annotations
 
+import math
 import time
 import types
 import weakref
@@ -65,6 +66,7 @@ class _Entry:
 
     def __init__(self):
         self.steps_seen = 0
+        self.eager_s = 0.0  # wall time of the eager runs reported by the solver
         self.compiled: dict = {}  # (outputs per chunk, component-major, shape...) -> chunk
         self.failed = False
         self.failure = ""  # why the compiled chunk was given up (reported in the stats)
@@ -118,6 +120,11 @@ class Stepper:
         self.n_out, self.component_major = (key[0], key[1]) if active else (1, False)
         self.compile_s = compile_s
 
+    def add_eager_seconds(self, seconds: float) -> None:
+        """Count ``seconds`` of eager stepping of this model and configuration towards
+        ``"auto"`` (see :func:`compiled_stepper`)."""
+        self._entry.eager_s += seconds
+
     @property
     def active(self) -> bool:
         """Whether calls may run compiled (wanted, and not given up before)."""
@@ -169,14 +176,19 @@ def compiled_stepper(
     n_out: int,
     f_at_start=None,
     auto_min_steps: int = AUTO_COMPILE_MIN_STEPS,
+    auto_min_eager_s: float = math.inf,
 ) -> Stepper:
     """A compiled chunk function for a run of model ``f``, or the reason there is none.
 
     Args:
         f: the model, the cache key (bound methods: their instance).
         config: a hashable description of everything else the chunk depends on.
-        compile: True, False or ``"auto"`` (compile once ``auto_min_steps`` steps were taken
-            with this model and configuration over all calls).
+        compile: True, False or ``"auto"``: compile once ``auto_min_steps`` steps were taken,
+            or once ``auto_min_eager_s`` seconds were spent in eager runs (reported by the
+            solver through :meth:`Stepper.add_eager_seconds`), with this model and
+            configuration over all calls. The second rule is rent-or-buy: stepping eagerly
+            until the eager time equals the one-off compile time costs at most twice the
+            better of the two choices made in hindsight, whatever the batch size.
         n_steps: the steps of this run (counted towards ``"auto"``).
         x0: (*batch, nx) initial state; the chunk is compiled for its shape, dtype and device.
         make_chunk: ``make_chunk(n_out, component_major)``, the chunk function to compile
@@ -186,7 +198,8 @@ def compiled_stepper(
             cache entry to decide the layout (runs without autograd, at most
             :data:`COMPONENT_MAJOR_MAX_STATES` states); None: the chunk has one layout, the
             interleaved one.
-        auto_min_steps: the ``"auto"`` threshold (default :data:`AUTO_COMPILE_MIN_STEPS`).
+        auto_min_steps: the ``"auto"`` step threshold (default :data:`AUTO_COMPILE_MIN_STEPS`).
+        auto_min_eager_s: the ``"auto"`` eager-time threshold (default: none).
 
     Returns:
         A :class:`Stepper`, called like the chunk; it returns None wherever the caller must run
@@ -194,7 +207,8 @@ def compiled_stepper(
     """
     entry = _cache_entry(f, config)
     entry.steps_seen += n_steps
-    want = compile is True or (compile == "auto" and entry.steps_seen >= auto_min_steps)
+    enough = entry.steps_seen >= auto_min_steps or entry.eager_s >= auto_min_eager_s
+    want = compile is True or (compile == "auto" and enough)
     grad_mode = torch.is_grad_enabled()
     active = want and not entry.failed and not torch.compiler.is_compiling()
     active = active and not (grad_mode and entry.backward_failed)

@@ -35,6 +35,7 @@ import warnings
 import numpy as np
 import torch
 
+from integrators.block_jacobian import BlockJacobian
 from integrators.errors import InputValidationError
 from integrators.newton import NewtonStatus, minimize
 
@@ -52,6 +53,12 @@ CRITERIA = ("simulation", "multiple_shooting", "one_step")
 #: continuity penalty weights of multiple shooting, applied in turn (each run starts from the
 #: previous estimate); relative to the output scale, see ``_Problem.defect_weight``
 _PENALTY_CONTINUATION = (1.0, 1e2, 1e4)
+
+#: default multiple-shooting segments: this many sample intervals, longer where the record
+#: would otherwise have more than ``_MAX_SEGMENTS`` segments (the Jacobian is dense in the
+#: node states: its normal matrix costs ``(N ny) (S nx)^2`` per iteration)
+_SEGMENT_SAMPLES = 10
+_MAX_SEGMENTS = 100
 
 #: |correlation| of two estimates above which the pair is reported as not separately
 #: identifiable from the data
@@ -129,7 +136,9 @@ class _Problem:
             elif criterion == "one_step":
                 seg = Segments(torch.arange(N - 1, dtype=torch.int64), 1)
             else:
-                L = segment_length if segment_length is not None else max(5, (N - 1) // 20)
+                L = segment_length
+                if L is None:
+                    L = max(_SEGMENT_SAMPLES, math.ceil((N - 1) / _MAX_SEGMENTS))
                 if isinstance(L, bool) or int(L) != L or L < 1:
                     raise InputValidationError(
                         f"segment_length must be an integer >= 1, got {segment_length!r}."
@@ -238,10 +247,19 @@ class _Problem:
         return torch.cat([first.unsqueeze(-2)] + rest, -2)
 
     def residuals_and_jacobian(self, z: torch.Tensor):
-        """``r`` (*batch, M) and ``J = dr/dz`` (*batch, M, n_columns)."""
+        """``r`` (*batch, M) and ``J = dr/dz`` (*batch, M, n_columns) as a
+        :class:`~integrators.block_jacobian.BlockJacobian`: each segment's rows touch only the
+        parameters and its own nodes, so the normal matrix costs linear time in the segments."""
         self.stats = []
-        pieces = [self._experiment(z, e, part, True) for e, part in enumerate(self.parts)]
-        return torch.cat([r for r, _ in pieces], -1), torch.cat([J for _, J in pieces], -2)
+        residuals, groups, rows, offset = [], [], [], 0
+        for e, part in enumerate(self.parts):
+            r, blocks, kept = self._experiment(z, e, part, True)
+            residuals.append(r)
+            groups += blocks
+            rows.append(kept + offset)
+            offset += sum(v.shape[-3] * v.shape[-2] for v, _ in blocks)
+        J = BlockJacobian(groups, self.n_columns, torch.cat(rows))
+        return torch.cat(residuals, -1), J
 
     def residuals(self, z: torch.Tensor) -> torch.Tensor:
         """``r`` (*batch, M) alone (the same simulation without its derivatives)."""
@@ -285,20 +303,26 @@ class _Problem:
             r_all = torch.cat([r, defect.reshape(*defect.shape[:-2], -1)], -1)
         if not derivatives:
             return r_all if shooting else r
-        Jy = out["dy_dP"] @ dP_dz[..., None, None, :, :]  # (*batch, S, L+1, ny, n_columns)
-        table = self.node_table(e, S).to(z.device)
-        _scatter_columns(Jy, out["dy_dx0"], table, 2)
-        J = Jy.reshape(*err.shape[:-3], -1, self.n_columns)[..., rows, :]
+        # row blocks of J (see residuals_and_jacobian): per segment its outputs over the free
+        # parameter columns and its node's columns; per defect also the next node's columns
+        free = [c for c in self.param_columns[e] if c is not None]
+        dP = dP_dz[..., :, free]  # (*batch, n_params, n_free)
+        table = self.node_table(e, S)
+        on_params = torch.tensor(free, dtype=torch.int64).expand(S, len(free))
+        Jy = torch.cat([out["dy_dP"] @ dP[..., None, None, :, :], out["dy_dx0"]], -1)
+        blocks = [(Jy.flatten(-3, -2), torch.cat([on_params, table], -1))]
+        kept = torch.nonzero(rows).squeeze(-1)
         if not shooting:
-            return r, J
-        Jd = (out["dxend_dP"][..., :-1, :, :] @ dP_dz[..., None, :, :]) * w[..., None, :, None]
-        _scatter_columns(
-            Jd, out["dxend_dx0"][..., :-1, :, :] * w[..., None, :, None], table[:-1], 1
-        )
-        minus_eye = -torch.eye(nx, dtype=z.dtype, device=z.device) * w[..., None, :, None]
-        minus_eye = minus_eye.expand(*self.batch, S - 1, nx, nx)
-        _scatter_columns(Jd, minus_eye, table[1:], 1)
-        return r_all, torch.cat([J, Jd.reshape(*Jd.shape[:-3], -1, self.n_columns)], -2)
+            return r, blocks, kept
+        w = w[..., None, :, None]
+        d_params = (out["dxend_dP"][..., :-1, :, :] @ dP[..., None, :, :]) * w
+        d_node = out["dxend_dx0"][..., :-1, :, :] * w
+        minus_eye = -torch.eye(nx, dtype=z.dtype, device=z.device) * w
+        Jd = torch.cat([d_params, d_node, minus_eye.expand_as(d_node)], -1)
+        blocks.append((Jd, torch.cat([on_params[:-1], table[:-1], table[1:]], -1)))
+        n_out = rows.shape[0]
+        kept = torch.cat([kept, torch.arange(n_out, n_out + (S - 1) * nx)])
+        return r_all, blocks, kept
 
     def node_table(self, e: int, S: int) -> torch.Tensor:
         """(S, nx) z-columns of the segments' initial states (-1 where not free)."""
@@ -309,22 +333,6 @@ class _Problem:
         if self.node_columns[e] is not None:
             table[1:] = torch.tensor(self.node_columns[e]).reshape(S - 1, nx)
         return table
-
-
-def _scatter_columns(
-    Jt: torch.Tensor, d_dnode: torch.Tensor, table: torch.Tensor, n_rows: int
-) -> None:
-    """Add ``d_dnode`` (*batch, S, *rows, nx), the derivatives of segment ``j``'s rows with
-    respect to its initial state, into the columns ``table[j]`` of ``Jt``
-    (*batch, S, *rows, n_columns), in place. ``table`` (S, nx) holds the z-columns of each
-    segment's initial state; entries -1 (not free) are skipped. ``rows`` are the dims between
-    the segment and the last one, ``n_rows`` of them (``(L+1, ny)`` for outputs, ``(nx,)``
-    for defects)."""
-    S, nx = table.shape
-    view = (S,) + (1,) * n_rows + (nx,)
-    free = (table >= 0).to(d_dnode.dtype).view(view)
-    index = table.clamp_min(0).view(view).expand_as(d_dnode)
-    Jt.scatter_add_(-1, index, d_dnode * free)
 
 
 class _Monitor:
@@ -502,7 +510,7 @@ def _carry_over(ms: _Problem, sim: _Problem, z: torch.Tensor) -> torch.Tensor:
 
 
 def _result(problem, lm, the_loss, method, loss, history, iterations, integrator, reason):
-    J, r, z = lm.J, lm.residual, lm.theta
+    J, r, z = lm.J.dense(), lm.residual, lm.theta
     failed = lm.status == NewtonStatus.LINE_SEARCH_FAILED
     # columns of J in physical units: divide each parameter column by dp/dz
     factor_cols, phys = torch.ones_like(z), z.clone()

@@ -90,7 +90,9 @@ def fit(
         iv_iterations: instrument refinements of ``"iv"`` (and of the automatic start).
         x0: grey-box models: the initial state, ``"zero"``, ``"estimate"`` (one per
             experiment) or a tensor (nx,) / (*batch, nx); default the model's ``x0``.
-        segment_length: grey-box multiple shooting: sample intervals per segment.
+        segment_length: grey-box multiple shooting: sample intervals per segment (default
+            10, longer where a record would have more than 100 segments). Short segments
+            widen the basin of attraction; each adds ``nx`` node states to the fit.
         **training: neural continuous-time models (an ``nn.Module`` with ``nx``, ``nu``,
             ``ny``, ``method``, ``substeps``, ``output``, ``physical_parameters``, e.g.
             ``NeuralODE``), or ``method="adam"`` / ``"lbfgs"``: the options of
