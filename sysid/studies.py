@@ -45,6 +45,7 @@ import tempfile
 import time
 import warnings
 from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
@@ -427,20 +428,32 @@ class Study:
                     if frame is not None:
                         done[i, c] = frame
         pending = [key for key in coordinates if key not in done]
+        # chunk files are written by one background thread while the next chunk computes
+        # (Parquet encoding and file I/O release the GIL); every write is waited for before
+        # run returns or raises, so a finished chunk is on disk unless the process dies
+        writer = ThreadPoolExecutor(max_workers=1) if folder is not None else None
+        writes = []
 
         def finish(key, frame):
-            if folder is not None:
-                _atomic_write_parquet(frame, self._chunk_path(folder, *key))
+            if writer is not None:
+                path = self._chunk_path(folder, *key)
+                writes.append(writer.submit(_atomic_write_parquet, frame, path))
             done[key] = frame
 
-        with progress_bar(len(coordinates), "study chunks", progress, unit="chunk") as bar:
-            bar.update(len(done))
-            if client is None:
-                for key in pending:
-                    finish(key, self._compute_chunk(*key))
-                    bar.update(1)
-            else:
-                self._run_dask(client, pending, finish, bar)
+        try:
+            with progress_bar(len(coordinates), "study chunks", progress, unit="chunk") as bar:
+                bar.update(len(done))
+                if client is None:
+                    for key in pending:
+                        finish(key, self._compute_chunk(*key))
+                        bar.update(1)
+                else:
+                    self._run_dask(client, pending, finish, bar)
+        finally:
+            if writer is not None:
+                writer.shutdown(wait=True)
+        for write in writes:
+            write.result()  # a failed write raises here
         self._results = _pandas().concat([done[key] for key in coordinates], ignore_index=True)
         return self
 

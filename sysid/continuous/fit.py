@@ -55,8 +55,9 @@ CRITERIA = ("simulation", "multiple_shooting", "one_step")
 _PENALTY_CONTINUATION = (1.0, 1e2, 1e4)
 
 #: default multiple-shooting segments: this many sample intervals, longer where the record
-#: would otherwise have more than ``_MAX_SEGMENTS`` segments (the Jacobian is dense in the
-#: node states: its normal matrix costs ``(N ny) (S nx)^2`` per iteration)
+#: would otherwise have more than ``_MAX_SEGMENTS`` segments (the Jacobian is stored as
+#: blocks, but the normal matrix over the ``S nx`` node states is factorised densely, at
+#: ``(S nx)^3 / 3`` per iteration)
 _SEGMENT_SAMPLES = 10
 _MAX_SEGMENTS = 100
 
