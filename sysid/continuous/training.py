@@ -755,6 +755,28 @@ def _full_residuals(net: _Trainable, records: _Records) -> torch.Tensor:
     return torch.cat(pieces)
 
 
+def _residual_jacobian(r: torch.Tensor, columns: list[torch.Tensor]) -> torch.Tensor:
+    """``d r / d columns``, (M, p) for ``r`` (M,) and p parameter entries, by two reverse
+    passes per column instead of one per residual: ``g(v) = J' v`` is built with its graph at
+    a free ``v``, and ``d g_i / d v = J[:, i]`` (``g`` is linear in ``v``)."""
+    v = torch.zeros_like(r, requires_grad=True)
+    grads = torch.autograd.grad(r, columns, grad_outputs=v, create_graph=True, allow_unused=True)
+    g = torch.cat(
+        [
+            (gr if gr is not None else c.new_zeros(c.shape)).reshape(-1)
+            for gr, c in zip(grads, columns, strict=True)
+        ]
+    )
+    out = []
+    for gi in g:
+        if not gi.requires_grad:  # r does not depend on this entry
+            out.append(torch.zeros_like(r))
+            continue
+        (col,) = torch.autograd.grad(gi, v, retain_graph=True, allow_unused=True)
+        out.append(torch.zeros_like(r) if col is None else col)
+    return torch.stack(out, -1).detach()
+
+
 def _physical_statistics(net: _Trainable, records: _Records):
     """Names, physical values (p,), covariance (p, p), sigma^2 and residuals (M,) of the
     physical parameters (module docstring: conditional on the network)."""
@@ -771,13 +793,7 @@ def _physical_statistics(net: _Trainable, records: _Records):
     M = r.numel()
     if not names:
         return names, r.new_zeros(0), r.new_zeros(0, 0), (r.detach() ** 2).sum() / M, r.detach()
-    grads = torch.autograd.grad(
-        r,
-        columns,
-        grad_outputs=torch.eye(M, dtype=r.dtype, device=r.device),
-        is_grads_batched=True,
-    )
-    J = torch.cat([gr.reshape(M, -1) for gr in grads], -1)  # (M, p) d r / d raw
+    J = _residual_jacobian(r, columns)  # (M, p) d r / d raw
     p = J.shape[-1]
     r = r.detach()
     sigma2 = (r * r).sum() / max(M - p, 1)
