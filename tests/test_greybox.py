@@ -228,6 +228,27 @@ def test_multiple_shooting_reaches_the_truth_where_single_shooting_fails():
     assert not bool(on_truth(single).all())
 
 
+def test_a_batched_multiple_shooting_fit_equals_the_fits_of_its_data_sets_alone():
+    """Every data set of a batch is fitted independently: the same estimates as one fit per
+    data set, also when the data sets differ in scale (the continuity weights of multiple
+    shooting are set per data set, not from the batch)."""
+    g = torch.Generator().manual_seed(5)
+    u = input_signal("prbs", 60, (2,), hold=3, generator=g) * torch.tensor([[[1.0]], [[50.0]]])
+    truth = GreyBoxModel(oscillator, {"m": 1.0, "xi": 0.1, "K": 4.0}, nx=2, output=[0])
+    y = truth.simulate(IOData(u, u, Ts=0.1))
+    data = IOData(u, y + 0.01 * torch.randn(y.shape, generator=g, dtype=y.dtype), Ts=0.1)
+    model = GreyBoxModel(oscillator, bounded(m=1.3, xi=0.2, K=5.0), nx=2, output=[0], substeps=2)
+    kw = dict(criterion="multiple_shooting", segment_length=10)
+    batched = fit(model, data, **kw)
+    for i in range(2):
+        alone = fit(model, data[i : i + 1], **kw)
+        torch.testing.assert_close(batched.theta[i : i + 1], alone.theta, rtol=1e-7, atol=0)
+        # the first penalty stage starts from the same weighted loss
+        torch.testing.assert_close(
+            batched.loss_history[0, i], alone.loss_history[0, 0], rtol=1e-12, atol=0
+        )
+
+
 def test_one_step_criterion_gives_start_values_from_measured_states():
     """Both states measured: the one-step (equation error) fit lands near the truth."""
     g = torch.Generator().manual_seed(4)

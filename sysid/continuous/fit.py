@@ -488,7 +488,10 @@ def _multiple_shooting(problem: _Problem, z0, loss, max_iter, xtol, ftol, monito
     y_scale = y.std(dim=-2).mean(-1).clamp_min(torch.finfo(y.dtype).tiny)  # (*batch,)
     with torch.no_grad():
         nodes = torch.cat([problem.nodes(z0, e) for e in range(len(problem.parts))], -2)
-    state_scale = nodes.std(dim=-2).clamp_min(1e-3 * float(nodes.abs().max().clamp_min(1.0)))
+    # per data set (a batch member's fit must not depend on the others): unmeasured states,
+    # whose node guesses are zero, get 1e-3 of the data set's largest node value
+    floor = 1e-3 * nodes.abs().amax((-2, -1)).clamp_min(1.0)  # (*batch,)
+    state_scale = nodes.std(dim=-2).clamp_min(floor[..., None])
     history, iterations, z = [], 0, z0
     for mu in _PENALTY_CONTINUATION:
         problem.defect_weight = math.sqrt(mu) * y_scale[..., None] / state_scale
