@@ -101,9 +101,9 @@ _MAX_NEWTON_ITER = 50
 #: less, and the one-off compile about as long as these steps run eagerly (seconds).
 AUTO_COMPILE_MIN_STEPS = 5_000
 #: ``compile="auto"`` also compiles once this many seconds were spent in eager runs of the
-#: same model and configuration (over all calls): about what one compile of the interval
-#: kernel takes, so a large batch, whose eager steps are slow, compiles after a few calls
-#: (rent-or-buy, see :func:`integrators._fast.compiled.compiled_stepper`)
+#: same model and configuration (over all calls): at most one compile of the interval kernel
+#: (which takes seconds), so a large batch, whose eager steps are slow, compiles after a few
+#: calls (rent-or-buy, see :func:`integrators._fast.compiled.compiled_stepper`)
 AUTO_COMPILE_EAGER_SECONDS = 5.0
 
 

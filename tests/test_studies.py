@@ -240,6 +240,19 @@ def test_resume_after_an_interruption_gives_the_uninterrupted_table(tmp_path):
     assert table(resumed).equals(table(clean))
 
 
+def test_a_failed_chunk_write_is_raised_not_lost(tmp_path, monkeypatch):
+    """Chunk files are written on a background thread: a write that fails (a full disk)
+    still ends the run with its error."""
+    import sysid.studies as studies
+
+    def full_disk(frame, path):
+        raise OSError("No space left on device")
+
+    monkeypatch.setattr(studies, "_atomic_write_parquet", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        small_study().run(tmp_path / "run", progress=False)
+
+
 def test_an_unreadable_chunk_file_is_recomputed(tmp_path):
     clean = small_study().run(tmp_path, progress=False)
     expected = table(clean)

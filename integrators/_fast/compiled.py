@@ -186,9 +186,9 @@ def compiled_stepper(
         compile: True, False or ``"auto"``: compile once ``auto_min_steps`` steps were taken,
             or once ``auto_min_eager_s`` seconds were spent in eager runs (reported by the
             solver through :meth:`Stepper.add_eager_seconds`), with this model and
-            configuration over all calls. The second rule is rent-or-buy: stepping eagerly
-            until the eager time equals the one-off compile time costs at most twice the
-            better of the two choices made in hindsight, whatever the batch size.
+            configuration over all calls. The second rule is rent-or-buy: with the threshold
+            at the one-off compile time, the total costs at most twice the better of the two
+            choices made in hindsight, whatever the batch size.
         n_steps: the steps of this run (counted towards ``"auto"``).
         x0: (*batch, nx) initial state; the chunk is compiled for its shape, dtype and device.
         make_chunk: ``make_chunk(n_out, component_major)``, the chunk function to compile
