@@ -16,7 +16,7 @@ import torch
 from integrators.inputs import CollocationInput
 from integrators.sensitivities import sensitivities
 from sysid import GreyBoxModel, IOData, Param
-from sysid.continuous.fit import _Problem
+from sysid.continuous.fit import _FIT_EVALUATIONS, _check_start, _Problem
 from sysid.zoo import SpringMassDamper, VanDerPol
 
 F64 = torch.float64
@@ -157,3 +157,24 @@ def test_auto_compiles_once_the_eager_time_reaches_its_threshold(monkeypatch):
     second = sensitivities(model, x0, t, p, compile="auto", **kw)
     assert second.stats.extra["compiled"]
     torch.testing.assert_close(second.B, first.B, rtol=1e-11, atol=1e-13)
+
+
+@pytest.mark.parametrize("compile_mode", ["auto", False])
+def test_a_fit_compiles_at_once_when_its_first_simulation_is_slow(monkeypatch, compile_mode):
+    """A fit evaluates its residuals many times: when its first (eager) simulation took more
+    than 1/_FIT_EVALUATIONS of the eager-time threshold, the fit compiles from the start
+    (only for compile="auto"); below it, the model's setting stays."""
+    module = importlib.import_module("integrators.sensitivities")
+    model = GreyBoxModel(VanDerPol(), {"mu": Param(0.8)}, compile=compile_mode)
+    u = torch.randn(2, 30, 1, generator=torch.Generator().manual_seed(1), dtype=F64)
+    data = IOData(u, torch.zeros(2, 30, 2, dtype=F64), Ts=0.1)
+
+    def decided(threshold):
+        monkeypatch.setattr(module, "AUTO_COMPILE_EAGER_SECONDS", threshold)
+        problem = _Problem(model, data, "simulation", "zero", None, "rk4")
+        _check_start(problem, problem.initial_z())
+        return problem.compile
+
+    assert _FIT_EVALUATIONS > 1
+    assert decided(1e-9) is (True if compile_mode == "auto" else None)
+    assert decided(1e9) is None

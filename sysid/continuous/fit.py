@@ -29,7 +29,9 @@ set of a batch is fitted independently in the same call.
 
 from __future__ import annotations
 
+import importlib
 import math
+import time
 import warnings
 
 import numpy as np
@@ -46,6 +48,10 @@ from ..estimation.losses import LOSSES, GaussianLoss, make_loss
 from ..estimation.results import STATIONARY_TOL, FitResult, covariance, remaining_step
 from .greybox import GreyBoxModel, Segments
 
+#: the module (``integrators.sensitivities`` names its function too): its threshold is read
+#: at call time
+_sensitivities = importlib.import_module("integrators.sensitivities")
+
 __all__ = ["CRITERIA", "fit_greybox", "simulation_quality"]
 
 CRITERIA = ("simulation", "multiple_shooting", "one_step")
@@ -60,6 +66,12 @@ _PENALTY_CONTINUATION = (1.0, 1e2, 1e4)
 #: ``(S nx)^3 / 3`` per iteration)
 _SEGMENT_SAMPLES = 10
 _MAX_SEGMENTS = 100
+
+#: a fit evaluates its residuals at least this many times (Levenberg-Marquardt iterations
+#: and line-search trials): where the first, eager simulation of a fit took more than this
+#: fraction of :data:`integrators.sensitivities.AUTO_COMPILE_EAGER_SECONDS`, the fit would
+#: reach that rent-or-buy threshold anyway and compiles (``compile="auto"``) at once
+_FIT_EVALUATIONS = 20
 
 #: |correlation| of two estimates above which the pair is reported as not separately
 #: identifiable from the data
@@ -184,6 +196,8 @@ class _Problem:
         #: (*batch, nx) weights of the continuity defects (multiple shooting), set per
         #: penalty stage by :func:`_multiple_shooting`
         self.defect_weight = torch.ones(model.nx, dtype=self.dtype, device=self.device)
+        #: the ``compile`` of the simulations (None: the model's), see :func:`_check_start`
+        self.compile = None
 
     # ----------------------------------------------------------------------- start values
     def _known_x0(self, x0, e) -> torch.Tensor:
@@ -280,7 +294,16 @@ class _Problem:
         nodes = torch.where(unusable[..., None, None], torch.zeros_like(nodes), nodes)
         seg = self.segments[e]
         out = model.simulate_segments(
-            P, nodes, part.u, part.Ts, part.intersample, seg, ny, self.method, derivatives
+            P,
+            nodes,
+            part.u,
+            part.Ts,
+            part.intersample,
+            seg,
+            ny,
+            self.method,
+            derivatives,
+            self.compile,
         )
         self.stats.append(out["stats"])
         S, L = seg.starts.shape[0], seg.length
@@ -379,9 +402,15 @@ def _interrupted(lm) -> bool:
 
 
 def _check_start(problem: _Problem, z0: torch.Tensor) -> None:
-    """Raise a named error when the simulation from the start is not finite."""
+    """Raise a named error when the simulation from the start is not finite; decide the
+    problem's ``compile`` (see :data:`_FIT_EVALUATIONS`) from the time of this simulation."""
+    tic = time.perf_counter()
     with torch.no_grad():
         r = problem.residuals(z0)
+    seconds = time.perf_counter() - tic
+    eager_budget = _sensitivities.AUTO_COMPILE_EAGER_SECONDS
+    if problem.model.compile == "auto" and seconds * _FIT_EVALUATIONS >= eager_budget:
+        problem.compile = True
     bad = ~torch.isfinite(r).all(-1)
     if bool(bad.any()):
         idx = [tuple(i) for i in torch.nonzero(bad.reshape(bad.shape or (1,))).tolist()][:5]

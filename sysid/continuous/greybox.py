@@ -390,6 +390,7 @@ class GreyBoxModel:
         ny: int,
         method,
         derivatives: bool = True,
+        compile: bool | str | None = None,
     ) -> dict:
         """Outputs and sensitivities of the segments of one experiment.
 
@@ -401,6 +402,7 @@ class GreyBoxModel:
             segments: the segments (S starts, ``length`` intervals each).
             ny: number of outputs; method: the fixed-step method.
             derivatives: False computes only ``y`` and ``x_end`` (the same simulation).
+            compile: overrides the model's ``compile`` for this call (None: the model's).
 
         Returns:
             dict with ``y`` (*batch, S, L+1, ny), ``dy_dP`` (*batch, S, L+1, ny, n_params),
@@ -433,7 +435,7 @@ class GreyBoxModel:
             substeps=self.substeps,
             input_sensitivities=False,
             derivatives=derivatives,
-            compile=self.compile,
+            compile=self.compile if compile is None else compile,
         )
         x = sens.x  # (*batch, S, L+1, nx)
         h = self.output_map(ny)
