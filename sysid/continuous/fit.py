@@ -68,9 +68,10 @@ _SEGMENT_SAMPLES = 10
 _MAX_SEGMENTS = 100
 
 #: a fit evaluates its residuals at least this many times (Levenberg-Marquardt iterations
-#: and line-search trials): where the first, eager simulation of a fit took more than this
-#: fraction of :data:`integrators.sensitivities.AUTO_COMPILE_EAGER_SECONDS`, the fit would
-#: reach that rent-or-buy threshold anyway and compiles (``compile="auto"``) at once
+#: and line-search trials): where the first, eager simulation of a fit took at least
+#: ``1 / _FIT_EVALUATIONS`` of :data:`integrators.sensitivities.AUTO_COMPILE_EAGER_SECONDS`,
+#: the fit would reach that rent-or-buy threshold anyway and compiles (``compile="auto"``)
+#: at once
 _FIT_EVALUATIONS = 20
 
 #: |correlation| of two estimates above which the pair is reported as not separately
