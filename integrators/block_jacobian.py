@@ -13,11 +13,19 @@ blocks of R rows over k columns each, with ``columns`` (B, k) giving the column 
 block's k entries (-1: a quantity that is not free, dropped). Stacking the groups' rows in
 order gives the *padded* rows; ``rows`` (m,) picks the Jacobian's rows among them (padded
 rows that are no residual hold zeros).
+
+Given the *chain* of node columns (segment ``j``'s states in row ``j``), :meth:`normal`
+returns ``J' C J`` as a
+:class:`~integrators.block_tridiagonal.BorderedBlockTridiagonal`, whose damped solves cost
+linear time in the segment count too; without it, the dense matrix.
 """
 
 from __future__ import annotations
 
 import torch
+
+from .block_tridiagonal import BorderedBlockTridiagonal
+from .errors import InputValidationError
 
 __all__ = ["BlockJacobian"]
 
@@ -31,9 +39,17 @@ class BlockJacobian:
         n: the number of columns.
         rows: (m,) int64 indices of the residual rows among the stacked padded rows (None:
             all of them).
+        chain: (C, b) int64 or None: columns ordered as a chain of ``C`` blocks of ``b``
+            (-1: no column) such that every row block touches, besides columns outside the
+            chain (the *border*), the columns of at most two consecutive chain blocks; then
+            :meth:`normal` returns a
+            :class:`~integrators.block_tridiagonal.BorderedBlockTridiagonal`.
+
+    Raises:
+        InputValidationError: a row block touching chain blocks that are not consecutive.
     """
 
-    def __init__(self, groups, n: int, rows: torch.Tensor | None = None):
+    def __init__(self, groups, n: int, rows: torch.Tensor | None = None, chain=None):
         self.groups = [(v, c.to(v.device)) for v, c in groups]
         self.n = int(n)
         values = self.groups[0][0]
@@ -45,6 +61,8 @@ class BlockJacobian:
             if rows is None
             else rows.to(self.device)
         )
+        self.chain = None if chain is None else chain.to(self.device)
+        self._targets = None if chain is None else self._structured_targets()
 
     @property
     def shape(self) -> torch.Size:
@@ -70,17 +88,88 @@ class BlockJacobian:
             start += B * R
             yield values, torch.where(columns < 0, self.n, columns), piece
 
-    def normal(self, weights: torch.Tensor | None = None) -> torch.Tensor:
-        """``J' diag(weights) J``: (*batch, n, n); ``weights`` (*batch, m) or None (ones)."""
+    def _structured_targets(self) -> list[torch.Tensor]:
+        """Per group (B, k, k): where each entry of a block's ``values' values`` goes in the
+        flat storage of a :class:`BorderedBlockTridiagonal` (border ``A``, coupling ``E``,
+        diagonal and upper chain blocks, then one slot for the entries that are dropped:
+        missing columns and the mirrored halves of the symmetric matrix)."""
+        C, b = self.chain.shape
+        dev = self.device
+        flat = self.chain.reshape(-1)
+        present = flat[flat >= 0]
+        in_chain = torch.zeros(self.n, dtype=torch.bool, device=dev)
+        in_chain[present] = True
+        self.border_columns = torch.nonzero(~in_chain).squeeze(-1)
+        nb = self.border_columns.shape[0]
+        block = torch.full((self.n + 1,), -1, dtype=torch.int64, device=dev)
+        slot = torch.zeros(self.n + 1, dtype=torch.int64, device=dev)
+        position = torch.arange(C * b, device=dev)
+        block[present] = (position // b)[flat >= 0]
+        slot[present] = (position % b)[flat >= 0]
+        border = torch.full((self.n + 1,), -1, dtype=torch.int64, device=dev)
+        border[self.border_columns] = torch.arange(nb, device=dev)
+        off_E = nb * nb
+        off_D = off_E + C * b * nb
+        off_U = off_D + C * b * b
+        self._sizes = (nb, C, b, off_U + C * b * b)
+        dropped = self._sizes[3]
+        targets = []
+        for _, columns in self.groups:
+            c = torch.where(columns < 0, self.n, columns)
+            c1, c2 = c[:, :, None], c[:, None, :]
+            k1, k2 = block[c1], block[c2]
+            s1, s2 = slot[c1], slot[c2]
+            o1, o2 = border[c1], border[c2]
+            chain1, chain2 = k1 >= 0, k2 >= 0
+            far = chain1 & chain2 & ((k1 - k2).abs() > 1)
+            if bool(far.any()):
+                raise InputValidationError(
+                    "BlockJacobian: a row block touches chain blocks that are not "
+                    "consecutive; the chain must list the columns so that each row block "
+                    "meets at most two neighbouring chain blocks."
+                )
+            target = torch.full(c1.shape[:1] + (c.shape[1], c.shape[1]), dropped, device=dev)
+            target = torch.where((o1 >= 0) & (o2 >= 0), o1 * nb + o2, target)
+            target = torch.where(chain1 & (o2 >= 0), off_E + (k1 * b + s1) * nb + o2, target)
+            target = torch.where(chain1 & (k2 == k1), off_D + (k1 * b + s1) * b + s2, target)
+            target = torch.where(
+                chain1 & chain2 & (k2 == k1 + 1), off_U + (k1 * b + s1) * b + s2, target
+            )
+            targets.append(target.reshape(-1))
+        return targets
+
+    def normal(self, weights: torch.Tensor | None = None):
+        """``J' diag(weights) J``: (*batch, n, n), or a
+        :class:`~integrators.block_tridiagonal.BorderedBlockTridiagonal` when the Jacobian
+        has a chain; ``weights`` (*batch, m) or None (ones)."""
         n1 = self.n + 1
         if weights is None:  # ones on the residual rows, zeros on the other padded rows
             weights = torch.ones(self.rows.shape[0], dtype=self.dtype, device=self.device)
+        if self.chain is not None:
+            return self._structured_normal(weights)
         H = torch.zeros(*self.batch, n1 * n1, dtype=self.dtype, device=self.device)
         for values, columns, w in self._pieces(weights):
             G = values.transpose(-1, -2) @ (values * w)  # (*batch, B, k, k)
             index = (columns[:, :, None] * n1 + columns[:, None, :]).reshape(-1)
             H.index_add_(-1, index, G.flatten(-3))
         return H.unflatten(-1, (n1, n1))[..., : self.n, : self.n]
+
+    def _structured_normal(self, weights) -> BorderedBlockTridiagonal:
+        nb, C, b, size = self._sizes
+        flat = torch.zeros(*self.batch, size + 1, dtype=self.dtype, device=self.device)
+        for (values, _, w), target in zip(self._pieces(weights), self._targets, strict=True):
+            G = values.transpose(-1, -2) @ (values * w)  # (*batch, B, k, k)
+            flat.index_add_(-1, target, G.flatten(-3))
+        off_E, off_D, off_U = nb * nb, nb * nb + C * b * nb, nb * nb + C * b * (nb + b)
+        return BorderedBlockTridiagonal(
+            flat[..., off_D:off_U].unflatten(-1, (C, b, b)),
+            flat[..., off_U:size].unflatten(-1, (C, b, b)),
+            flat[..., off_E:off_D].unflatten(-1, (C, b, nb)),
+            flat[..., :off_E].unflatten(-1, (nb, nb)),
+            self.chain,
+            self.border_columns,
+            self.n,
+        )
 
     def rmatvec(self, v: torch.Tensor) -> torch.Tensor:
         """``J' v``: (*batch, n) for ``v`` (*batch, m)."""
@@ -106,4 +195,4 @@ class BlockJacobian:
         mask = keep[..., None, None, None]
         pairs = zip(self.groups, other.groups, strict=True)
         groups = [(torch.where(mask, a, b), c) for (a, c), (b, _) in pairs]
-        return BlockJacobian(groups, self.n, self.rows)
+        return BlockJacobian(groups, self.n, self.rows, self.chain)

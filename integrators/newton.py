@@ -34,6 +34,7 @@ from enum import IntEnum
 import torch
 
 from .block_jacobian import BlockJacobian
+from .block_tridiagonal import BorderedBlockTridiagonal
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
 
 __all__ = [
@@ -128,7 +129,10 @@ class MinimizeResult:
         loss_history: (iters + 1, *batch) loss before each iteration.
         grad: (*batch, n) gradient at ``theta``.
         hessian: (*batch, n, n) the Hessian used at ``theta`` (exact, or ``J^T C J`` for the
-            residual methods, ``C = 1`` for Gauss-Newton; without regularisation).
+            residual methods, ``C = 1`` for Gauss-Newton; without regularisation); a
+            :class:`~integrators.block_tridiagonal.BorderedBlockTridiagonal` for
+            Levenberg-Marquardt with a :class:`~integrators.block_jacobian.BlockJacobian`
+            that has a chain (``.dense()`` gives the matrix).
         J: (*batch, m, n) residual Jacobian at ``theta`` (residual methods only), e.g. for
             the covariance ``sigma^2 (J^T J)^{-1}`` of a least-squares estimate; the
             :class:`~integrators.block_jacobian.BlockJacobian` where ``jacobian`` gave one.
@@ -145,7 +149,7 @@ class MinimizeResult:
     loss: torch.Tensor
     loss_history: torch.Tensor
     grad: torch.Tensor
-    hessian: torch.Tensor
+    hessian: torch.Tensor | BorderedBlockTridiagonal
     J: torch.Tensor | BlockJacobian | None = None
     residual: torch.Tensor | None = None
     n_fun_evals: int = 0
@@ -614,9 +618,13 @@ def _loss_derivatives(fun, theta, args, method, jacobian=None, loss=None):
             )
         if isinstance(J, BlockJacobian):
             if loss is None:
-                return 0.5 * (r * r).sum(-1), J.rmatvec(r), J.normal(), J, r
-            H, grad = J.normal(loss.curvature(r)), J.rmatvec(loss.psi(r))
-            return loss.rho(r).sum(-1), grad, H, J, r
+                value, grad, H = 0.5 * (r * r).sum(-1), J.rmatvec(r), J.normal()
+            else:
+                value, grad = loss.rho(r).sum(-1), J.rmatvec(loss.psi(r))
+                H = J.normal(loss.curvature(r))
+            if method != "levenberg_marquardt" and isinstance(H, BorderedBlockTridiagonal):
+                H = H.dense()  # the shifted Cholesky of Gauss-Newton works on the matrix
+            return value, grad, H, J, r
         Jt = J.transpose(-1, -2)
         if loss is None:
             return 0.5 * (r * r).sum(-1), (Jt @ r.unsqueeze(-1)).squeeze(-1), Jt @ J, J, r
@@ -672,19 +680,39 @@ def _shifted_cholesky(H, alpha):
     return torch.where(ok[..., None, None], L, eye.expand_as(L)), ok
 
 
-def _damped_cholesky(H, lam, scale):
-    """Cholesky factor of ``H + lam scale I`` (Levenberg-Marquardt, eq. 3.61 with
-    ``alpha = lam scale``); ``lam`` grows tenfold per member while the matrix is numerically
-    indefinite. Returns ``(L, lam, ok)``."""
+def _damped_solve(H, grad, shift):
+    """``((H + shift I)^{-1} grad, ok)`` for a dense ``H`` (Cholesky) or a
+    :class:`~integrators.block_tridiagonal.BorderedBlockTridiagonal` one (its block
+    Cholesky); ``ok`` False where the shifted matrix is numerically not positive definite."""
+    if isinstance(H, BorderedBlockTridiagonal):
+        return H.solve(grad, shift)
     eye = torch.eye(H.shape[-1], dtype=H.dtype, device=H.device)
-    L, info = torch.linalg.cholesky_ex(H + (lam * scale)[..., None, None] * eye)
-    for _ in range(30):
-        if not bool((info != 0).any()):
-            break
-        lam = torch.where(info != 0, lam * 10, lam)
-        L, info = torch.linalg.cholesky_ex(H + (lam * scale)[..., None, None] * eye)
+    L, info = torch.linalg.cholesky_ex(H + shift[..., None, None] * eye)
     ok = info == 0
-    return torch.where(ok[..., None, None], L, eye.expand_as(L)), lam, ok
+    L = torch.where(ok[..., None, None], L, eye.expand_as(L))
+    return torch.cholesky_solve(grad.unsqueeze(-1), L).squeeze(-1), ok
+
+
+def _damped_step(H, grad, lam, scale):
+    """The Levenberg-Marquardt step ``-(H + lam scale I)^{-1} grad`` (eq. 3.61 with
+    ``alpha = lam scale``); ``lam`` grows tenfold per member while the matrix is numerically
+    indefinite. Returns ``(step, lam, ok)``."""
+    x, ok = _damped_solve(H, grad, lam * scale)
+    for _ in range(30):
+        if bool(ok.all()):
+            break
+        lam = torch.where(ok, lam, lam * 10)
+        x_new, ok_new = _damped_solve(H, grad, lam * scale)
+        x = torch.where(ok[..., None], x, x_new)
+        ok = ok | ok_new
+    return -torch.where(ok[..., None], x, torch.zeros_like(x)), lam, ok
+
+
+def _diagonal(H) -> torch.Tensor:
+    """The (*batch, n) diagonal of a dense or structured matrix."""
+    if isinstance(H, BorderedBlockTridiagonal):
+        return H.diagonal()
+    return H.diagonal(dim1=-2, dim2=-1)
 
 
 def minimize(
@@ -711,8 +739,10 @@ def minimize(
 
     Each iteration solves ``(H + alpha I) dtheta = -grad`` and takes ``theta + t dtheta`` with
     ``t = 1, 1/2, ...`` from Armijo backtracking on the loss (Theorem 7),
-    ``f(theta + t dtheta) <= f(theta) + 1e-4 t grad' dtheta``. The three methods share this
-    iteration; they differ in the model ``(H, grad)`` and in how ``alpha`` is chosen.
+    ``f(theta + t dtheta) <= f(theta) + 1e-4 t grad' dtheta`` (only ``t = 1`` where the
+    predicted decrease ``-grad' dtheta`` is below the rounding error of the loss: shorter
+    steps could not be told apart from it). The three methods share this iteration; they
+    differ in the model ``(H, grad)`` and in how ``alpha`` is chosen.
 
     Methods:
         ``"newton"``: ``fun(theta, *args) -> (*batch,)`` is the objective; ``H`` is its exact
@@ -858,9 +888,7 @@ def minimize(
                 active &= ~nonfinite
                 gnorm = grad.abs().amax(-1)
                 if adaptive:  # the curvature scale of eq. 3.61's alpha and of the gradient test
-                    scale = (H.diagonal(dim1=-2, dim2=-1).sum(-1) / n).clamp_min(
-                        torch.finfo(theta.dtype).tiny
-                    )
+                    scale = (_diagonal(H).sum(-1) / n).clamp_min(torch.finfo(theta.dtype).tiny)
                     done = active & (gnorm <= tol * (1 + loss_value) * scale.sqrt())
                 else:
                     done = active & (gnorm <= tol)
@@ -869,18 +897,25 @@ def minimize(
                 if not bool(active.any()) or int(iterations.max()) >= max_iter:
                     break
                 if adaptive:
-                    Lc, lam, ok = _damped_cholesky(H, lam, scale)
+                    step, lam, ok = _damped_step(H, grad, lam, scale)
                 else:
                     Lc, ok = _shifted_cholesky(torch.nan_to_num(H), regularization)
+                    step = -torch.cholesky_solve(grad.unsqueeze(-1), Lc).squeeze(-1)
                 status[active & ~ok] = NewtonStatus.SINGULAR
                 active &= ok
-                step = -torch.cholesky_solve(grad.unsqueeze(-1), Lc).squeeze(-1)
                 slope = (grad * step).sum(-1)  # < 0: descent direction (Theorem 7)
+                # a predicted decrease below the rounding error of the loss (Levenberg-Marquardt:
+                # of a sum of m residual terms, about sqrt(m) eps |loss|): the full step is
+                # tried, shorter ones would only compare rounding errors
+                if adaptive:
+                    flat_step = -slope <= 10 * eps * rounding_terms * loss_value.abs()
+                else:
+                    flat_step = -slope <= 10 * eps * loss_value.abs().clamp(min=eps)
                 t = torch.ones(batch, dtype=theta.dtype, device=dev)
                 accepted = torch.zeros(batch, dtype=torch.bool, device=dev)
                 trial_loss = loss_value.clone()
                 pending = active.clone()
-                for _attempt in range(trials):
+                for attempt in range(trials):
                     if not bool(pending.any()):
                         break
                     value = _loss_only(
@@ -892,12 +927,13 @@ def minimize(
                     accepted |= ok
                     trial_loss = torch.where(ok, value, trial_loss)
                     pending &= ~ok
+                    if attempt == 0:
+                        pending &= ~flat_step
                     t = torch.where(pending, t / 2, t)
                 no_decrease = active & ~accepted
                 if adaptive:
-                    # no decrease found where the predicted one is below the rounding error of a
-                    # sum of m residual terms (about sqrt(m) eps |loss|): the minimum is reached
-                    flat = no_decrease & (-slope <= 10 * eps * rounding_terms * loss_value.abs())
+                    # no decrease found where none can be resolved: the minimum is reached
+                    flat = no_decrease & flat_step
                     status[flat] = NewtonStatus.CONVERGED
                     active &= ~flat
                     no_decrease &= ~flat
@@ -908,7 +944,7 @@ def minimize(
                 else:
                     # no decrease found: converged if the predicted decrease is at the rounding
                     # level of the loss, else a genuine failure
-                    flat = no_decrease & (-slope <= 10 * eps * loss_value.abs().clamp(min=eps))
+                    flat = no_decrease & flat_step
                     status[flat] = NewtonStatus.CONVERGED
                     status[no_decrease & ~flat] = NewtonStatus.LINE_SEARCH_FAILED
                     active &= ~no_decrease
@@ -928,7 +964,9 @@ def minimize(
                 loss_value, grad, H = (
                     torch.where(keep, loss_value, new[0]),
                     torch.where(keep[..., None], grad, new[1]),
-                    torch.where(keep[..., None, None], H, new[2]),
+                    H.where(keep, new[2])
+                    if isinstance(H, BorderedBlockTridiagonal)
+                    else torch.where(keep[..., None, None], H, new[2]),
                 )
                 if method != "newton":
                     J = (

@@ -9,6 +9,7 @@ why).
 """
 
 import importlib
+import types
 
 import pytest
 import torch
@@ -161,20 +162,27 @@ def test_auto_compiles_once_the_eager_time_reaches_its_threshold(monkeypatch):
 
 @pytest.mark.parametrize("compile_mode", ["auto", False])
 def test_a_fit_compiles_at_once_when_its_first_simulation_is_slow(monkeypatch, compile_mode):
-    """A fit evaluates its residuals many times: when its first (eager) simulation took more
-    than 1/_FIT_EVALUATIONS of the eager-time threshold, the fit compiles from the start
-    (only for compile="auto"); below it, the model's setting stays."""
+    """A Levenberg-Marquardt run evaluates its residuals many times: when the first (eager)
+    simulation times the runs to come times _FIT_EVALUATIONS reaches the eager-time
+    threshold, the fit compiles from the start (only for compile="auto"); below it, the
+    model's setting stays. The simulation is made to take exactly one second."""
     module = importlib.import_module("integrators.sensitivities")
+    fit_module = importlib.import_module("sysid.continuous.fit")
+    clock = iter(range(1000))
+    fake_time = types.SimpleNamespace(perf_counter=lambda: float(next(clock)))
+    monkeypatch.setattr(fit_module, "time", fake_time)
     model = GreyBoxModel(VanDerPol(), {"mu": Param(0.8)}, compile=compile_mode)
     u = torch.randn(2, 30, 1, generator=torch.Generator().manual_seed(1), dtype=F64)
     data = IOData(u, torch.zeros(2, 30, 2, dtype=F64), Ts=0.1)
 
-    def decided(threshold):
+    def decided(threshold, runs):
         monkeypatch.setattr(module, "AUTO_COMPILE_EAGER_SECONDS", threshold)
         problem = _Problem(model, data, "simulation", "zero", None, "rk4")
-        _check_start(problem, problem.initial_z())
+        _check_start(problem, problem.initial_z(), runs)
         return problem.compile
 
-    assert _FIT_EVALUATIONS > 1
-    assert decided(1e-9) is (True if compile_mode == "auto" else None)
-    assert decided(1e9) is None
+    wanted = True if compile_mode == "auto" else None
+    assert decided(_FIT_EVALUATIONS, 1) is wanted
+    assert decided(_FIT_EVALUATIONS + 1, 1) is None
+    assert decided(3 * _FIT_EVALUATIONS, 3) is wanted  # e.g. the penalty stages
+    assert decided(3 * _FIT_EVALUATIONS + 1, 3) is None

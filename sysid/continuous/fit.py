@@ -61,15 +61,16 @@ CRITERIA = ("simulation", "multiple_shooting", "one_step")
 _PENALTY_CONTINUATION = (1.0, 1e2, 1e4)
 
 #: default multiple-shooting segments: this many sample intervals, longer where the record
-#: would otherwise have more than ``_MAX_SEGMENTS`` segments (the Jacobian is stored as
-#: blocks, but the normal matrix over the ``S nx`` node states is factorised densely, at
-#: ``(S nx)^3 / 3`` per iteration)
+#: would otherwise have more than ``_MAX_SEGMENTS`` segments (the covariance of a fit
+#: interrupted during multiple shooting is formed from the dense Jacobian over all nodes)
 _SEGMENT_SAMPLES = 10
 _MAX_SEGMENTS = 100
 
-#: a fit evaluates its residuals at least this many times (Levenberg-Marquardt iterations
+#: a Levenberg-Marquardt run evaluates its residuals at least this many times (iterations
 #: and line-search trials): where the first, eager simulation of a fit took at least
-#: ``1 / _FIT_EVALUATIONS`` of :data:`integrators.sensitivities.AUTO_COMPILE_EAGER_SECONDS`,
+#: ``1 / (runs _FIT_EVALUATIONS)`` of
+#: :data:`integrators.sensitivities.AUTO_COMPILE_EAGER_SECONDS` (``runs``: the
+#: Levenberg-Marquardt runs still to come, e.g. one per penalty stage of multiple shooting),
 #: the fit would reach that rent-or-buy threshold anyway and compiles (``compile="auto"``)
 #: at once
 _FIT_EVALUATIONS = 20
@@ -265,7 +266,9 @@ class _Problem:
     def residuals_and_jacobian(self, z: torch.Tensor):
         """``r`` (*batch, M) and ``J = dr/dz`` (*batch, M, n_columns) as a
         :class:`~integrators.block_jacobian.BlockJacobian`: each segment's rows touch only the
-        parameters and its own nodes, so the normal matrix costs linear time in the segments."""
+        parameters and its own nodes (a defect also the next node's), so the normal matrix
+        is block tridiagonal over the nodes with a border of parameters, formed and solved
+        in linear time in the segments."""
         self.stats = []
         residuals, groups, rows, offset = [], [], [], 0
         for e, part in enumerate(self.parts):
@@ -274,7 +277,15 @@ class _Problem:
             groups += blocks
             rows.append(kept + offset)
             offset += sum(v.shape[-3] * v.shape[-2] for v, _ in blocks)
-        J = BlockJacobian(groups, self.n_columns, torch.cat(rows))
+        chain = None
+        if self.criterion == "multiple_shooting":  # the nodes, segment after segment
+            chain = torch.cat(
+                [
+                    self.node_table(e, self.segments[e].starts.shape[0])
+                    for e in range(len(self.parts))
+                ]
+            )
+        J = BlockJacobian(groups, self.n_columns, torch.cat(rows), chain)
         return torch.cat(residuals, -1), J
 
     def residuals(self, z: torch.Tensor) -> torch.Tensor:
@@ -402,15 +413,16 @@ def _interrupted(lm) -> bool:
     return bool((lm.status == NewtonStatus.INTERRUPTED).any())
 
 
-def _check_start(problem: _Problem, z0: torch.Tensor) -> None:
+def _check_start(problem: _Problem, z0: torch.Tensor, runs: int) -> None:
     """Raise a named error when the simulation from the start is not finite; decide the
-    problem's ``compile`` (see :data:`_FIT_EVALUATIONS`) from the time of this simulation."""
+    problem's ``compile`` (see :data:`_FIT_EVALUATIONS`) from the time of this simulation
+    and the number of Levenberg-Marquardt ``runs`` on it."""
     tic = time.perf_counter()
     with torch.no_grad():
         r = problem.residuals(z0)
     seconds = time.perf_counter() - tic
     eager_budget = _sensitivities.AUTO_COMPILE_EAGER_SECONDS
-    if problem.model.compile == "auto" and seconds * _FIT_EVALUATIONS >= eager_budget:
+    if problem.model.compile == "auto" and seconds * runs * _FIT_EVALUATIONS >= eager_budget:
         problem.compile = True
     bad = ~torch.isfinite(r).all(-1)
     if bool(bad.any()):
@@ -478,10 +490,11 @@ def fit_greybox(
     model.check_index(x_start, data.u[..., 0, :], P0)
     integrator, reason = model.choose_integrator(data.experiment_list[0], P0, x_start)
     problem.method = integrator
-    _check_start(problem, z0)
-    gauss = GaussianLoss()
     shooting_runs = len(_PENALTY_CONTINUATION) if criterion == "multiple_shooting" else 0
-    runs = 1 + shooting_runs + (loss != "gaussian")
+    simulation_runs = 1 + (loss != "gaussian")
+    runs = shooting_runs + simulation_runs
+    _check_start(problem, z0, shooting_runs or simulation_runs)
+    gauss = GaussianLoss()
     monitor = _Monitor(runs * max_iter, progress)
     with monitor.bar:
         z_sim, history, iterations = z0, [], 0
@@ -497,7 +510,7 @@ def fit_greybox(
             final = _Problem(model, data, "simulation", x0, None, integrator)
             z_sim = _carry_over(problem, final, lm.theta)
             problem = final
-            _check_start(problem, z_sim)
+            _check_start(problem, z_sim, simulation_runs)
         lm = _minimise(problem, z_sim, gauss, max_iter, xtol, ftol, monitor)
         history = history + [lm.loss_history]
         iterations = iterations + lm.iterations
