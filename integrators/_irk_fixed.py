@@ -29,10 +29,9 @@ from ._irk_dense import (
     nan_beyond,
     stop_times,
 )
+from .controllers import REUSE_THETA, slow_contraction
 from .errors import HighIndexWarning
 from .solution import Status
-
-_REUSE_THETA = 1e-3
 
 
 def end_algebraic(core: IRKCore, W, z):
@@ -175,7 +174,10 @@ def integrate_fixed(
             xdot = masked_update(active, W[..., -1, : core.system.n].detach(), xdot)
             n_steps += active
             fresh = np.zeros_like(fresh)
-            slow = (theta_all > _REUSE_THETA) & ((iters_all > 2) | ~simplified_ok)
+            # scipy's rule, and a slow simplified Newton that failed
+            slow = slow_contraction(theta_all, iters_all) | (
+                (theta_all > REUSE_THETA) & ~simplified_ok
+            )
             need_jac = active & slow
             if core.system.kind != "ode":  # periodic index check (Theorem 9)
                 need_jac |= active & (n_steps % index_check_every == 0)
