@@ -25,13 +25,12 @@ seconds-long variant the tests use.
      spring. Trained by L-BFGS on windows of 10 intervals (initial states estimated),
      started at the grey-box estimate of (m, k); RK4 at Ts = 0.1 s.
 3. Reported: the physical parameters with their standard errors (grey-box: ``sigma^2
-   (J'J)^-1``, eq. 4.101; hybrid: the same form conditional on the trained network, see
-   :mod:`sysid.continuous.training`) and their errors in standard-error units; the learned
-   velocity-dependent force ``D(v) = -m r(v)`` against the true one ``c v + F(v)`` on the
-   velocity range of the training data (relative RMS); the validation free run from rest:
-   fit % and RMSE per state. The standard errors of the hybrid ignore the uncertainty of the
-   network weights, so "within 3 SE" is a demanding check: it fails where the network has
-   not converged or where the residual cannot represent the friction.
+   (J'J)^-1``, eq. 4.101; hybrid: the same form with the network weights and the initial
+   states as nuisance parameters, see :mod:`sysid.continuous.training`) and their errors in
+   standard-error units; the learned velocity-dependent force ``D(v) = -m r(v)`` against the
+   true one ``c v + F(v)`` on the velocity range of the training data (relative RMS); the
+   validation free run from rest: fit % and RMSE per state. "Within 3 SE" fails where the
+   network has not converged or where the residual cannot represent the friction.
 
 Writes ``neural_hybrid_friction.csv/.md`` (one row per model) and ``neural_hybrid_friction.png``
 (learned and true velocity-dependent force, validation free runs of both models).

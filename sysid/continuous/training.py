@@ -24,12 +24,17 @@ output map returns the leading states, zero elsewhere), ``"encoder"`` (a small M
 ``n_init`` samples of outputs and inputs before the window, which then starts at ``k >=
 n_init``) or ``"zero"``.
 
-For models with physical parameters, the covariance of their unconstrained values is
-``sigma^2 (J'J)^{-1}`` (the eq. 4.101 form) with ``J`` the Jacobian of the full-record
-free-run residuals with respect to those values, the network and the initial states held
-fixed; it is mapped to physical units by the delta method through ``to_physical``. These
-standard errors are therefore conditional on the trained network: they ignore the
-uncertainty of the network weights and of the initial states.
+For models with physical parameters, the covariance of their unconstrained values is the
+physical block of ``sigma^2 (J'J)^{-1}`` (the eq. 4.101 form) with ``J`` the Jacobian of
+the full-record free-run residuals with respect to those values, the network weights and
+the records' estimated initial states (``x0="estimate"`` or ``"encoder"``): the network
+and the initial states are nuisance parameters.
+Computed as ``sigma^2 (J_p' (I - P) J_p)^{-1}`` with ``P`` the projection onto the column
+span of the nuisance Jacobian (its numerical rank from an SVD; an over-parameterised network
+spans fewer directions than it has weights), and ``sigma^2 = r'r / (M - p - rank)``. A
+physical effect the network can imitate thus widens the physical standard errors instead of
+hiding in the weights. The result is mapped to physical units by the delta method through
+``to_physical``.
 """
 
 from __future__ import annotations
@@ -43,10 +48,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from integrators import odeint
+from integrators import odeint, sensitivities
 from integrators.errors import InputValidationError
 from integrators.inputs import CollocationInput
 from integrators.methods import resolve_method
+from integrators.newton import batch_jacobian
 
 from .._progress import progress_bar
 from ..data import IOData
@@ -172,19 +178,25 @@ def _encoder(n_in: int, hidden: int, nx: int, generator: torch.Generator) -> nn.
 
 
 # --------------------------------------------------------------------------- simulation
-def _simulate_windows(model, records: _Records, x0, b, g, T: int) -> torch.Tensor:
-    """Outputs (W, T+1, ny) of the windows of T intervals from sample ``g`` of record ``b``
-    (W,), started at ``x0`` (W, nx); one batched fixed-step simulation."""
+def _window_inputs(records: _Records, b, g, T: int):
+    """The clock ``t`` (T+1,), the input for the integrators (samples held, or a
+    :class:`~integrators.inputs.CollocationInput` between them) and the input samples
+    (W, T+1, nu) of the windows of T intervals from sample ``g`` of record ``b`` (W,)."""
     dev = records.u.device
     idx = g[:, None].to(dev) + torch.arange(T + 1, device=dev)
     bb = b[:, None].to(dev)
     u_win = records.u[bb, idx]  # (W, T+1, nu)
     t = records.Ts * torch.arange(T + 1, dtype=records.u.dtype, device=dev)
     if records.intersample == "zoh":
-        u = u_win  # held over the closed step (notes eq. 8.34)
-    else:
-        coeff = records.between[bb, idx[:, :-1]]  # (W, T, q, nu)
-        u = CollocationInput(coeff, t, nodes=records.nodes)
+        return t, u_win, u_win  # held over the closed step (notes eq. 8.34)
+    coeff = records.between[bb, idx[:, :-1]]  # (W, T, q, nu)
+    return t, CollocationInput(coeff, t, nodes=records.nodes), u_win
+
+
+def _simulate_windows(model, records: _Records, x0, b, g, T: int) -> torch.Tensor:
+    """Outputs (W, T+1, ny) of the windows of T intervals from sample ``g`` of record ``b``
+    (W,), started at ``x0`` (W, nx); one batched fixed-step simulation."""
+    t, u, u_win = _window_inputs(records, b, g, T)
     options = {"adaptive": False, "substeps": int(model.substeps)}
     if resolve_method(model.method).tableau(None).is_explicit:
         options["compile"] = False
@@ -739,47 +751,119 @@ def _validation_loss(net: _Trainable, records: _Records) -> float:
     return sse / count
 
 
-def _full_residuals(net: _Trainable, records: _Records) -> torch.Tensor:
-    """(M,) free-run residuals of every training record (initial states held fixed: the
-    estimated first row, the encoder's state or zero)."""
-    pieces = []
+def _record_states(net: _Trainable, records: _Records):
+    """Per training record: (B,) record indices, (B,) start samples, (B, nx) initial states
+    of its free run (the estimated first row, the encoder's state or zero) and the number
+    of intervals."""
+    out = []
     for off, N in zip(records.offsets, records.lengths, strict=True):
         b, g, x0 = _record_start(net, records, off)
         if net.x0_mode == "estimate":
             x0 = net.x0_table[b, g]
-        T = N - 1 - (int(g[0]) - off)
-        with torch.no_grad():
-            x0 = x0.detach()
-        y = records.y[:, int(g[0]) :][:, : T + 1]
-        pieces.append((y - _simulate_windows(net.model, records, x0, b, g, T)).reshape(-1))
+        out.append((b, g, x0.detach(), N - 1 - (int(g[0]) - off)))
+    return out
+
+
+def _full_residuals(net: _Trainable, records: _Records) -> torch.Tensor:
+    """(M,) free-run residuals of every training record from its initial state."""
+    pieces = []
+    with torch.no_grad():
+        for b, g, x0, T in _record_states(net, records):
+            y = records.y[:, int(g[0]) :][:, : T + 1]
+            pieces.append((y - _simulate_windows(net.model, records, x0, b, g, T)).reshape(-1))
     return torch.cat(pieces)
 
 
-def _residual_jacobian(r: torch.Tensor, columns: list[torch.Tensor]) -> torch.Tensor:
-    """``d r / d columns``, (M, p) for ``r`` (M,) and p parameter entries, by two reverse
-    passes per column instead of one per residual: ``g(v) = J' v`` is built with its graph at
-    a free ``v``, and ``d g_i / d v = J[:, i]`` (``g`` is linear in ``v``)."""
-    v = torch.zeros_like(r, requires_grad=True)
-    grads = torch.autograd.grad(r, columns, grad_outputs=v, create_graph=True, allow_unused=True)
-    g = torch.cat(
-        [
-            (gr if gr is not None else c.new_zeros(c.shape)).reshape(-1)
-            for gr, c in zip(grads, columns, strict=True)
-        ]
-    )
-    out = []
-    for gi in g:
-        if not gi.requires_grad:  # r does not depend on this entry
-            out.append(torch.zeros_like(r))
-            continue
-        (col,) = torch.autograd.grad(gi, v, retain_graph=True, allow_unused=True)
-        out.append(torch.zeros_like(r) if col is None else col)
-    return torch.stack(out, -1).detach()
+def _output_parameter_jacobian(model, x, u_win, columns) -> torch.Tensor | None:
+    """``d output / d columns`` (T+1, ny, q) at the states ``x`` (T+1, nx), or None where
+    the output map does not depend on the parameters (one vectorised reverse pass)."""
+    with torch.enable_grad():
+        y = model.output(x, u_win)
+        if not y.requires_grad:
+            return None
+        rows = torch.eye(y.numel(), dtype=y.dtype, device=y.device).unflatten(-1, y.shape)
+        grads = torch.autograd.grad(
+            y, columns, grad_outputs=rows, is_grads_batched=True, allow_unused=True
+        )
+    if all(gr is None for gr in grads):
+        return None
+    flat = [
+        (gr if gr is not None else c.new_zeros(rows.shape[0], *c.shape)).reshape(rows.shape[0], -1)
+        for gr, c in zip(grads, columns, strict=True)
+    ]
+    return torch.cat(flat, -1).unflatten(0, y.shape).detach()
+
+
+def _free_run_jacobian(net: _Trainable, records: _Records, columns: list[torch.Tensor]):
+    """``(r, J)``: the free-run residuals (M,) of :func:`_full_residuals` and their
+    Jacobian (M, q + s) with respect to the model's parameter tensors ``columns`` (q entries,
+    flattened in order) and then the records' initial states (s = records x B x nx entries),
+    by forward sensitivities of the model's fixed-step scheme (the course notes (Modelling
+    and Simulation), eq. 8.17-8.18 explicit, 8.24-8.28 implicit): a model has few states
+    and may have many weights, so ``nx + q`` directions per step beat ``M`` reverse passes.
+    Each data set of the batch is one simulation (the weights are shared)."""
+    model = net.model
+    names = {id(prm): name for name, prm in model.named_parameters()}
+    keys = [names[id(c)] for c in columns]
+    sizes = [c.numel() for c in columns]
+    theta = torch.cat([c.detach().reshape(-1) for c in columns])
+
+    def rhs(t, x, u, p):  # the model at the parameter vector p (batch of one)
+        values = torch.split(p[0], sizes)
+        params = {k: v.reshape(c.shape) for k, v, c in zip(keys, values, columns, strict=True)}
+        return torch.func.functional_call(model, params, (t, x, u))
+
+    states = _record_states(net, records)
+    nx = model.nx
+    n_starts = len(states) * records.B * nx
+    residuals, rows = [], []
+    for e, (b, g, x0, T) in enumerate(states):
+        for i in range(records.B):
+            t, u, u_win = _window_inputs(records, b[i : i + 1], g[i : i + 1], T)
+            sens = sensitivities(
+                rhs,
+                x0[i : i + 1],
+                t,
+                theta[None],
+                method=model.method,
+                u=u,
+                substeps=int(model.substeps),
+                input_sensitivities=False,
+                compile=False,
+            )
+            x, u_k = sens.x[0], u_win[0]
+            y, dy_dx = batch_jacobian(lambda xx, uu=u_k: model.output(xx, uu), x)
+            dy = dy_dx @ sens.B[0]  # (T+1, ny, q)
+            direct = _output_parameter_jacobian(model, x, u_k, columns)
+            if direct is not None:
+                dy = dy + direct
+            start = x.new_zeros(*dy.shape[:-1], n_starts)
+            at = (e * records.B + i) * nx
+            start[..., at : at + nx] = dy_dx @ sens.A[0]
+            residuals.append((records.y[b[i], int(g[i]) :][: T + 1] - y).reshape(-1))
+            rows.append(-torch.cat([dy, start], -1).flatten(0, 1))
+    return torch.cat(residuals), torch.cat(rows)
+
+
+def _project_out(J: torch.Tensor, nuisance: torch.Tensor):
+    """``(J_perp, rank)``: the part of the columns of ``J`` (M, p) orthogonal to the column
+    span of ``nuisance`` (M, q), whose numerical rank (singular values above
+    ``max(M, q) eps`` times the largest) is ``rank``. A column the nuisance explains to
+    ``sqrt(eps)`` of its norm comes back zero (its parameter is not identifiable)."""
+    if nuisance.shape[-1] == 0:
+        return J, 0
+    U, s, _ = torch.linalg.svd(nuisance, full_matrices=False)
+    eps = torch.finfo(s.dtype).eps
+    U = U[:, s > s[0] * max(nuisance.shape) * eps]
+    J_perp = J - U @ (U.T @ J)
+    explained = J_perp.norm(dim=0) <= math.sqrt(eps) * J.norm(dim=0)
+    return torch.where(explained, torch.zeros_like(J_perp), J_perp), U.shape[-1]
 
 
 def _physical_statistics(net: _Trainable, records: _Records):
     """Names, physical values (p,), covariance (p, p), sigma^2 and residuals (M,) of the
-    physical parameters (module docstring: conditional on the network)."""
+    physical parameters, marginal over the network weights and initial states (see the
+    module docstring)."""
     model = net.model
     raw = dict(model.physical_parameters())
     names, columns, values = [], [], []
@@ -789,15 +873,19 @@ def _physical_statistics(net: _Trainable, records: _Records):
             names.append(name if p.numel() == 1 else f"{name}[{i}]")
         values.append(phys)
         columns.append(p)
-    r = _full_residuals(net, records)
-    M = r.numel()
     if not names:
-        return names, r.new_zeros(0), r.new_zeros(0, 0), (r.detach() ** 2).sum() / M, r.detach()
-    J = _residual_jacobian(r, columns)  # (M, p) d r / d raw
-    p = J.shape[-1]
-    r = r.detach()
-    sigma2 = (r * r).sum() / max(M - p, 1)
-    cov_raw = sigma2 * inverse_normal_matrix(J)
+        r = _full_residuals(net, records)
+        return names, r.new_zeros(0), r.new_zeros(0, 0), (r**2).sum() / r.numel(), r
+    weights = [
+        q for q in model.parameters() if q.requires_grad and all(q is not c for c in columns)
+    ]
+    r, J = _free_run_jacobian(net, records, columns + weights)  # (M, p + q + s) d r / d raw
+    if net.x0_mode == "zero":  # known initial states: no nuisance
+        J = J[:, : J.shape[1] - len(records.offsets) * records.B * model.nx]
+    M, p = r.numel(), sum(c.numel() for c in columns)
+    J_physical, rank = _project_out(J[:, :p], J[:, p:])
+    sigma2 = (r * r).sum() / max(M - p - rank, 1)
+    cov_raw = sigma2 * inverse_normal_matrix(J_physical)
     blocks = [  # d physical / d raw, one block per named parameter (delta method)
         torch.autograd.functional.jacobian(
             lambda z, n=name, s=prm.shape: model.to_physical(n, z.reshape(s)).reshape(-1),
