@@ -209,3 +209,17 @@ def test_levenberg_marquardt_with_a_chained_jacobian_follows_the_dense_iteration
     torch.testing.assert_close(out.theta, ref.theta, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(out.iterations, ref.iterations)
     torch.testing.assert_close(out.hessian.dense(), ref.hessian, rtol=1e-10, atol=1e-12)
+
+
+def test_a_chain_without_border_and_without_batch_dimensions():
+    """Only node columns (no free parameter, x0 estimated) and one data set."""
+    groups, rows, n, chain = _chained_blocks(5, batch=(), nb=0)
+    H = BlockJacobian(groups, n, rows, chain).normal()
+    D = _dense_reference(groups, rows, n)
+    reference = D.T @ D
+    torch.testing.assert_close(H.dense(), reference, rtol=1e-12, atol=1e-12)
+    rhs = torch.randn(n, generator=torch.Generator().manual_seed(6), dtype=F64)
+    x, ok = H.solve(rhs, torch.tensor(0.1, dtype=F64))
+    assert bool(ok)
+    shifted = reference + 0.1 * torch.eye(n, dtype=F64)
+    torch.testing.assert_close(x, torch.linalg.solve(shifted, rhs), rtol=1e-8, atol=1e-10)
