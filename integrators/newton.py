@@ -795,7 +795,10 @@ def minimize(
             sensitivities of a simulation (:func:`integrators.sensitivities`), which cost
             ``n`` directions instead of ``m`` reverse passes when ``m >> n``. ``J`` may be a
             :class:`~integrators.block_jacobian.BlockJacobian` (sparse row blocks, e.g.
-            multiple shooting): ``J'CJ`` and ``J'psi`` are then formed block by block.
+            multiple shooting): ``J'CJ`` and ``J'psi`` are then formed block by block, and
+            where it has a chain, Levenberg-Marquardt solves with the block tridiagonal
+            ``J'CJ`` in time linear in the chain length
+            (:class:`~integrators.block_tridiagonal.BorderedBlockTridiagonal`).
         loss: "levenberg_marquardt": the per-residual loss (protocol above); None is the
             squared loss ``r^2 / 2``.
         admissible: "levenberg_marquardt": ``theta (*batch, n) -> (*batch,)`` bool; steps to
