@@ -13,6 +13,7 @@ import types
 
 import pytest
 import torch
+from _shared_models import pendulum
 
 from integrators.inputs import CollocationInput
 from integrators.sensitivities import sensitivities
@@ -21,17 +22,6 @@ from sysid.continuous.fit import _FIT_EVALUATIONS, _check_start, _Problem
 from sysid.zoo import SpringMassDamper, VanDerPol
 
 F64 = torch.float64
-
-
-def pendulum(t, x, u, p):
-    """Damped, forced pendulum with a time-dependent term: every argument matters."""
-    return torch.stack(
-        [
-            x[..., 1],
-            -p[..., 0] * torch.sin(x[..., 0]) - p[..., 1] * x[..., 1] + u[..., 0] + 0.1 * t,
-        ],
-        -1,
-    )
 
 
 def _collocation_case():

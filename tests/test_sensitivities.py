@@ -10,6 +10,7 @@ import math
 
 import pytest
 import torch
+from _shared_models import pendulum
 
 from integrators import (
     InputValidationError,
@@ -24,17 +25,6 @@ from integrators.inputs import CollocationInput
 from integrators.sensitivities import sensitivities, variational_sensitivities
 
 F64 = torch.float64
-
-
-def pendulum(t, x, u, p):
-    """Damped, forced pendulum: theta'' = -p0 sin(theta) - p1 theta' + u + 0.1 t."""
-    return torch.stack(
-        [
-            x[..., 1],
-            -p[..., 0] * torch.sin(x[..., 0]) - p[..., 1] * x[..., 1] + u[..., 0] + 0.1 * t,
-        ],
-        -1,
-    )
 
 
 def pendulum_free(t, x, p):
