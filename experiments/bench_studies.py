@@ -10,7 +10,8 @@
 2. Checkpointing: the same study run into a folder (Parquet per chunk, manifest) against
    the same chunks computed without writing anything; overhead in per cent.
 3. Dask: a compute-bound study (OE(2, 2) Gauss-Newton fits) on a ``LocalCluster`` of 2
-   one-thread workers against 1 worker (cluster start-up not timed).
+   one-thread workers against 1 worker (``sysid.studies.local_cluster``: workers started
+   with ``sysid.studies.WORKER_ENVIRONMENT``; cluster start-up not timed).
 
 Timings: wall clock, best of ``--repeats``, torch on one thread. Run with
 ``OMP_NUM_THREADS=1`` so numpy and statsmodels use one thread too.
@@ -72,7 +73,7 @@ import torch
 
 from sysid import ARX, OE, fit
 from sysid.montecarlo import input_signal, simulate_data
-from sysid.studies import Study
+from sysid.studies import Study, local_cluster
 
 N = 500
 THETA = [-1.2, 0.5, 0.5, 0.3]  # a1, a2, b1, b2 of A y = B u + e
@@ -207,19 +208,14 @@ def throughput(trials: int, loop_trials: int, repeats: int, scratch) -> tuple[li
 
 def dask_scaling(trials: int, repeats: int, scratch) -> list:
     """Section 3: OE Gauss-Newton study on 1 and 2 local Dask workers."""
-    from dask.distributed import Client, LocalCluster
+    from dask.distributed import Client
 
     chunk = max(1, trials // 16)
     study = oe_study(trials, chunk)
     rows = []
     for workers in (1, 2):
         note(f"dask: {trials} OE data sets on {workers} worker(s)")
-        with (
-            LocalCluster(
-                n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
-            ) as cluster,
-            Client(cluster) as client,
-        ):
+        with local_cluster(workers) as cluster, Client(cluster) as client:
             client.run(torch.set_num_threads, 1)
 
             def run(client=client):

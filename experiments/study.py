@@ -146,17 +146,11 @@ def main(argv=None):
         f"{study.n_chunks} chunk(s) each, {args.workers} worker(s)"
     )
     if args.workers > 1:
-        from dask.distributed import Client, LocalCluster
+        from dask.distributed import Client
 
-        with (
-            LocalCluster(
-                n_workers=args.workers,
-                threads_per_worker=1,
-                processes=True,
-                dashboard_address=None,
-            ) as cluster,
-            Client(cluster) as client,
-        ):
+        from sysid.studies import local_cluster
+
+        with local_cluster(args.workers) as cluster, Client(cluster) as client:
             study.run(folder, client=client)
     else:
         study.run(folder)

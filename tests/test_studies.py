@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 from sysid import ARX, FIR, IOData, fit
 from sysid.errors import InputValidationError, RKIdentWarning, StudyDeclarationError
 from sysid.montecarlo import input_signal, simulate_data
-from sysid.studies import Study
+from sysid.studies import WORKER_ENVIRONMENT, Study, local_cluster
 
 SIGMA = 0.5
 FIR_TRUTH = {"b1": 1.0, "b2": 0.5, "b3": 0.2}
@@ -353,7 +353,7 @@ import os, sys, time
 import torch
 from sysid import FIR, fit
 from sysid.montecarlo import input_signal, simulate_data
-from sysid.studies import Study
+from sysid.studies import WORKER_ENVIRONMENT, Study, local_cluster
 
 CALLS = {"n": 0}
 
@@ -678,3 +678,24 @@ def test_report_of_a_single_point_and_a_wrong_ellipse(tmp_path, saved_figures):
         assert figure_defects(fig) == [], name
     with pytest.raises(InputValidationError, match="b7"):
         study.report(tmp_path / "other", ellipse=("b1", "b7"))
+
+
+def _worker_environment():
+    import os
+
+    return {key: os.environ.get(key) for key in WORKER_ENVIRONMENT}
+
+
+def test_local_cluster_starts_worker_processes_with_the_study_environment(tmp_path):
+    """The worker processes of ``local_cluster`` get WORKER_ENVIRONMENT before they start
+    (dask's own default trim threshold makes torch re-fault its memory on every operation)
+    and compute the in-process table."""
+    distributed = pytest.importorskip(
+        "distributed", reason="dask.distributed is an optional extra: pip install rkident[dask]"
+    )
+    local = small_study().run(tmp_path / "local", progress=False)
+    with local_cluster(1) as cluster, distributed.Client(cluster) as client:
+        seen = client.run(_worker_environment)
+        remote = small_study().run(tmp_path / "dask", client=client, progress=False)
+    assert list(seen.values()) == [{k: str(v) for k, v in WORKER_ENVIRONMENT.items()}]
+    assert table(remote).equals(table(local))
