@@ -251,24 +251,42 @@ def _reverse_mode_jacobian(model, data, columns, x0=None):
     return r.detach(), J
 
 
+class MeasuredWithGain(HybridSpring):
+    """HybridSpring whose output map has a parameter: y = g x1."""
+
+    def __init__(self):
+        super().__init__(k0=3.0)
+        self.gain = nn.Parameter(torch.tensor(1.3, dtype=torch.float64))
+
+    def output(self, x, u):
+        return self.gain * x[..., :1]
+
+
 @pytest.mark.parametrize("x0", ["zero", "estimate"])
-def test_the_forward_sensitivity_jacobian_equals_reverse_mode_autograd(x0):
+@pytest.mark.parametrize("build", [lambda: HybridSpring(k0=3.0), MeasuredWithGain])
+def test_the_forward_sensitivity_jacobian_equals_reverse_mode_autograd(x0, build, monkeypatch):
     """The free-run Jacobian behind the covariance (forward sensitivities over the weights
-    and initial states) against reverse-mode autograd through the same simulation."""
+    and initial states, plus the output map's own parameters, a few rows per reverse pass)
+    against reverse-mode autograd through the same simulation."""
     training = importlib.import_module("sysid.continuous.training")
+    monkeypatch.setattr(training, "_ROWS_PER_PASS", 7)
     data = spring(60, seed=3, noise=0.01)
-    model = HybridSpring(k0=3.0)
+    model = build()
     with torch.no_grad():
         model.res[2].weight.normal_(generator=torch.Generator().manual_seed(2))
     records = training._Records(data, model, torch.float64, torch.device("cpu"))
-    net = training._Trainable(model, x0, records, 0, 8, torch.Generator().manual_seed(0), True)
+    output_is_state = not isinstance(model, MeasuredWithGain)
+    net = training._Trainable(
+        model, x0, records, 0, 8, torch.Generator().manual_seed(0), output_is_state
+    )
     columns = [model.log_k, *model.res.parameters()]
+    columns += [model.gain] if isinstance(model, MeasuredWithGain) else []
     r, J = training._free_run_jacobian(net, records, columns)
     start = training._record_states(net, records)[0][2].clone().requires_grad_(True)
     r_ref, J_ref = _reverse_mode_jacobian(model, data, columns, start)
     torch.testing.assert_close(r, r_ref, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(J, J_ref, rtol=1e-9, atol=1e-11)
-    assert J.shape == (r.numel(), 1 + sum(w.numel() for w in model.res.parameters()) + 2)
+    assert J.shape == (r.numel(), sum(c.numel() for c in columns) + 2)
 
 
 def _small_run(**kw):

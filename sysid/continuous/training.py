@@ -774,24 +774,47 @@ def _full_residuals(net: _Trainable, records: _Records) -> torch.Tensor:
     return torch.cat(pieces)
 
 
+#: output rows differentiated per vectorised reverse pass in
+#: :func:`_output_parameter_jacobian`
+_ROWS_PER_PASS = 256
+
+
 def _output_parameter_jacobian(model, x, u_win, columns) -> torch.Tensor | None:
     """``d output / d columns`` (T+1, ny, q) at the states ``x`` (T+1, nx), or None where
-    the output map does not depend on the parameters (one vectorised reverse pass)."""
+    the output map does not depend on the parameters (vectorised reverse passes over
+    :data:`_ROWS_PER_PASS` output entries at a time)."""
     with torch.enable_grad():
         y = model.output(x, u_win)
         if not y.requires_grad:
             return None
-        rows = torch.eye(y.numel(), dtype=y.dtype, device=y.device).unflatten(-1, y.shape)
-        grads = torch.autograd.grad(
-            y, columns, grad_outputs=rows, is_grads_batched=True, allow_unused=True
-        )
-    if all(gr is None for gr in grads):
-        return None
-    flat = [
-        (gr if gr is not None else c.new_zeros(rows.shape[0], *c.shape)).reshape(rows.shape[0], -1)
-        for gr, c in zip(grads, columns, strict=True)
-    ]
-    return torch.cat(flat, -1).unflatten(0, y.shape).detach()
+        n = y.numel()
+        pieces = []
+        for lo in range(0, n, _ROWS_PER_PASS):
+            picked = torch.arange(lo, min(n, lo + _ROWS_PER_PASS), device=y.device)
+            rows = y.new_zeros(len(picked), n)
+            rows[torch.arange(len(picked), device=y.device), picked] = 1.0
+            grads = torch.autograd.grad(
+                y,
+                columns,
+                grad_outputs=rows.unflatten(-1, y.shape),
+                is_grads_batched=True,
+                retain_graph=True,
+                allow_unused=True,
+            )
+            if all(gr is None for gr in grads):
+                return None
+            pieces.append(
+                torch.cat(
+                    [
+                        (gr if gr is not None else c.new_zeros(len(rows), *c.shape)).reshape(
+                            len(rows), -1
+                        )
+                        for gr, c in zip(grads, columns, strict=True)
+                    ],
+                    -1,
+                )
+            )
+    return torch.cat(pieces).unflatten(0, y.shape).detach()
 
 
 def _free_run_jacobian(net: _Trainable, records: _Records, columns: list[torch.Tensor]):
