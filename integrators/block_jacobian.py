@@ -62,7 +62,7 @@ class BlockJacobian:
             else rows.to(self.device)
         )
         self.chain = None if chain is None else chain.to(self.device)
-        self._targets = None if chain is None else self._structured_targets()
+        self._layout = None if chain is None else self._structured_layout()
 
     @property
     def shape(self) -> torch.Size:
@@ -88,31 +88,32 @@ class BlockJacobian:
             start += B * R
             yield values, torch.where(columns < 0, self.n, columns), piece
 
-    def _structured_targets(self) -> list[torch.Tensor]:
-        """Per group (B, k, k): where each entry of a block's ``values' values`` goes in the
-        flat storage of a :class:`BorderedBlockTridiagonal` (border ``A``, coupling ``E``,
-        diagonal and upper chain blocks, then one slot for the entries that are dropped:
-        missing columns and the mirrored halves of the symmetric matrix)."""
+    def _structured_layout(self):
+        """``(targets, border_columns, sizes)``: per group (B, k, k), where each entry of a
+        block's ``values' values`` goes in the flat storage of a
+        :class:`BorderedBlockTridiagonal` (border ``A``, coupling ``E``, diagonal and upper
+        chain blocks, then one slot for the entries that are dropped: missing columns and
+        the mirrored halves of the symmetric matrix); the (nb,) columns outside the chain;
+        ``(nb, C, b, storage size)``."""
         C, b = self.chain.shape
         dev = self.device
         flat = self.chain.reshape(-1)
         present = flat[flat >= 0]
         in_chain = torch.zeros(self.n, dtype=torch.bool, device=dev)
         in_chain[present] = True
-        self.border_columns = torch.nonzero(~in_chain).squeeze(-1)
-        nb = self.border_columns.shape[0]
+        border_columns = torch.nonzero(~in_chain).squeeze(-1)
+        nb = border_columns.shape[0]
         block = torch.full((self.n + 1,), -1, dtype=torch.int64, device=dev)
         slot = torch.zeros(self.n + 1, dtype=torch.int64, device=dev)
         position = torch.arange(C * b, device=dev)
         block[present] = (position // b)[flat >= 0]
         slot[present] = (position % b)[flat >= 0]
         border = torch.full((self.n + 1,), -1, dtype=torch.int64, device=dev)
-        border[self.border_columns] = torch.arange(nb, device=dev)
+        border[border_columns] = torch.arange(nb, device=dev)
         off_E = nb * nb
         off_D = off_E + C * b * nb
         off_U = off_D + C * b * b
-        self._sizes = (nb, C, b, off_U + C * b * b)
-        dropped = self._sizes[3]
+        dropped = off_U + C * b * b
         targets = []
         for _, columns in self.groups:
             c = torch.where(columns < 0, self.n, columns)
@@ -136,7 +137,7 @@ class BlockJacobian:
                 chain1 & chain2 & (k2 == k1 + 1), off_U + (k1 * b + s1) * b + s2, target
             )
             targets.append(target.reshape(-1))
-        return targets
+        return targets, border_columns, (nb, C, b, dropped)
 
     def normal(self, weights: torch.Tensor | None = None):
         """``J' diag(weights) J``: (*batch, n, n), or a
@@ -155,9 +156,9 @@ class BlockJacobian:
         return H.unflatten(-1, (n1, n1))[..., : self.n, : self.n]
 
     def _structured_normal(self, weights) -> BorderedBlockTridiagonal:
-        nb, C, b, size = self._sizes
+        targets, border_columns, (nb, C, b, size) = self._layout
         flat = torch.zeros(*self.batch, size + 1, dtype=self.dtype, device=self.device)
-        for (values, _, w), target in zip(self._pieces(weights), self._targets, strict=True):
+        for (values, _, w), target in zip(self._pieces(weights), targets, strict=True):
             G = values.transpose(-1, -2) @ (values * w)  # (*batch, B, k, k)
             flat.index_add_(-1, target, G.flatten(-3))
         off_E, off_D, off_U = nb * nb, nb * nb + C * b * nb, nb * nb + C * b * (nb + b)
@@ -167,7 +168,7 @@ class BlockJacobian:
             flat[..., off_E:off_D].unflatten(-1, (C, b, nb)),
             flat[..., :off_E].unflatten(-1, (nb, nb)),
             self.chain,
-            self.border_columns,
+            border_columns,
             self.n,
         )
 
@@ -195,4 +196,6 @@ class BlockJacobian:
         mask = keep[..., None, None, None]
         pairs = zip(self.groups, other.groups, strict=True)
         groups = [(torch.where(mask, a, b), c) for (a, c), (b, _) in pairs]
-        return BlockJacobian(groups, self.n, self.rows, self.chain)
+        out = BlockJacobian(groups, self.n, self.rows)  # same columns: the layout carries over
+        out.chain, out._layout = self.chain, self._layout
+        return out

@@ -74,10 +74,9 @@ RESERVED_COLUMNS = (
 #: (``distributed.nanny.pre-spawn-environ``; :func:`local_cluster` does it). Dask's default
 #: ``MALLOC_TRIM_THRESHOLD_=65536`` makes glibc hand freed memory back at once and allocate
 #: every block above 128 kB by a fresh ``mmap``; torch's CPU tensors come from malloc, so
-#: each operation on a large tensor faults its pages in anew: a chunk of OE fits took 1.8x
-#: the CPU time in such a worker as in this process. A high trim threshold and an ``mmap``
-#: threshold of 32 MiB keep freed blocks for reuse (the chunk then runs at this process'
-#: speed).
+#: each operation on a large tensor faults its pages in anew, and a chunk takes nearly
+#: twice the CPU time it takes in this process. A high trim threshold and an ``mmap``
+#: threshold of 32 MiB keep freed blocks for reuse.
 WORKER_ENVIRONMENT = {"MALLOC_TRIM_THRESHOLD_": 2**40, "MALLOC_MMAP_THRESHOLD_": 2**25}
 
 

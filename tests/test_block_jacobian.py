@@ -144,11 +144,12 @@ def test_a_chained_normal_matrix_and_its_damped_solve_equal_the_dense_ones(seed)
     assert ok.all()
     shifted = reference + shift[:, None, None] * torch.eye(n, dtype=F64)
     torch.testing.assert_close(x, torch.linalg.solve(shifted, rhs), rtol=1e-8, atol=1e-10)
-    other = BlockJacobian([(2 * v, c) for v, c in groups], n, rows, chain).normal(w)
+    other_J = BlockJacobian([(2 * v, c) for v, c in groups], n, rows, chain)
+    other = other_J.normal(w)
     keep = torch.tensor([True, False, True])
-    torch.testing.assert_close(
-        H.where(keep, other).dense(), torch.where(keep[:, None, None], reference, 4 * reference)
-    )
+    expected = torch.where(keep[:, None, None], reference, 4 * reference)
+    torch.testing.assert_close(H.where(keep, other).dense(), expected)
+    torch.testing.assert_close(J.where(keep, other_J).normal(w).dense(), expected)
 
 
 def test_a_chained_solve_flags_a_matrix_that_is_not_positive_definite():
