@@ -1,12 +1,14 @@
-"""The numpy kernel of adaptive Radau IIA, for small CPU problems, and the driver choice.
+"""The numpy kernels of adaptive Radau IIA, for small CPU problems, and the kernel choice.
 
 :class:`NumpyKernel` does the per-step work of :func:`integrators.radau.adaptive_loop` (notes
 §7.4, simplified Newton eq. 7.14-7.16, step eq. 7.18; see :mod:`integrators.radau` for the
 error estimate and the step-size rule) on host (numpy) arrays, so the steps, counters,
 statuses and messages are those of the torch kernel. Only the user's model runs in torch (on
 ``torch.from_numpy`` views of the host arrays, all stages in one call when the model allows
-it); its Jacobian comes from :meth:`IRKCore.frozen_blocks` (autograd). A batch of a few
-samples spends 1-2 us per numpy operation instead of 3-8 us per tiny torch kernel.
+it); its Jacobian comes from :meth:`IRKCore.frozen_blocks` (autograd). For a batch of a few
+samples a numpy operation costs a fraction of a tiny torch kernel's dispatch. One float64
+trajectory takes :class:`OneTrajectoryKernel`, the same work on one sample with which the loop
+keeps its per-sample quantities as Python floats (:func:`one_trajectory`).
 
 Gradients: the numpy kernel finds the accepted steps ``(t_k, h_k)`` and converged stages
 ``W_k`` without autograd; when anything requires grad, those steps are replayed in torch with the
@@ -14,13 +16,14 @@ implicit-function-theorem stages ``core.ift`` and ``x_{k+1} = x_k + h_k sum_i b_
 (eq. 7.18), exactly as the torch kernel builds them, so gradients are the same.
 
 Only explicit ODEs whose Newton matrix is inverted explicitly (``s n <= 24``) take this path
-(:func:`host_loop_supported`); everything else stays on the torch driver.
+(:func:`host_loop_supported`); everything else stays on the torch kernel.
 """
 
 from __future__ import annotations
 
 import contextlib
 import functools
+import math
 
 import numpy as np
 import torch
@@ -28,18 +31,12 @@ from scipy.linalg import get_lapack_funcs
 
 from ._irk_core import IRKCore, host_shape, masked_update
 from ._irk_dense import StepRecords
-from .controllers import GustafssonController
+from ._per_sample import ArrayOps
 from .errors import InputValidationError
-from .radau import _any, adaptive_loop, embedded_weights
+from .radau import embedded_weights
 
-#: The step-size rule of the host drivers (they run only with the default controller).
-_RULE = GustafssonController()
-
-# Largest ``x0.numel()`` that "auto" sends to the host loop. Measured with one thread
-# (same steps on both drivers), host / torch driver time: stiff Van der Pol (n = 2) 0.6 at
-# batch 1-64, 0.72 at 128, 0.75-0.82 at 256 (numel 512), 1.16 at 1024 (numel 2048); a stiff
-# 8-state system 0.6 at batch 1-8, 0.67 at 32 (numel 256), 0.86 at 128 (numel 1024). The
-# crossover lies near numel 1500.
+# Largest ``x0.numel()`` that "auto" sends to the numpy kernels: below the measured crossover
+# with the torch kernel, near 1500 (docs/benchmarks.md, "Tuning constants").
 HOST_MAX_NUMEL = 1024
 
 
@@ -186,12 +183,7 @@ def _all(mask: np.ndarray) -> bool:
     return np.count_nonzero(mask) == mask.size
 
 
-def _pick(mask: np.ndarray, new: np.ndarray, old: np.ndarray) -> np.ndarray:
-    """``new`` where the (B,) ``mask`` holds, else ``old`` (trailing axes broadcast); ``new``
-    itself when every member moves (the common case, one check instead of a select)."""
-    if _all(mask):
-        return new
-    return np.where(mask.reshape(-1, *([1] * (np.ndim(new) - 1))), new, old)
+_any, _pick = ArrayOps.any, ArrayOps.pick
 
 
 def _method_constants(core: IRKCore, npdt):
@@ -238,44 +230,11 @@ def _run_constants(core: IRKCore, t, atol, rtol, npdt):
     )
 
 
-def integrate_adaptive_host(
-    core: IRKCore,
-    x0,
-    z0,
-    xdot0,
-    t,
-    *,
-    rtol,
-    atol,
-    max_steps,
-    max_iter,
-    newton_tol,
-    dt0=None,
-):
-    """Run adaptive Radau IIA with the numpy kernel; same arguments (less the DAE index
-    options) and the same returned dict as :func:`integrators.radau.integrate_adaptive`.
-
-    Args:
-        core: :class:`IRKCore` of an explicit ODE with ``core.solver.dense(n)``.
-        x0: (*batch, n) initial states (CPU); z0: (*batch, 0); xdot0: (*batch, n) ``f(t0, x0)``.
-        t: (T,) output times.
-        rtol, atol, max_steps, max_iter, newton_tol, dt0: as in ``integrate_adaptive``.
-    """
-    kernel = NumpyKernel(core, x0, z0, xdot0, t, rtol, atol, newton_tol, max_iter)
-    return adaptive_loop(
-        kernel,
-        core,
-        x0,
-        z0,
-        xdot0,
-        t,
-        rtol=rtol,
-        atol=atol,
-        max_steps=max_steps,
-        max_iter=max_iter,
-        dt0=dt0,
-        controller=_RULE,
-    )
+def one_trajectory(x0: torch.Tensor) -> bool:
+    """Whether a problem that the numpy kernel runs takes :class:`OneTrajectoryKernel`: a
+    single trajectory (``x0.numel() == n``) in float64 (the dtype of Python floats, so that
+    its step control rounds as the batched one does)."""
+    return x0.dtype == torch.float64 and x0.numel() == x0.shape[-1]
 
 
 class NumpyKernel:
@@ -285,6 +244,8 @@ class NumpyKernel:
     the Newton matrix is inverted (:func:`_factorize`) and the simplified Newton iteration
     (:func:`_newton`) is one matrix product per iteration. The records of the accepted steps
     are replayed in torch for gradients at the end (:func:`_records`)."""
+
+    scalar = False
 
     def __init__(self, core, x0, z0, xdot0, t, rtol, atol, newton_tol, max_iter):
         self.core, self.x0, self.z0 = core, x0, z0
@@ -407,6 +368,84 @@ class NumpyKernel:
         stack.enter_context(np.errstate(all="ignore"))
         stack.enter_context(torch.no_grad())
         return stack
+
+
+class OneTrajectoryKernel(NumpyKernel):
+    """:class:`NumpyKernel` for one float64 trajectory (:func:`one_trajectory`), driven by the
+    loop's Python-scalar control (``scalar = True``): masks arrive as Python bools, times and
+    step sizes as Python floats, and the results go back the same way. The states and stages
+    stay numpy arrays shaped (1, ...), and the Jacobian, the factorisation, the records and
+    the gradient replay are the numpy kernel's. The simplified Newton iteration
+    (:func:`_newton_one`) and the error norm are written for one flat vector, with the norms
+    and the convergence test in Python floats: the same iteration as :func:`_newton`, a
+    deliberate kernel pair (the batched one is vectorised over samples, this one pays no
+    per-array overhead)."""
+
+    scalar = True
+
+    def __init__(self, core, x0, z0, xdot0, t, rtol, atol, newton_tol, max_iter):
+        super().__init__(core, x0, z0, xdot0, t, rtol, atol, newton_tol, max_iter)
+        self.A_kron = np.kron(self.A, np.eye(core.system.n))
+        self.accept_mask = np.ones(1, dtype=bool)
+
+    def begin_step(self, tcur, h):
+        self.h = h
+        host = np.empty((2 + self.core.s, 1))  # t_k, t_k + h and the stage times t_k + c_i h
+        host[0], host[1], host[2:, 0] = tcur, tcur + h, tcur + self.c * h
+        self.host = host
+
+    def jacobian(self, mask):
+        self.G = _jacobian(self.core, self.model, self.host[0], self.x, self.z, self.xdot,
+                           None, None)  # fmt: skip
+        self.n_jac += 1
+        return None
+
+    def factorize(self, mask, h, h_fact):
+        self.J_inv, self.real_inv, singular = _factorize(self.A, self.filt, self.G, np.array([h]))
+        self.n_lu += 1
+        return bool(singular[0])
+
+    def newton(self, live, have_prev, ratio):
+        self.sc_x = self.atol + self.rtol * np.abs(self.x)
+        if not live:
+            return False, 0, 0.0, False
+        if have_prev:  # previous stage polynomial at the new nodes 1 + c_i h / h_prev
+            tau = 1.0 + self.c * ratio
+            W = ((tau[:, None] ** self.powers) @ self.lagrange) @ self.prev_W
+        else:
+            W = np.repeat(self.xdot[:, None, :], self.core.s, axis=1)
+        self.W, conv, iters, theta, nonfin = _newton_one(
+            self.model, self.A_kron, self.model.times(self.host[2:]), self.host[0], self.h,
+            self.x, self.z, W, self.J_inv, self.sc_x, self.newton_tol, self.max_iter,
+            self.rms_newton, self.tiny,
+        )  # fmt: skip
+        return conv, iters, theta, nonfin
+
+    def error(self, ok, retry):
+        W, x = self.W, self.x
+        self.Wg = W if math.isfinite(W.sum()) else np.nan_to_num(W)
+        self.x_new = x_new = x + self.h * (self.b @ self.Wg)  # eq. 7.18
+        # filtered embedded error estimate (see integrators.radau), refined after rejections
+        eK = self.gamma_e @ W[0]
+        err_x = self.real_inv[0] @ (self.xdot[0] + eK)
+        if retry:
+            f_err = self.model.f(self.host[0], x + err_x, self.z)
+            err_x = self.real_inv[0] @ (f_err[0] + eK)
+        sc = np.maximum(self.sc_x[0], self.atol + self.rtol * np.abs(x_new[0]))
+        q = err_x / sc
+        err = math.sqrt(q @ q) * self.rms
+        finite = math.isfinite(err) and (
+            math.isfinite(x_new.sum()) or bool(np.isfinite(x_new).all())
+        )
+        return (err if finite else math.inf), finite
+
+    def advance(self, accept, tcur, h):
+        self.accepted.append(
+            (np.array([tcur]), np.array([h]), self.accept_mask, self.W, self.host, self.Wg, self.x)
+        )
+        self.xdot = self.model.f(self.host[1], self.x_new, self.z)
+        self.x = self.x_new
+        self.prev_W = self.W
 
 
 def _jacobian(core, model, tk, x, z, xdot, mask, G_old):
@@ -550,6 +589,59 @@ def _newton(model, A, t_stage, tk, h, xk, z, W, J_inv, sc_x, tol, max_iter, acti
         if not _any(live):
             break
     return W, conv, iters, theta, non_finite
+
+
+def _newton_one(model, A_kron, t_stage, tk, h, xk, z, W, J_inv, sc_x, tol, max_iter, rms, tiny):
+    """:func:`_newton` for one trajectory (:class:`OneTrajectoryKernel`): simplified Newton on
+    ``R(W) = K - f(t_k + c h, x_k + h A K)`` (eq. 7.14-7.16) on flat stage vectors, with the
+    same stopping and divergence rules.
+
+    Args:
+        A_kron: (s n, s n) ``A (x) I``; t_stage: (s, *batch, 1) stage-time tensor; tk: (1,)
+            host step start; h: step size; xk, sc_x: (1, n); W: (1, s, n) initial guess;
+            z: the (empty) algebraic state tensor; J_inv: (1, 2 s n, s n) ``-J^{-1}`` stacked
+            over ``(A (x) I) (-J^{-1})``; rms: ``1 / sqrt(s n)``; tiny: smallest normal float64.
+
+    Returns:
+        ``(W, converged, iterations, theta, non_finite)``.
+    """
+    _, s, n = W.shape
+    sn = s * n
+    J = J_inv[0]
+    hA = h * A_kron
+    x_rep = np.concatenate((xk[0],) * s)  # x_k at every stage, (s n,)
+    w = np.concatenate(
+        (h / sc_x[0] * rms,) * s
+    )  # weights of the stage increments h (A dK)_i / sc_x
+    Wv = W.reshape(sn)
+    theta, norm_old = 0.0, None
+    for it in range(max_iter):
+        X = hA @ Wv
+        X += x_rep  # stage states, stage-major (s n,)
+        if model.core.stack_stages is None:
+            K1, X1 = Wv.reshape(1, s, n), X.reshape(1, s, n)
+            model.decide_stacking(tk, np.array([h]), t_stage, K1, X1)
+        F = model.stages(t_stage, X.reshape(s, 1, n), z)
+        both = J @ (Wv - F.reshape(sn))  # (dW, A dK) in one product
+        v = both[sn:] * w
+        norm = math.sqrt(v @ v)
+        if not math.isfinite(norm):
+            return Wv.reshape(1, s, n), False, it, theta, True
+        if norm_old is None:
+            done = norm == 0.0
+        else:  # contraction theta; theta / (1 - theta) ||dW|| <= tol converges
+            th = norm / max(norm_old, tiny)
+            theta = th
+            rate = norm / max(1.0 - th, 1e-12)
+            # diverging, or predicted to miss tol within max_iter iterations: give up
+            if not (th < 1.0 and th ** (max_iter - it) * rate <= tol):
+                return Wv.reshape(1, s, n), False, it, theta, False
+            done = th * rate <= tol
+        Wv = Wv + both[:sn]
+        if done:
+            return Wv.reshape(1, s, n), True, it + 1, theta, False
+        norm_old = norm
+    return Wv.reshape(1, s, n), False, max_iter, theta, False
 
 
 def _records(core, model, x0, z0, t0, accepted):

@@ -21,6 +21,7 @@ import math
 import numpy as np
 import torch
 
+from ._per_sample import ArrayOps, ScalarOps
 from .errors import InputValidationError
 
 _TINY_ERR = 1e-10  # error norms below this are treated as this (factor capped anyway)
@@ -201,7 +202,9 @@ class GustafssonController:
         self.max_factor = float(max_factor)
 
     def radau_step_sizes(self, h, err, finite, err_old, h_old, first, iters, theta, max_iter, expo):
-        """The rule above, per sample (host arrays (*batch,)).
+        """The rule above, per sample: on host arrays (*batch,), or on Python floats and bools
+        for one trajectory (the representations of :mod:`integrators._per_sample`; the same
+        results up to the rounding of ``**``).
 
         Args:
             h: float64 step just attempted; err: its scaled error norm (inf where not finite);
@@ -216,36 +219,19 @@ class GustafssonController:
             Newton), the retry step after rejection (``h / 4`` where non-finite) and whether
             Newton contracted so slowly that the Jacobian must be re-evaluated.
         """
-        with np.errstate(all="ignore"):
+        ops = ScalarOps if isinstance(h, float) else ArrayOps
+        where, minimum, maximum = ops.where, ops.minimum, ops.maximum
+        with ops.errstate():
             safety = 0.9 * (2 * max_iter + 1) / (2 * max_iter + iters)
-            err_c = np.maximum(err, 1e-10)
-            pred = h / np.maximum(h_old, 1e-300) * (err_old / err_c) ** expo
-            pred = np.where(first | (h_old <= 0), 1.0, np.minimum(pred, 1.0))
+            err_c = maximum(err, 1e-10)
+            pred = h / maximum(h_old, 1e-300) * (err_old / err_c) ** expo
+            pred = where(first | (h_old <= 0), 1.0, minimum(pred, 1.0))
             scaled = safety * pred * err_c**-expo
-            h_rej = np.where(
-                finite, h * np.minimum(np.maximum(scaled, self.min_factor), 1.0), 0.25 * h
-            )
-            grow = np.minimum(scaled, self.max_factor)
+            h_rej = where(finite, h * minimum(maximum(scaled, self.min_factor), 1.0), 0.25 * h)
+            grow = minimum(scaled, self.max_factor)
         slow = slow_contraction(theta, iters)
-        keep_lu = ~slow & (grow < 1.2) & (grow >= 1.0)
-        return err_c, np.where(keep_lu, h, h * grow), h_rej, slow
-
-    def radau_step_size(self, h, err, finite, err_old, h_old, first, iters, theta, max_iter, expo):
-        """:meth:`radau_step_sizes` for one sample, in Python floats and bools (same arguments,
-        same results up to the rounding of ``**``, which numpy and the C library may round one
-        bit apart): the one-trajectory host loop's step control."""
-        safety = 0.9 * (2 * max_iter + 1) / (2 * max_iter + iters)
-        err_c = max(err, 1e-10)
-        if first or h_old <= 0:
-            pred = 1.0
-        else:
-            pred = min(h / max(h_old, 1e-300) * (err_old / err_c) ** expo, 1.0)
-        scaled = safety * pred * err_c**-expo
-        h_rej = h * min(max(scaled, self.min_factor), 1.0) if finite else 0.25 * h
-        grow = min(scaled, self.max_factor)
-        slow = slow_contraction(theta, iters)
-        keep_lu = not slow and 1.0 <= grow < 1.2
-        return err_c, h if keep_lu else h * grow, h_rej, slow
+        keep_lu = ops.not_(slow) & (grow < 1.2) & (grow >= 1.0)
+        return err_c, where(keep_lu, h, h * grow), h_rej, slow
 
     def __repr__(self) -> str:
         return f"GustafssonController(min_factor={self.min_factor}, max_factor={self.max_factor})"

@@ -193,13 +193,13 @@ def _run(
     tol = newton_tolerance(rtol, x0.dtype, options.get("newton_tol"))
     index_tol = float(options.get("index_tol", 1e-10))
     every = int(options.get("index_check_every", 10))
-    from ._radau_host import integrate_adaptive_host, use_host_loop
-    from ._radau_single import integrate_single_host, single_loop_supported
+    from ._radau_host import NumpyKernel, OneTrajectoryKernel, one_trajectory, use_host_loop
+    from .radau import TorchKernel, adaptive_loop
 
     host_option = options.get("host_loop", "auto")
     if controller is not None and not isinstance(controller, GustafssonController):
-        # the host drivers run Gustafsson's rule only; a user's I/PI controller drives the
-        # steps of the torch driver
+        # the numpy kernels step with Gustafsson's rule only; a user's I/PI controller drives
+        # the steps with the torch kernel
         if host_option is True:
             raise InputValidationError(
                 f"host_loop=True runs Radau IIA's own GustafssonController; the controller "
@@ -207,9 +207,15 @@ def _run(
             )
         host_option = False
     host_loop = use_host_loop(core, x0, host_option, adaptive)
-    single = host_loop and single_loop_supported(x0)
-    if host_loop:
-        out = (integrate_single_host if single else integrate_adaptive_host)(
+    single = host_loop and one_trajectory(x0)
+    if adaptive:
+        if host_loop:
+            kernel_class = OneTrajectoryKernel if single else NumpyKernel
+            kernel = kernel_class(core, x0, z0, xdot0, t, rtol, atol, tol, max_iter)
+        else:
+            kernel = TorchKernel(core, x0, z0, xdot0, t, rtol, atol, tol, max_iter, index_tol)
+        out = adaptive_loop(
+            kernel,
             core,
             x0,
             z0,
@@ -219,24 +225,6 @@ def _run(
             atol=atol,
             max_steps=max_steps,
             max_iter=max_iter,
-            newton_tol=tol,
-            dt0=options.get("dt0"),
-        )
-    elif adaptive:
-        from .radau import integrate_adaptive
-
-        out = integrate_adaptive(
-            core,
-            x0,
-            z0,
-            xdot0,
-            t,
-            rtol=rtol,
-            atol=atol,
-            max_steps=max_steps,
-            max_iter=max_iter,
-            newton_tol=tol,
-            index_tol=index_tol,
             index_check_every=every,
             dt0=options.get("dt0"),
             controller=controller,

@@ -5,16 +5,15 @@ and status; a stiff member only makes the loop longer, never changes another mem
 
 Structure: :func:`adaptive_loop` is the algorithm (initial step, step-size control,
 accept / reject, Jacobian and factorisation reuse, statuses, dense-output bookkeeping) on
-host arrays; the per-step work (Jacobian, factorisation of the Newton matrix, simplified
-Newton on the stages, error estimate, moving the states) sits behind the small
-:class:`RadauKernel` interface, implemented on torch tensors by :class:`TorchKernel` (every
-system kind, any device) and on numpy arrays by :class:`integrators._radau_host.NumpyKernel`
-(small explicit ODEs on the CPU). ``integrators.implicit`` chooses the kernel by
-:func:`integrators._radau_host.use_host_loop` and reports it in ``stats.extra["driver"]``.
-A single float64 trajectory on the numpy side runs
-:func:`integrators._radau_single.integrate_single_host`, the same algorithm with the step
-control in Python floats (about 1.7 times faster than the numpy kernel at batch 1, which
-spends its time in per-operation overhead of one-element arrays).
+per-sample host quantities (:mod:`integrators._per_sample`); the per-step work (Jacobian,
+factorisation of the Newton matrix, simplified Newton on the stages, error estimate, moving
+the states) sits behind the small :class:`RadauKernel` interface. Three kernels implement it:
+:class:`TorchKernel` on torch tensors (every system kind, any device),
+:class:`integrators._radau_host.NumpyKernel` on numpy arrays (small explicit ODEs on the CPU)
+and :class:`integrators._radau_host.OneTrajectoryKernel`, the numpy kernel for a single
+float64 trajectory, with which the loop keeps its per-sample quantities as Python floats.
+``integrators.implicit`` chooses the kernel (:func:`integrators._radau_host.use_host_loop`,
+:func:`integrators._radau_host.one_trajectory`) and reports it in ``stats.extra["driver"]``.
 
 Error estimate (derived for any odd ``s``). With ``gamma`` the real eigenvalue of ``A^{-1}``
 and ``gamma_0 = 1 / gamma``, the embedded solution
@@ -49,6 +48,7 @@ import torch
 from ._irk_core import IRKCore, IterationMatrix, host_shape, masked_update, to_device, to_host
 from ._irk_dense import StepRecords, extrapolation_matrix, stop_times
 from ._irk_fixed import _flag_high_index
+from ._per_sample import ArrayOps, ScalarOps
 from .controllers import GustafssonController
 from .solution import Status
 
@@ -70,19 +70,20 @@ def embedded_weights(tab) -> tuple[float, np.ndarray]:
 class RadauKernel(Protocol):
     """The per-step work of :func:`adaptive_loop` on one representation of the states.
 
-    The loop owns every per-sample scalar as a host (numpy) array shaped
-    :func:`host_shape` ``(*batch,)``: times, step sizes, flags, counters, statuses, the
-    controller's history. A kernel owns the states ``x, z, x'`` and the stages, the frozen
-    Jacobian and the Newton matrices, and the dense-output records; it receives host masks
-    and host step sizes and returns host masks and numbers. :class:`TorchKernel` (any device,
-    any system kind) and :class:`integrators._radau_host.NumpyKernel` (explicit ODEs on the
-    CPU) implement it; ``integrators.implicit`` picks one by the rule of
-    :func:`integrators._radau_host.use_host_loop`. Attributes ``n_jac`` and ``n_lu`` count
-    Jacobian evaluations and factorisations.
+    The loop owns every per-sample quantity: times, step sizes, flags, counters, statuses,
+    the controller's history, as host arrays shaped :func:`host_shape` ``(*batch,)`` (or
+    Python scalars, see ``scalar``). A kernel owns the states ``x, z, x'`` and the stages, the
+    frozen Jacobian and the Newton matrices, and the dense-output records; it receives masks
+    and step sizes and returns masks and numbers in the loop's representation. Attributes
+    ``n_jac`` and ``n_lu`` count Jacobian evaluations and factorisations.
     """
 
     n_jac: int
     n_lu: int
+    #: True for a one-trajectory kernel: the loop passes masks, times and step sizes as
+    #: Python bools and floats (:class:`integrators._per_sample.ScalarOps`) instead of host
+    #: arrays (*batch,), and the kernel returns its per-sample results the same way.
+    scalar: bool
 
     def begin_step(self, tcur: np.ndarray, h: np.ndarray) -> None:
         """Prepare a step attempt from the step starts ``tcur`` and sizes ``h``."""
@@ -140,220 +141,163 @@ def adaptive_loop(
     The loop is the algorithm of the module docstring: step-size control by ``controller``
     (default :class:`~integrators.controllers.GustafssonController`), Jacobian and
     factorisation reuse, accept / reject, statuses (``STEP_TOO_SMALL``, ``NON_FINITE``,
-    ``MAX_STEPS``, ``HIGH_INDEX``) and their messages, all on host arrays (*batch,); the
-    kernel carries out each step. Arguments as :func:`integrate_adaptive`.
+    ``MAX_STEPS``, ``HIGH_INDEX``) and their messages, all on per-sample host quantities in the
+    kernel's representation (:mod:`integrators._per_sample`: arrays (*batch,), or Python
+    scalars for a one-trajectory kernel); the kernel carries out each step.
+
+    Args:
+        kernel: a :class:`RadauKernel` made for this problem.
+        core: the :class:`IRKCore` of the problem; x0, z0, xdot0: (*batch, n), (*batch, m),
+            (*batch, n) initial states and ``x'(t0)``; t: (T,) output times.
+        rtol, atol: error tolerances; max_steps: step attempts per sample; max_iter: Newton
+            iterations per step; index_check_every: accepted steps between DAE index checks;
+            dt0: first trial step (None: Hairer's estimate); controller: step-size controller.
     """
     batch = x0.shape[:-1]
     hdt = np.float64 if x0.dtype == torch.float64 else np.float32
+    hshape = host_shape(batch)
+    ops = (ScalarOps if kernel.scalar else ArrayOps)(hshape, hdt)
+    where, pick, any_, not_ = ops.where, ops.pick, ops.any, ops.not_
     s = core.s
     ode = core.system.kind == "ode"
     controller = GustafssonController() if controller is None else controller
     expo = 1.0 / (s + 1)
     t_host = to_host(t).astype(hdt)
-    t_end = t_host[-1]
+    t_end = t_host[-1].item() if ops.scalar else t_host[-1]
     t_snap = t_end - 1e-14 * abs(float(t_end))  # a step ending this close lands on t_end
     span = float(t_host[-1] - t_host[0])
     min_step = 16 * core.eps
-    hshape = host_shape(batch)
 
-    def flags(value=False):
-        return np.full(hshape, value, dtype=bool)
-
-    def counts():
-        return np.zeros(hshape, dtype=np.int64)
-
-    tcur = np.full(hshape, t_host[0], dtype=hdt)
-    status = np.zeros(hshape, dtype=np.int8)
-    active, need_jac, need_lu, first = flags(True), flags(True), flags(True), flags(True)
-    fresh, rejected_last, nonfinite_last, have_prev = flags(), flags(), flags(), flags()
-    h_fact = np.zeros(hshape, dtype=hdt)
-    prev_h = np.ones(hshape, dtype=hdt)
-    err_old = np.ones(hshape)
-    h_old = np.zeros(hshape)
-    n_steps, n_rej, n_newton, attempts = counts(), counts(), counts(), counts()
+    tcur = ops.full(t_host[0])
+    status = ops.back(np.zeros(hshape, dtype=np.int8))
+    active, need_jac, need_lu, first = (ops.flags(True) for _ in range(4))
+    fresh, rejected_last, nonfinite_last, have_prev = (ops.flags() for _ in range(4))
+    h_fact = ops.full(0.0)
+    prev_h = ops.full(1.0)
+    err_old = ops.float64(ops.full(1.0))
+    h_old = ops.float64(ops.full(0.0))
+    n_steps, n_rej, n_newton, attempts = (ops.counts() for _ in range(4))
     messages: list[str] = []
 
-    h = initial_step(core, x0, z0, xdot0, t[0], span, rtol, atol, expo, dt0)
-    h = to_host(h, hshape).astype(hdt)
+    def stop(mask, code, why):
+        """Stop the ``mask`` samples with status ``code`` and the message ``why``."""
+        nonlocal status, active
+        st, ac = ops.host(status, np.int8), ops.host(active)
+        stop_samples(ops.host(mask), code, st, ac, messages, ops.host(tcur), why)
+        status, active = ops.back(st), ops.back(ac)
+
+    h = ops.from_tensor(initial_step(core, x0, z0, xdot0, t[0], span, rtol, atol, expo, dt0))
 
     with kernel.step_mode():
-        while _any(active):
-            h = np.where(active & (tcur + h >= t_end), t_end - tcur, h)
-            tiny = active & (h <= min_step * np.maximum(np.abs(tcur), 1.0))
-            if _any(tiny):
-                escape = tiny & ~nonfinite_last
-                if not ode and _any(escape):
-                    escape &= kernel.escaping()
-                    stop_samples(
+        while any_(active):
+            h = where(active & (tcur + h >= t_end), t_end - tcur, h)
+            tiny = active & (h <= min_step * ops.maximum(ops.abs(tcur), 1.0))
+            if any_(tiny):
+                escape = tiny & not_(nonfinite_last)
+                if not ode and any_(escape):
+                    escape &= ops.back(kernel.escaping())
+                    stop(
                         escape,
                         Status.NON_FINITE,
-                        status,
-                        active,
-                        messages,
-                        tcur,
                         "the step size fell below the time resolution while the states grew "
                         f"beyond {ESCAPE_GROWTH:.1e} times their initial size: the solution "
                         "escapes to infinity there (finite escape time, like x' = x^2, x(0) = 1 "
                         "at t = 1, notes eq. 1.44); its outputs from there on are not defined",
                     )
-                    tiny &= ~escape
-                stop_samples(
+                    tiny &= not_(escape)
+                stop(
                     tiny,
-                    np.where(nonfinite_last, Status.NON_FINITE, Status.STEP_TOO_SMALL),
-                    status,
-                    active,
-                    messages,
-                    tcur,
+                    where(nonfinite_last, Status.NON_FINITE, Status.STEP_TOO_SMALL),
                     "the step size fell below the time resolution; the problem may be non-smooth, "
                     "of index > 1, or blow up there — loosen the tolerances or check the model",
                 )
             over = active & (attempts >= max_steps)
-            if _any(over):
-                stop_samples(
-                    over,
-                    Status.MAX_STEPS,
-                    status,
-                    active,
-                    messages,
-                    tcur,
-                    f"max_steps = {max_steps} step attempts were used; raise max_steps",
-                )
-            if not _any(active):
+            if any_(over):
+                why = f"max_steps = {max_steps} step attempts were used; raise max_steps"
+                stop(over, Status.MAX_STEPS, why)
+            if not any_(active):
                 break
             h_step = h
             kernel.begin_step(tcur, h)
             jac_mask = active & need_jac
-            if _any(jac_mask):
+            if any_(jac_mask):
                 high = kernel.jacobian(jac_mask)
                 if high is not None:
-                    _flag_high_index(high & active, status, active, messages, tcur)
+                    st, ac = ops.host(status, np.int8), ops.host(active)
+                    _flag_high_index(ops.host(high) & ac, st, ac, messages, ops.host(tcur))
+                    status, active = ops.back(st), ops.back(ac)
                 fresh |= jac_mask
                 need_lu |= jac_mask
-                need_jac &= ~jac_mask
+                need_jac &= not_(jac_mask)
             lu_mask = active & (need_lu | (h != h_fact))
-            singular = flags()
-            if _any(lu_mask):
+            singular = ops.flags()
+            if any_(lu_mask):
                 singular = kernel.factorize(lu_mask, h, h_fact)
-                h_fact = np.where(lu_mask, h, h_fact)
-                need_lu &= ~lu_mask
-            conv, iters, theta, nonfin = kernel.newton(active & ~singular, have_prev, h / prev_h)
+                h_fact = where(lu_mask, h, h_fact)
+                need_lu &= not_(lu_mask)
+            conv, iters, theta, nonfin = kernel.newton(
+                active & not_(singular), have_prev, h / prev_h
+            )
             n_newton += iters
             attempts += active
-            failed = active & (~conv | singular)
-            if _any(failed):  # refresh a stale Jacobian at the same step, else halve the step
-                need_jac |= failed & ~fresh
-                h = np.where(failed & fresh, 0.5 * h, h)
-                nonfinite_last = np.where(failed, nonfin, nonfinite_last)
+            failed = active & (not_(conv) | singular)
+            if any_(failed):  # refresh a stale Jacobian at the same step, else halve the step
+                need_jac |= failed & not_(fresh)
+                h = where(failed & fresh, 0.5 * h, h)
+                nonfinite_last = where(failed, nonfin, nonfinite_last)
                 rejected_last |= failed
                 n_rej += failed
 
-            ok = active & conv & ~singular
+            ok = active & conv & not_(singular)
+            if not any_(ok):
+                continue
             err, finite = kernel.error(ok, ok & (first | rejected_last))
             accept = ok & (err < 1.0)
-            reject = ok & ~accept
+            reject = ok & not_(accept)
             n_rej += reject
 
-            hh = h_step.astype(np.float64, copy=False)
+            hh = ops.float64(h_step)
             err_c, h_acc, h_rej, slow = controller.radau_step_sizes(
                 hh, err, finite, err_old, h_old, first, iters, theta, max_iter, expo
             )
 
-            if _any(accept):  # accepted samples advance
+            if any_(accept):  # accepted samples advance
                 kernel.advance(accept, tcur, h_step)
-                tcur = _pick(accept, tcur + h_step, tcur)
-                tcur = np.where(accept & (tcur >= t_snap), t_end, tcur)
-                prev_h = _pick(accept, h_step, prev_h)
+                tcur = pick(accept, tcur + h_step, tcur)
+                tcur = where(accept & (tcur >= t_snap), t_end, tcur)
+                prev_h = pick(accept, h_step, prev_h)
                 have_prev |= accept
-                h_old = _pick(accept, hh, h_old)
-                err_old = _pick(accept, np.maximum(err_c, 1e-2), err_old)
+                h_old = pick(accept, hh, h_old)
+                err_old = pick(accept, ops.maximum(err_c, 1e-2), err_old)
                 need_jac |= accept & slow
-                fresh &= ~accept
-                first &= ~accept
+                fresh &= not_(accept)
+                first &= not_(accept)
                 n_steps += accept
                 if not ode:  # periodic index check (Theorem 9) with a fresh Jacobian
                     need_jac |= accept & (n_steps % index_check_every == 0)
-            rejected_last = ~accept & (rejected_last | reject)
-            h = np.where(accept, h_acc, np.where(reject, h_rej, h)).astype(hdt)
-            active &= ~(accept & (tcur >= t_end))
+            rejected_last = not_(accept) & (rejected_last | reject)
+            h = ops.steps(where(accept, h_acc, where(reject, h_rej, h)))
+            active &= not_(accept & (tcur >= t_end))
 
     records = kernel.records()
-    records.stop = stop_times(status, tcur)
+    records.stop = stop_times(ops.host(status, np.int8), ops.host(tcur))
     x_out, z_out = records.evaluate(t)
 
-    def dev(a):
-        return torch.from_numpy(a).to(x0.device).reshape(batch)
+    def dev(a, dtype):
+        return torch.from_numpy(ops.host(a, dtype)).to(x0.device).reshape(batch)
 
     return dict(
         x=x_out,
         z=z_out,
-        status=dev(status),
+        status=dev(status, np.int8),
         messages=messages,
-        n_steps=dev(n_steps),
-        n_rejected=dev(n_rej),
-        n_newton=dev(n_newton),
+        n_steps=dev(n_steps, np.int64),
+        n_rejected=dev(n_rej, np.int64),
+        n_newton=dev(n_newton, np.int64),
         n_jac=kernel.n_jac,
         n_lu=kernel.n_lu,
         n_f=core.n_f_evals,
         records=records,
-    )
-
-
-def _any(mask: np.ndarray) -> bool:
-    """``mask.any()`` for a host bool array, without the method's Python-level wrapper (the
-    loop asks this some 10 times per step)."""
-    return np.count_nonzero(mask) > 0
-
-
-def _pick(mask: np.ndarray, new: np.ndarray, old: np.ndarray) -> np.ndarray:
-    """``new`` where the host bool ``mask`` holds, else ``old`` (same shapes); ``new`` itself
-    when every member moves (the common case, one check instead of a select)."""
-    if np.count_nonzero(mask) == mask.size:
-        return new
-    return np.where(mask, new, old)
-
-
-def integrate_adaptive(
-    core: IRKCore,
-    x0,
-    z0,
-    xdot0,
-    t,
-    *,
-    rtol,
-    atol,
-    max_steps,
-    max_iter,
-    newton_tol,
-    index_tol,
-    index_check_every=10,
-    dt0=None,
-    controller=None,
-):
-    """Run adaptive Radau IIA with the torch kernel; returns a dict of outputs, status,
-    counters and messages (:func:`adaptive_loop`).
-
-    ``controller``: the step-size controller (default
-    :class:`~integrators.controllers.GustafssonController`).
-
-    The per-sample scalars (times, step sizes, flags, counters) live on the host as numpy
-    arrays: the step-size control costs no device kernels, and each step needs one
-    device-to-host transfer of the error norms (plus one per Newton iteration).
-    """
-    kernel = TorchKernel(core, x0, z0, xdot0, t, rtol, atol, newton_tol, max_iter, index_tol)
-    return adaptive_loop(
-        kernel,
-        core,
-        x0,
-        z0,
-        xdot0,
-        t,
-        rtol=rtol,
-        atol=atol,
-        max_steps=max_steps,
-        max_iter=max_iter,
-        index_check_every=index_check_every,
-        dt0=dt0,
-        controller=controller,
     )
 
 
@@ -362,7 +306,11 @@ class TorchKernel:
     system kind (explicit and implicit ODEs, semi-explicit DAEs with their index check), the
     Newton solve of :meth:`IRKCore.newton` and the factorisations of
     :class:`~integrators._irk_core.IterationMatrix`. The stages of each step that moves a
-    sample carry the implicit-function-theorem gradient (:meth:`IRKCore.ift`)."""
+    sample carry the implicit-function-theorem gradient (:meth:`IRKCore.ift`). Each step
+    needs one device-to-host transfer of the error norms (plus one per Newton iteration); the
+    step-size control costs no device kernels."""
+
+    scalar = False
 
     def __init__(self, core, x0, z0, xdot0, t, rtol, atol, newton_tol, max_iter, index_tol):
         self.core, self.x0, self.z0 = core, x0, z0

@@ -161,6 +161,22 @@ def test_the_default_radau_controller_is_gustafsson_in_every_driver():
         assert torch.equal(plain.x, given.x)
 
 
+@pytest.mark.parametrize("x0", [[[2.0, 0.0]], [[2.0, 0.0], [1.0, 1.0]]], ids=["one", "batch"])
+def test_a_users_gustafsson_controller_drives_every_kernel(x0):
+    """GustafssonController(max_factor=1.2): its bound holds on the numpy kernels (one
+    trajectory and batched) as on the torch kernel, which take the same steps; different
+    steps from the default's."""
+    f, x0 = van_der_pol(5.0), torch.tensor(x0, dtype=DT)
+    opts = dict(method="radau_iia", rtol=1e-6, atol=1e-8)
+    rule = GustafssonController(max_factor=1.2)
+    runs = {h: odeint(f, x0, T, controller=rule, host_loop=h, **opts) for h in (True, False)}
+    default = odeint(f, x0, T, host_loop=True, **opts)
+    assert runs[True].stats.extra["driver"].startswith("host")
+    assert torch.equal(runs[True].stats.n_steps, runs[False].stats.n_steps)
+    assert runs[True].stats.n_steps.sum() > default.stats.n_steps.sum()
+    torch.testing.assert_close(runs[True].x, runs[False].x, rtol=1e-9, atol=1e-12)
+
+
 def test_a_user_controller_cannot_run_in_the_host_loop():
     with pytest.raises(InputValidationError, match="host_loop=False"):
         odeint(decay, X0, T, method="radau_iia", controller=PIController(), host_loop=True)

@@ -358,12 +358,12 @@ def test_wrong_model_output_shape_is_named_on_both_drivers(host_loop):
         solve_implicit_ode(lambda t, x: rate, x0, t, host_loop=host_loop)
 
 
-# --------------------------------------------------------------- one-trajectory loop
+# ------------------------------------------------------------- one-trajectory kernel
 
 
 def _single_and_batched(f, x0, t, **opts):
-    """One float64 trajectory (the one-trajectory loop) and the same state twice (the batched
-    host loop)."""
+    """One float64 trajectory (the one-trajectory kernel, Python-scalar step control) and the
+    same state twice (the numpy kernel, host arrays)."""
     one = solve_implicit_ode(f, x0, t, "radau_iia", host_loop=True, **opts)
     two = solve_implicit_ode(f, x0.expand(2, -1), t, "radau_iia", host_loop=True, **opts)
     assert one.stats.extra["driver"] == "host, one trajectory"
@@ -373,18 +373,20 @@ def _single_and_batched(f, x0, t, **opts):
 
 @pytest.mark.parametrize(
     "case",
-    ["stiff_vdp", "robertson", "stiff_linear", "blow_up"],
+    ["stiff_vdp", "robertson", "stiff_linear", "blow_up", "max_steps"],
 )
-def test_one_trajectory_loop_takes_the_batched_host_loops_steps(case):
-    """The one-trajectory loop (Python-float step control) is the batched host loop's
-    algorithm: the same steps, rejections, Newton iterations, Jacobians, factorisations,
-    statuses and results (to rounding of the Newton norm's summation order)."""
+def test_one_trajectory_kernel_takes_the_batched_kernels_steps(case):
+    """The adaptive loop with the one-trajectory kernel (Python-scalar step control) takes the
+    steps it takes with the batched numpy kernel: the same steps, rejections, Newton
+    iterations, Jacobians, factorisations, statuses and results (to rounding of the Newton
+    norm's summation order)."""
     M = torch.tensor([[-1.0, 1.0], [0.0, -1e4]])
     f, x0, t, opts = {
         "stiff_vdp": (vdp(1e-4), [2.0, 0.0], [0.0, 0.3, 1.0], dict(rtol=1e-7, atol=1e-7)),
         "robertson": (robertson, [1.0, 0.0, 0.0], [0.0, 4.0, 40.0], dict(rtol=1e-6, atol=1e-10)),
         "stiff_linear": (lambda t, x: x @ M.T, [1.0, 2.0], [0.0, 2.0], dict(rtol=1e-8, atol=1e-10)),
         "blow_up": (lambda t, x: x**2, [1.0], [0.0, 2.0], dict(rtol=1e-6, atol=1e-9)),
+        "max_steps": (vdp(1e-4), [2.0, 0.0], [0.0, 1.0], dict(rtol=1e-7, atol=1e-7, max_steps=15)),
     }[case]
     one, two = _single_and_batched(f, torch.tensor([x0]), torch.tensor(t), **opts)
     for name in COUNTERS:
@@ -399,11 +401,16 @@ def test_one_trajectory_loop_takes_the_batched_host_loops_steps(case):
         assert one.status[0] in (Status.NON_FINITE, Status.STEP_TOO_SMALL)
         dev = solve_implicit_ode(f, torch.tensor([x0]), torch.tensor(t), host_loop=False, **opts)
         assert one.messages == dev.messages and "t = 1" in one.messages[0]
+    if case == "max_steps":
+        assert one.status[0] == Status.MAX_STEPS and one.stats.n_steps[0] < 15
+        assert one.messages[0].startswith("sample (0,): MAX_STEPS at t = ")
+        assert two.messages[0] == one.messages[0]
 
 
-def test_one_trajectory_loop_unbatched_state_and_dispatch():
-    """An unbatched float64 state (n,) takes the one-trajectory loop with the batched loop's
-    numbers; float32 and batches keep the batched host loop; host_loop=False the torch one."""
+def test_one_trajectory_kernel_unbatched_state_and_dispatch():
+    """An unbatched float64 state (n,) takes the one-trajectory kernel with the batched
+    kernel's numbers; float32 and batches keep the numpy kernel; host_loop=False the torch
+    one."""
     t = torch.tensor([0.0, 0.2, 0.4])
     opts = dict(rtol=1e-6, atol=1e-8)
     alone = solve_implicit_ode(vdp(1e-3), torch.tensor([2.0, 0.0]), t, **opts)
@@ -429,16 +436,17 @@ def test_one_trajectory_loop_unbatched_state_and_dispatch():
     theta=st.floats(0.0, 0.99),
 )
 def test_scalar_step_size_rule_equals_the_array_rule(h, err, err_old, h_old, first, iters, theta):
-    """``GustafssonController.radau_step_size`` (Python floats, one-trajectory loop) returns
-    what ``radau_step_sizes`` (host arrays, batched loops) returns, to the last bit or two (numpy's
-    vectorised ``power`` and the C library's ``pow`` may round differently), and the same
-    decisions."""
+    """``GustafssonController.radau_step_sizes`` on Python floats (the one-trajectory kernel's
+    representation) returns what it returns on host arrays (the batched kernels'), to the last
+    bit or two (numpy's vectorised ``power`` and the C library's ``pow`` may round
+    differently), and the same decisions."""
     from integrators.controllers import GustafssonController
 
     rule = GustafssonController()
 
-    finite = np.isfinite(err)
-    scalar = rule.radau_step_size(h, err, finite, err_old, h_old, first, iters, theta, 7, 0.25)
+    finite = bool(np.isfinite(err))
+    scalar = rule.radau_step_sizes(h, err, finite, err_old, h_old, first, iters, theta, 7, 0.25)
+    assert all(type(v) in (float, bool) for v in scalar)  # the scalar representation
     arrays = rule.radau_step_sizes(
         *(np.array([v]) for v in (h, err, finite, err_old, h_old, first, iters, theta)), 7, 0.25
     )
