@@ -73,12 +73,8 @@ from .solution import Solution, SolverStats, Status
 CHUNK_STEPS = 8
 #: Big states get fewer steps per compiled chunk, ``CHUNK_STATE_BYTES // state bytes``: an
 #: interleaved chunk keeps every stage of every step in its own buffer, which should stay in
-#: cache, and a component-major chunk's outputs of several steps do not fuse into one loop.
-#: Measured (1000 RK4 steps, Van der Pol, float64), interleaved: at batch 65 536 (1 MB state)
-#: one step per chunk 0.62-0.70 s, two 0.72-0.79 s, eight 0.74-1.14 s; at 16 384, four or
-#: eight steps 0.19-0.23 s, one 0.26-0.35 s. Component-major: at 65 536 one step 0.29 s, two
-#: 0.30 s, four 0.37 s, eight 0.41 s; at 16 384 0.09-0.10 s for one to eight; at 1024 eight
-#: steps 0.012 s, one 0.040 s (call overhead).
+#: cache, and a component-major chunk's outputs of several steps do not fuse into one loop
+#: (the measurements behind the value: docs/benchmarks.md, "Tuning constants").
 CHUNK_STATE_BYTES = 2**20
 #: A run with autograd may plan to keep at most this fraction of the available memory
 #: (``_fast.buffers.available_bytes``) for its graph and outputs (``_check_graph_memory``).

@@ -85,8 +85,9 @@ def cpu_backend(name: str):
 
 
 def _broadcast(*shapes) -> torch.Size:
-    """Broadcast batch shapes (as ``torch.broadcast_shapes``, whose Python implementation
-    costs about 30 us a call; this is a plain loop over the few dimensions)."""
+    """Broadcast batch shapes (as ``torch.broadcast_shapes``, whose general Python
+    implementation is slow for a per-call helper; this is a plain loop over the few
+    dimensions)."""
     if all(shape == shapes[0] for shape in shapes[1:]):
         return torch.Size(shapes[0])
     ndim = max(len(shape) for shape in shapes)

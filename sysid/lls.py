@@ -639,9 +639,9 @@ def _sandwich(A, wkind, Wt, skind, S, P):
     return P @ middle @ P
 
 
-#: Block length of :func:`_lagged_products`. Measured on CPU (MKL, float64, one thread, 10 000
-#: signals of 1000 samples): blocks of 8-12 samples run the batched ``L x L`` Gram products
-#: about twice as fast as blocks of 16-32, although they do the same number of flops.
+#: Block length of :func:`_lagged_products`: on CPU, blocks of 8-12 samples run the batched
+#: ``L x L`` Gram products faster than longer blocks with the same number of flops
+#: (docs/benchmarks.md, "Tuning constants").
 _GRAM_BLOCK = 12
 
 

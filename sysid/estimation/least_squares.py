@@ -113,8 +113,11 @@ def _fit_lls(model, data, w, method) -> FitResult:
     return _lls_result(res.theta, res.covariance, res.sigma2, res.residuals, f, method, info)
 
 
-def _lls_result(theta, covariance, sigma2, residuals, f, method, info) -> FitResult:
-    """The :class:`FitResult` of a direct least-squares solve (one step, converged)."""
+def _lls_result(
+    theta, covariance, sigma2, residuals, f, method, info=None, iterations=0
+) -> FitResult:
+    """The :class:`FitResult` of a closed-form least-squares solve (repeated ``iterations``
+    times by instrumental variables): converged, loss ``f``, extra statistics ``info``."""
     batch = theta.shape[:-1]
     return FitResult(
         theta=theta,
@@ -122,14 +125,14 @@ def _lls_result(theta, covariance, sigma2, residuals, f, method, info) -> FitRes
         standard_errors=torch.diagonal(covariance, dim1=-2, dim2=-1).clamp_min(0).sqrt(),
         sigma2=sigma2,
         loss_history=f.unsqueeze(0),
-        iterations=torch.zeros(batch, dtype=torch.int64, device=f.device),
+        iterations=torch.full(batch, iterations, dtype=torch.int64, device=f.device),
         converged=torch.ones(batch, dtype=torch.bool, device=f.device),
         method=method,
         loss="gaussian",
         parameter_names=[],
         n_samples=residuals.shape[-1],
         residuals=residuals,
-        info=info,
+        info={} if info is None else info,
     )
 
 
@@ -143,18 +146,5 @@ def _fit_iv(model, data, iv_iterations) -> FitResult:
     left = torch.linalg.solve(ZtPhi, Z.transpose(-1, -2) @ Z)
     cov = sigma2[..., None, None] * torch.linalg.solve(ZtPhi, left.transpose(-1, -2))
     cov = 0.5 * (cov + cov.transpose(-1, -2))
-    batch = theta.shape[:-1]
-    return FitResult(
-        theta=theta,
-        covariance=cov,
-        standard_errors=torch.diagonal(cov, dim1=-2, dim2=-1).clamp_min(0).sqrt(),
-        sigma2=sigma2,
-        loss_history=(0.5 * (r * r).sum(-1)).unsqueeze(0),
-        iterations=torch.full(batch, max(1, iv_iterations), dtype=torch.int64, device=r.device),
-        converged=torch.ones(batch, dtype=torch.bool, device=r.device),
-        method="iv",
-        loss="gaussian",
-        parameter_names=[],
-        n_samples=M,
-        residuals=r,
-    )
+    f = 0.5 * (r * r).sum(-1)
+    return _lls_result(theta, cov, sigma2, r, f, "iv", iterations=max(1, iv_iterations))
