@@ -99,13 +99,8 @@ class _Problem:
             return fn(t0, *args) if u0 is None else fn(t0, *args, u0)
 
 
-class ImplicitODE(_Problem):
-    """Implicit ODE ``F(t, x', x[, u]) = 0`` with ``dF/dx'`` invertible (notes eq. 7.46).
-
-    Args:
-        F: ``F(t, xdot, x[, u]) -> (*batch, n)`` residual, e.g. the mechanical form eq. 7.49
-            ``M(q) x' - rhs(q, v)``.
-    """
+class _Residual(_Problem):
+    """A problem given by one implicit residual function ``F``."""
 
     kind = "implicit"
 
@@ -114,6 +109,15 @@ class ImplicitODE(_Problem):
 
     def functions(self) -> tuple:
         return (self.F,)
+
+
+class ImplicitODE(_Residual):
+    """Implicit ODE ``F(t, x', x[, u]) = 0`` with ``dF/dx'`` invertible (notes eq. 7.46).
+
+    Args:
+        F: ``F(t, xdot, x[, u]) -> (*batch, n)`` residual, e.g. the mechanical form eq. 7.49
+            ``M(q) x' - rhs(q, v)``.
+    """
 
     def check_start(self, t0, x0, z0, u0) -> None:
         n = x0.shape[-1]
@@ -175,7 +179,7 @@ class SemiExplicitDAE(_Problem):
         )
 
 
-class ImplicitDAE(_Problem):
+class ImplicitDAE(_Residual):
     """Fully implicit DAE ``F(t, x', x, z[, u]) = 0`` (notes eq. 5.22, 7.53).
 
     Index 1 requires ``[dF/dx', dF/dz]`` to be invertible (Theorem 9, eq. 5.53); :func:`daeint`
@@ -184,14 +188,6 @@ class ImplicitDAE(_Problem):
     Args:
         F: ``F(t, xdot, x, z[, u]) -> (*batch, n + m)``.
     """
-
-    kind = "implicit"
-
-    def __init__(self, F: Callable):
-        self.F = _check_callable(F, "F")
-
-    def functions(self) -> tuple:
-        return (self.F,)
 
     def check_start(self, t0, x0, z0, u0) -> None:
         n, m = x0.shape[-1], z0.shape[-1]
