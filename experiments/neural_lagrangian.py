@@ -22,8 +22,8 @@ seconds-long variant the tests use.
    intervals tiling the records, every window started at the measured state, the same
    function for every model) falls below ``--target``; each stops at the first epoch below
    it, so the two end within one epoch's progress of the same loss.
-4. Long rollouts from a held-out initial state over ``t_roll`` seconds (RK4 at Ts): the state
-   error against the truth and against a floor (the true system run from the initial state
+4. Long rollouts from a held-out initial state over ``t_roll`` seconds (RK4 at Ts,
+   ``sysid.rollout_diagnostics``): the state error against the truth and against a floor (the true system run from the initial state
    perturbed by 1e-4), and the energy drift: the true plant's energy evaluated on the rollout,
    max_t |E(t) - E(0)| / E(0).
 
@@ -86,7 +86,7 @@ from torch import nn
 
 from experiments._common import plt
 from integrators import odeint
-from sysid import IOData, fit
+from sysid import IOData, fit, rollout_diagnostics
 from sysid.continuous import GreyBoxModel, LagrangianNetwork, NeuralODE, Param
 from sysid.mechanics import LagrangianSystem
 
@@ -238,21 +238,24 @@ def main(argv=None):
     note(f"rollouts over {t_roll:g} s")
     steps = round(t_roll / TS)
     x_start = x0[B:]
-    truth, perturbed = rollout(
-        true_pendulum, torch.cat([x_start, x_start + PERTURBATION]), steps, substeps=10
-    )
-    floor = (perturbed - truth).norm(dim=-1)
-    E0 = true_energy(x_start[0])
+    t_grid = TS * torch.arange(steps + 1, dtype=torch.float64)
     curves = {}
     for row in rows:
-        xr = rollout(trained[row["model"]], x_start, steps)[0]
-        err = (xr - truth).norm(dim=-1)
-        rel_energy = (true_energy(xr) - E0) / E0
-        curves[row["model"]] = (xr, err, rel_energy)
-        row["rollout_rms_error"] = float(err.pow(2).mean().sqrt())
-        row["rollout_final_error"] = float(err[-1])
-        row["floor_rms_error"] = float(floor.pow(2).mean().sqrt())
-        row["energy_drift"] = float(rel_energy.abs().max())
+        d = rollout_diagnostics(
+            trained[row["model"]],
+            true_pendulum,
+            x_start[0],
+            t_grid,
+            energy=true_energy,
+            perturbation=PERTURBATION,
+        )
+        curves[row["model"]] = (d.x, d.error, d.energy)
+        summary = d.summary()
+        row["rollout_rms_error"] = float(summary["rms_error"])
+        row["rollout_final_error"] = float(summary["final_error"])
+        row["floor_rms_error"] = float(summary["rms_floor"])
+        row["energy_drift"] = float(summary["energy_drift"])
+    truth, floor = d.x_true, d.floor
     mlp, lnn = rows[0], rows[1]
     ratio = [
         {

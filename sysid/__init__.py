@@ -1,7 +1,15 @@
 """System identification and modelling built on ``integrators``."""
 
 from . import continuous, dae, zoo
-from .continuous import GreyBoxModel, HybridODE, LagrangianNetwork, NeuralODE, Param
+from .continuous import (
+    GreyBoxModel,
+    HybridODE,
+    LagrangianNetwork,
+    NeuralODE,
+    Param,
+    RolloutDiagnostics,
+    rollout_diagnostics,
+)
 from .data import IOData
 from .errors import (
     ConvergenceError,
@@ -83,6 +91,8 @@ __all__ = [
     "LagrangianNetwork",
     "NeuralODE",
     "Param",
+    "RolloutDiagnostics",
+    "rollout_diagnostics",
     "dae",
     "zoo",
     "linearize",

@@ -6,9 +6,12 @@
 :func:`start_values` reads starting values off an identified linear model (:func:`d2c`).
 :class:`NeuralODE`, :class:`HybridODE` (physics plus a residual network) and
 :class:`LagrangianNetwork` (learned mass matrix, potential and dissipation) are
-continuous-time models with learned parts (:mod:`sysid.continuous.neural`).
+continuous-time models with learned parts (:mod:`sysid.continuous.neural`);
+:func:`rollout_diagnostics` compares a model's long rollout with the true system's, against
+the floor of the true system's own sensitivity to its initial state, and its energy drift.
 """
 
+from .diagnostics import RolloutDiagnostics, rollout_diagnostics
 from .fit import CRITERIA
 from .greybox import GreyBoxModel
 from .neural import ContinuousTimeModel, HybridODE, LagrangianNetwork, NeuralODE
@@ -23,6 +26,8 @@ __all__ = [
     "LagrangianNetwork",
     "NeuralODE",
     "Param",
+    "RolloutDiagnostics",
     "d2c",
+    "rollout_diagnostics",
     "start_values",
 ]

@@ -31,7 +31,9 @@ the records' estimated initial states (``x0="estimate"`` or ``"encoder"``): the 
 and the initial states are nuisance parameters.
 Computed as ``sigma^2 (J_p' (I - P) J_p)^{-1}`` with ``P`` the projection onto the column
 span of the nuisance Jacobian (its numerical rank from an SVD; an over-parameterised network
-spans fewer directions than it has weights), and ``sigma^2 = r'r / (M - p - rank)``. A
+spans fewer directions than it has weights), and ``sigma^2 = r'r / (M - p - rank)``; ``J``
+is never held whole: it is built by forward sensitivities in windows of the record and
+folded into its triangular QR factor, which has the same column geometry. A
 physical effect the network can imitate thus widens the physical standard errors instead of
 hiding in the weights. The result is mapped to physical units by the delta method through
 ``to_physical``.
@@ -817,19 +819,36 @@ def _output_parameter_jacobian(model, x, u_win, columns) -> torch.Tensor | None:
     return torch.cat(pieces).unflatten(0, y.shape).detach()
 
 
-def _free_run_jacobian(net: _Trainable, records: _Records, columns: list[torch.Tensor]):
-    """``(r, J)``: the free-run residuals (M,) of :func:`_full_residuals` and their
-    Jacobian (M, q + s) with respect to the model's parameter tensors ``columns`` (q entries,
-    flattened in order) and then the records' initial states (s = records x B x nx entries),
-    by forward sensitivities of the model's fixed-step scheme (the course notes (Modelling
-    and Simulation), eq. 8.17-8.18 explicit, 8.24-8.28 implicit): a model has few states
-    and may have many weights, so ``nx + q`` directions per step beat ``M`` reverse passes.
-    Each data set of the batch is one simulation (the weights are shared)."""
+#: samples per window of the covariance's forward sensitivities (:func:`_free_run_jacobian`):
+#: the Jacobian is reduced window by window to a triangular factor, so its memory is that of
+#: one window, not of the record
+_JACOBIAN_WINDOW = 1000
+
+
+def _free_run_jacobian(
+    net: _Trainable, records: _Records, columns: list[torch.Tensor], nuisance_from: int
+):
+    """``(r, R)``: the free-run residuals (M,) of :func:`_full_residuals` and a triangular
+    factor R (k, n) with ``R'R = J'J`` (k <= n), where J (M, n) is their Jacobian with respect
+    to the model's parameter tensors ``columns`` (q entries, flattened in order) and then, where
+    estimated, the records' initial states (s = records x B x nx entries), with its columns
+    rotated so that those from entry ``nuisance_from`` on come first. R spans the same column
+    geometry as J (``J = Q R`` for some Q with orthonormal columns): the norms, singular values
+    and projections of its columns are J's.
+
+    J comes from forward sensitivities of the model's fixed-step scheme (the course notes
+    (Modelling and Simulation), eq. 8.17-8.18 explicit, 8.24-8.28 implicit): a model has few
+    states and may have many weights, so ``nx + q`` directions per step beat ``M`` reverse
+    passes. Each data set of the batch is one simulation (the weights are shared), run in
+    windows of :data:`_JACOBIAN_WINDOW` samples chained by the chain rule
+    (``dx/dtheta = A_window B_start + B_window``), each window's rows folded into R by a QR
+    factorisation: the memory is one window's, whatever the record length."""
     model = net.model
     names = {id(prm): name for name, prm in model.named_parameters()}
     keys = [names[id(c)] for c in columns]
     sizes = [c.numel() for c in columns]
     theta = torch.cat([c.detach().reshape(-1) for c in columns])
+    q = theta.numel()
 
     def rhs(t, x, u, p):  # the model at the parameter vector p (batch of one)
         values = torch.split(p[0], sizes)
@@ -838,46 +857,66 @@ def _free_run_jacobian(net: _Trainable, records: _Records, columns: list[torch.T
 
     states = _record_states(net, records)
     nx = model.nx
-    n_starts = len(states) * records.B * nx
-    residuals, rows = [], []
+    n_starts = len(states) * records.B * nx if net.x0_mode != "zero" else 0
+    order = torch.cat(
+        [torch.arange(nuisance_from, q + n_starts), torch.arange(nuisance_from)]
+    )  # nuisance columns first
+    residuals, R = [], theta.new_zeros(0, q + n_starts)
     for e, (b, g, x0, T) in enumerate(states):
         for i in range(records.B):
-            t, u, u_win = _window_inputs(records, b[i : i + 1], g[i : i + 1], T)
-            sens = sensitivities(
-                rhs,
-                x0[i : i + 1],
-                t,
-                theta[None],
-                method=model.method,
-                u=u,
-                substeps=int(model.substeps),
-                input_sensitivities=False,
-                compile=False,
-            )
-            x, u_k = sens.x[0], u_win[0]
-            y, dy_dx = batch_jacobian(lambda xx, uu=u_k: model.output(xx, uu), x)
-            dy = dy_dx @ sens.B[0]  # (T+1, ny, q)
-            direct = _output_parameter_jacobian(model, x, u_k, columns)
-            if direct is not None:
-                dy = dy + direct
-            start = x.new_zeros(*dy.shape[:-1], n_starts)
-            at = (e * records.B + i) * nx
-            start[..., at : at + nx] = dy_dx @ sens.A[0]
-            residuals.append((records.y[b[i], int(g[i]) :][: T + 1] - y).reshape(-1))
-            rows.append(-torch.cat([dy, start], -1).flatten(0, 1))
-    return torch.cat(residuals), torch.cat(rows)
+            x_start = x0[i : i + 1]
+            dx_dtheta = theta.new_zeros(1, nx, q)
+            dx_dx0 = torch.eye(nx, dtype=theta.dtype, device=theta.device)[None]
+            for lo in range(0, T, _JACOBIAN_WINDOW):
+                L = min(_JACOBIAN_WINDOW, T - lo)
+                g_lo = g[i : i + 1] + lo
+                t, u, u_win = _window_inputs(records, b[i : i + 1], g_lo, L)
+                sens = sensitivities(
+                    rhs,
+                    x_start,
+                    t,
+                    theta[None],
+                    method=model.method,
+                    u=u,
+                    substeps=int(model.substeps),
+                    input_sensitivities=False,
+                    compile=False,
+                )
+                first = 0 if lo == 0 else 1  # a window's first sample ends the previous one
+                x, u_k = sens.x[0, first:], u_win[0, first:]
+                A, B = sens.A[0, first:], sens.B[0, first:]
+                y, dy_dx = batch_jacobian(lambda xx, uu=u_k: model.output(xx, uu), x)
+                dy = dy_dx @ (A @ dx_dtheta + B)  # (L', ny, q)
+                direct = _output_parameter_jacobian(model, x, u_k, columns)
+                if direct is not None:
+                    dy = dy + direct
+                rows = [dy]
+                if n_starts:
+                    start = x.new_zeros(*dy.shape[:-1], n_starts)
+                    at = (e * records.B + i) * nx
+                    start[..., at : at + nx] = dy_dx @ (A @ dx_dx0)
+                    rows.append(start)
+                k0 = int(g_lo[0]) + first
+                residuals.append((records.y[b[i], k0 : k0 + len(y)] - y).reshape(-1))
+                J = -torch.cat(rows, -1).flatten(0, 1)[:, order]
+                R = torch.linalg.qr(torch.cat([R, J]), mode="r").R
+                x_start = sens.x[:, -1]
+                dx_dtheta = sens.A[:, -1] @ dx_dtheta + sens.B[:, -1]
+                dx_dx0 = sens.A[:, -1] @ dx_dx0
+    return torch.cat(residuals), R
 
 
-def _project_out(J: torch.Tensor, nuisance: torch.Tensor):
-    """``(J_perp, rank)``: the part of the columns of ``J`` (M, p) orthogonal to the column
-    span of ``nuisance`` (M, q), whose numerical rank (singular values above
-    ``max(M, q) eps`` times the largest) is ``rank``. A column the nuisance explains to
-    ``sqrt(eps)`` of its norm comes back zero (its parameter is not identifiable)."""
+def _project_out(J: torch.Tensor, nuisance: torch.Tensor, rows: int):
+    """``(J_perp, rank)``: the part of the columns of ``J`` (k, p) orthogonal to the column
+    span of ``nuisance`` (k, q), whose numerical rank (singular values above
+    ``max(rows, q) eps`` times the largest, ``rows`` the length of the columns they stand for)
+    is ``rank``. A column the nuisance explains to ``sqrt(eps)`` of its norm comes back zero
+    (its parameter is not identifiable)."""
     if nuisance.shape[-1] == 0:
         return J, 0
     U, s, _ = torch.linalg.svd(nuisance, full_matrices=False)
     eps = torch.finfo(s.dtype).eps
-    U = U[:, s > s[0] * max(nuisance.shape) * eps]
+    U = U[:, s > s[0] * max(rows, nuisance.shape[-1]) * eps]
     J_perp = J - U @ (U.T @ J)
     explained = J_perp.norm(dim=0) <= math.sqrt(eps) * J.norm(dim=0)
     return torch.where(explained, torch.zeros_like(J_perp), J_perp), U.shape[-1]
@@ -902,11 +941,11 @@ def _physical_statistics(net: _Trainable, records: _Records):
     weights = [
         q for q in model.parameters() if q.requires_grad and all(q is not c for c in columns)
     ]
-    r, J = _free_run_jacobian(net, records, columns + weights)  # (M, p + q + s) d r / d raw
-    if net.x0_mode == "zero":  # known initial states: no nuisance
-        J = J[:, : J.shape[1] - len(records.offsets) * records.B * model.nx]
-    M, p = r.numel(), sum(c.numel() for c in columns)
-    J_physical, rank = _project_out(J[:, :p], J[:, p:])
+    p = sum(c.numel() for c in columns)
+    # R'R = J'J of d r / d (weights, initial states, raw physical values), in that order
+    r, R = _free_run_jacobian(net, records, columns + weights, p)
+    M = r.numel()
+    J_physical, rank = _project_out(R[:, -p:], R[:, :-p], M)
     sigma2 = (r * r).sum() / max(M - p - rank, 1)
     cov_raw = sigma2 * inverse_normal_matrix(J_physical)
     blocks = [  # d physical / d raw, one block per named parameter (delta method)
