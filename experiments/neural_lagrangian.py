@@ -23,9 +23,9 @@ seconds-long variant the tests use.
    function for every model) falls below ``--target``; each stops at the first epoch below
    it, so the two end within one epoch's progress of the same loss.
 4. Long rollouts from a held-out initial state over ``t_roll`` seconds (RK4 at Ts,
-   ``sysid.rollout_diagnostics``): the state error against the truth and against a floor (the true system run from the initial state
-   perturbed by 1e-4), and the energy drift: the true plant's energy evaluated on the rollout,
-   max_t |E(t) - E(0)| / E(0).
+   ``sysid.rollout_diagnostics``): the state error against the truth and against a floor (the
+   true system run from the initial state perturbed by 1e-4), and the energy drift: the true
+   plant's energy evaluated on the rollout, max_t |E(t) - E(0)| / E(0).
 
 Writes ``summary.csv/.md`` (per model: training loss, iterations, CPU time, parameters, rollout
 error, energy drift) and ``neural_lagrangian.png`` (rollout error with its floor, relative

@@ -4,7 +4,7 @@ the adjoint saves (almost) nothing for backward in its forward pass."""
 
 import pytest
 
-from experiments.bench_neural import PEERS, main
+from experiments.bench_neural import main, peers
 
 
 @pytest.fixture(scope="module")
@@ -14,7 +14,7 @@ def rows(tmp_path_factory):
 
 
 def test_table_complete(rows):
-    assert set(rows) == set(PEERS)
+    assert set(rows) == set(peers(quick=True)) and "ours, compiled" not in rows
     for row in rows.values():
         assert row["seconds_per_epoch"] > 0 and row["saved_mb_long_gradient"] > 0
     assert rows["ours"]["time_vs_ours"] == 1.0
