@@ -145,7 +145,7 @@ def train(peer, data, hidden, epochs, T):
             step_loss = (e * e).mean()
             step_loss.backward()
             opt.step()
-            total += float(step_loss)
+            total += float(step_loss.detach())
         seconds.append(time.perf_counter() - start)
         loss = total / STEPS
     return min(seconds), max(seconds[0] - min(seconds), 0.0), loss
