@@ -157,6 +157,19 @@ def test_neural_ode_learns_first_order_system():
     assert result.status == "completed" and bool(result.converged)
 
 
+def test_lbfgs_train_loss_is_the_loss_after_each_epochs_step():
+    """L-BFGS epochs report the criterion after their step (torch's LBFGS.step returns the
+    loss before it): without validation data that is the loss the best model is chosen by,
+    so the best loss is the smallest reported one, and the losses fall epoch by epoch."""
+    data = spring(300, seed=3, noise=0.01)
+    result = sysid.fit(
+        HybridSpring(k0=3.0), data, method="lbfgs", horizon=50, epochs=3, lr=1.0, x0="zero"
+    )
+    losses = result.train_loss.tolist()
+    assert result.info["best_loss"] == min(losses)
+    assert losses[0] > losses[1] > losses[2]
+
+
 def test_hybrid_recovers_stiffness_with_standard_error():
     data = spring(300, seed=3, noise=0.01)
     model = HybridSpring(k0=3.0)

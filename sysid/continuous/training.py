@@ -255,7 +255,9 @@ class TrainingResult(FitResult):
             did not improve for ``patience`` epochs), ``"non_finite"`` (a non-finite loss or
             gradient: the best model so far was restored and the training stopped) or
             ``"stopped"`` (the callback asked to stop).
-        train_loss: (epochs_run,) mean training loss of every epoch.
+        train_loss: (epochs_run,) training loss of every epoch: ``"adam"``, the mean of its
+            minibatch losses (each before its update); ``"lbfgs"``, the criterion on the
+            fixed windows after the epoch's step.
         validation_loss: (epochs_run,) free-run validation loss per epoch (NaN without
             ``validation``).
         params: name -> physical value of the physical parameters (empty for a network).
@@ -564,6 +566,8 @@ def train(
             if failure is None:
                 if val_records is not None:
                     val = watched = _validation_loss(net, val_records)
+                elif method == "lbfgs":  # its loss is already this one, after the step
+                    watched = loss
                 else:
                     watched = _monitor_loss(net, records, T, n_init)
                 if not math.isfinite(watched):
@@ -704,10 +708,10 @@ def _lbfgs_epoch(net, records, T, kmin, opt, clip):
             failure.append("the gradient is non-finite")
         return loss
 
-    loss = opt.step(closure)
-    if failure or not math.isfinite(float(loss.detach())):
-        return math.nan, "L-BFGS: " + (failure[0] if failure else "the loss is non-finite")
-    return float(loss.detach()), None
+    opt.step(closure)  # (returns the loss before the step)
+    if failure:
+        return math.nan, "L-BFGS: " + failure[0]
+    return _monitor_loss(net, records, T, kmin), None
 
 
 def _monitor_loss(net: _Trainable, records: _Records, T: int, kmin: int) -> float:
