@@ -35,6 +35,7 @@ the parameters).
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import itertools
 import json
@@ -498,7 +499,10 @@ class Study:
                 "Study.run(client=...) needs dask.distributed: pip install 'rkident[dask]' "
                 "(or run without a client, in this process)."
             ) from err
-        futures = {client.submit(self._compute_chunk, *key, pure=False): key for key in pending}
+        # the declaration alone travels with each task, not the results of an earlier run
+        task = copy.copy(self)
+        task._results = None
+        futures = {client.submit(task._compute_chunk, *key, pure=False): key for key in pending}
         try:
             for future in as_completed(futures):
                 finish(futures[future], future.result())

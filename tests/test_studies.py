@@ -509,6 +509,47 @@ def fir_ls_held_after_two_chunks(data):
     return fir_ls(data)
 
 
+class _RecordingClient:
+    """Stands in for a ``dask.distributed.Client``: runs each submitted task at once and
+    records the size of what it would send to a worker."""
+
+    def __init__(self):
+        self.task_bytes = []
+
+    def submit(self, fn, *args, pure=True):
+        import concurrent.futures
+
+        import cloudpickle
+
+        self.task_bytes.append(len(cloudpickle.dumps((fn, args))))
+        future = concurrent.futures.Future()
+        future.set_result(fn(*args))
+        return future
+
+    def cancel(self, futures):
+        pass
+
+
+def test_a_rerun_on_a_client_sends_the_declaration_without_the_earlier_results(
+    tmp_path, monkeypatch
+):
+    """Re-running a study object on a client must not ship the results table of its earlier
+    run with every task (that table made each task about 1 MB in bench_studies and kept the
+    scheduler busy); the table is the same either way."""
+    import concurrent.futures
+
+    import dask.distributed
+
+    monkeypatch.setattr(dask.distributed, "as_completed", concurrent.futures.as_completed)
+    study = small_study(trials=200, chunk=50)
+    local = table(study.run(tmp_path / "local", progress=False))
+    client = _RecordingClient()
+    study.run(tmp_path / "client", client=client, progress=False)
+    assert len(client.task_bytes) == study.n_chunks * 2  # two grid points
+    assert max(client.task_bytes) < 20_000, client.task_bytes
+    assert table(study).equals(local)
+
+
 def test_dask_two_workers_give_the_local_table_and_survive_a_killed_worker(tmp_path):
     """A LocalCluster of 2 workers (threads, processes=False) computes the table of the
     in-process runner; a worker closed while chunks are in flight leaves the study to
