@@ -16,6 +16,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ._irk_core import to_host
+
 
 def _pick(mask: np.ndarray, new, old):
     """``new`` where the host bool ``mask`` holds, else ``old`` (trailing axes broadcast);
@@ -71,7 +73,7 @@ class ArrayOps:
 
     def from_tensor(self, a: torch.Tensor):
         """A per-sample tensor (*batch,) as step sizes."""
-        return np.array(a.numpy(force=True)).reshape(self.hshape).astype(self.hdt)
+        return to_host(a, self.hshape).astype(self.hdt)
 
     def host(self, a, dtype=None) -> np.ndarray:
         """``a`` as a host array of shape ``hshape`` (``a`` itself here: updates in place)."""

@@ -179,12 +179,18 @@ def adaptive_loop(
     n_steps, n_rej, n_newton, attempts = (ops.counts() for _ in range(4))
     messages: list[str] = []
 
-    def stop(mask, code, why):
-        """Stop the ``mask`` samples with status ``code`` and the message ``why``."""
+    def on_host(update, mask):
+        """Apply ``update(mask, status, active, messages, tcur)``, which stops samples in
+        place on host arrays (:func:`stop_samples`, :func:`_flag_high_index`), to the
+        loop's status and active flags in their representation."""
         nonlocal status, active
         st, ac = ops.host(status, np.int8), ops.host(active)
-        stop_samples(ops.host(mask), code, st, ac, messages, ops.host(tcur), why)
+        update(ops.host(mask) & ac, st, ac, messages, ops.host(tcur))
         status, active = ops.back(st), ops.back(ac)
+
+    def stop(mask, code, why):
+        """Stop the ``mask`` samples with status ``code`` and the message ``why``."""
+        on_host(lambda m, st, ac, msgs, tc: stop_samples(m, code, st, ac, msgs, tc, why), mask)
 
     h = ops.from_tensor(initial_step(core, x0, z0, xdot0, t[0], span, rtol, atol, expo, dt0))
 
@@ -223,9 +229,7 @@ def adaptive_loop(
             if any_(jac_mask):
                 high = kernel.jacobian(jac_mask)
                 if high is not None:
-                    st, ac = ops.host(status, np.int8), ops.host(active)
-                    _flag_high_index(ops.host(high) & ac, st, ac, messages, ops.host(tcur))
-                    status, active = ops.back(st), ops.back(ac)
+                    on_host(_flag_high_index, ops.back(high))
                 fresh |= jac_mask
                 need_lu |= jac_mask
                 need_jac &= not_(jac_mask)
