@@ -538,9 +538,11 @@ def test_a_rerun_on_a_client_sends_the_declaration_without_the_earlier_results(
     scheduler busy); the table is the same either way."""
     import concurrent.futures
 
-    import dask.distributed
-
-    monkeypatch.setattr(dask.distributed, "as_completed", concurrent.futures.as_completed)
+    dask_distributed = pytest.importorskip(
+        "dask.distributed",
+        reason="dask.distributed is an optional extra: pip install rkident[dask]",
+    )
+    monkeypatch.setattr(dask_distributed, "as_completed", concurrent.futures.as_completed)
     study = small_study(trials=200, chunk=50)
     local = table(study.run(tmp_path / "local", progress=False))
     client = _RecordingClient()
