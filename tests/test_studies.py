@@ -502,9 +502,12 @@ def fir_ls_recording_worker(data):
 
 
 def fir_ls_held_after_two_chunks(data):
-    """Once two chunk files exist, waits until the test has closed a worker."""
-    DASK_STATE["calls"] += 1
-    if len(list(DASK_STATE["chunks"].glob("*.parquet"))) >= 2:
+    """The first two chunks run through; every later one waits until the test has closed a
+    worker, so each worker holds a chunk in flight when one is closed."""
+    with DASK_STATE["lock"]:
+        DASK_STATE["calls"] += 1
+        held = DASK_STATE["calls"] > 2
+    if held:
         DASK_STATE["release"].wait(timeout=60)
     return fir_ls(data)
 
@@ -563,7 +566,9 @@ def test_dask_two_workers_give_the_local_table_and_survive_a_killed_worker(tmp_p
     )
     local = small_study().run(tmp_path / "local", progress=False)
     chunks = tmp_path / "killed" / "chunks"
-    DASK_STATE.update(calls=0, workers=set(), release=threading.Event(), chunks=chunks)
+    DASK_STATE.update(
+        calls=0, workers=set(), release=threading.Event(), lock=threading.Lock(), chunks=chunks
+    )
     with (
         distributed.LocalCluster(
             n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None
@@ -588,7 +593,10 @@ def test_dask_two_workers_give_the_local_table_and_survive_a_killed_worker(tmp_p
 
         thread = threading.Thread(target=run)
         thread.start()
-        while len(list(chunks.glob("*.parquet"))) < 2 and thread.is_alive():
+        # two chunks written, and both workers inside a held chunk (each has one thread)
+        while (
+            len(list(chunks.glob("*.parquet"))) < 2 or DASK_STATE["calls"] < 4
+        ) and thread.is_alive():
             thread.join(0.05)
         victim = next(iter(cluster.workers.values()))
         cluster.sync(victim.close, executor_wait=False)
