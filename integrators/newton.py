@@ -495,9 +495,9 @@ def newton(
         norm = fx.abs().amax(-1)
         active = torch.ones(batch, dtype=torch.bool, device=dev)
         nonfinite = ~torch.isfinite(fx).all(-1)
-        status[nonfinite] = NewtonStatus.NON_FINITE
+        status.masked_fill_(nonfinite, NewtonStatus.NON_FINITE)
         done = norm <= tol
-        status[done] = NewtonStatus.CONVERGED
+        status.masked_fill_(done, NewtonStatus.CONVERGED)
         active &= ~(done | nonfinite)
         norms, steps, history = [norm], [], [x.clone()] if return_history else None
         LU = pivots = None
@@ -510,19 +510,19 @@ def newton(
                 ok = torch.ones(batch, dtype=torch.bool, device=dev)
             else:
                 LU, pivots, ok = factorise(x)
-            status[active & ~ok] = NewtonStatus.SINGULAR
+            status.masked_fill_(active & ~ok, NewtonStatus.SINGULAR)
             active &= ok
         for _ in range(max_iter):
             if not bool(active.any()):
                 break
             if not frozen_matrix:
                 LU, pivots, ok = factorise(x)
-                status[active & ~ok] = NewtonStatus.SINGULAR
+                status.masked_fill_(active & ~ok, NewtonStatus.SINGULAR)
                 active &= ok
-            dx = -_lu_solve(LU, pivots, fx)
-            t = torch.ones(batch, dtype=x.dtype, device=dev)
-            x_new = x + dx
+            dx = _lu_solve(LU, pivots, fx)  # the Newton step is -dx
+            x_new = x - dx
             f_new = residual(x_new)
+            t = active.to(x.dtype)  # the step length of every active member, 1 or halved
             if method == "damped":
                 merit = (fx * fx).sum(-1)
                 for attempt in range(_MAX_BACKTRACKS + 1):
@@ -532,30 +532,34 @@ def newton(
                     if not bool(retry.any()):
                         break
                     if attempt == _MAX_BACKTRACKS:
-                        status[retry] = NewtonStatus.LINE_SEARCH_FAILED
+                        status.masked_fill_(retry, NewtonStatus.LINE_SEARCH_FAILED)
                         active &= ~retry
                         break
                     t = torch.where(retry, t / 2, t)
-                    x_try = x + t[..., None] * dx
+                    x_try = x - t[..., None] * dx
                     f_try = residual(x_try)
                     x_new = torch.where(retry[..., None], x_try, x_new)
                     f_new = torch.where(retry[..., None], f_try, f_new)
+                t = t * active  # zero for members whose line search failed
             upd = active[..., None]
             x = torch.where(upd, x_new, x)
             fx = torch.where(upd, f_new, fx)
-            iterations += active.to(torch.int64)
-            steps.append(torch.where(active, t, torch.zeros_like(t)))
-            new_norm = torch.where(active, fx.abs().amax(-1), norm)
-            bad = active & ~(torch.isfinite(fx).all(-1) & torch.isfinite(x).all(-1))
-            status[bad] = NewtonStatus.NON_FINITE
+            iterations += active
+            steps.append(t)
+            f_norm = fx.abs().amax(-1)  # NaN where fx has a NaN
+            new_norm = torch.where(active, f_norm, norm)
+            bad = active & ~torch.isfinite(f_norm + x.abs().amax(-1))
+            status.masked_fill_(bad, NewtonStatus.NON_FINITE)
             active &= ~bad
-            small_step = (t[..., None] * dx).abs().amax(-1) <= xtol * (1 + x.abs().amax(-1))
-            done = active & ((new_norm <= tol) | small_step)
-            status[done] = NewtonStatus.CONVERGED
+            done = new_norm <= tol
+            if xtol > 0:
+                done |= (t[..., None] * dx).abs().amax(-1) <= xtol * (1 + x.abs().amax(-1))
+            done &= active
+            status.masked_fill_(done, NewtonStatus.CONVERGED)
             active &= ~done
             if divergence_ratio is not None:
                 grew = active & (new_norm > divergence_ratio * norm)
-                status[grew] = NewtonStatus.DIVERGED
+                status.masked_fill_(grew, NewtonStatus.DIVERGED)
                 active &= ~grew
             norm = new_norm
             norms.append(norm)
@@ -887,7 +891,7 @@ def minimize(
         try:
             for _ in range(max_iter + 1):
                 nonfinite = active & ~(torch.isfinite(loss_value) & torch.isfinite(grad).all(-1))
-                status[nonfinite] = NewtonStatus.NON_FINITE
+                status.masked_fill_(nonfinite, NewtonStatus.NON_FINITE)
                 active &= ~nonfinite
                 gnorm = grad.abs().amax(-1)
                 if adaptive:  # the curvature scale of eq. 3.61's alpha and of the gradient test
@@ -895,7 +899,7 @@ def minimize(
                     done = active & (gnorm <= tol * (1 + loss_value) * scale.sqrt())
                 else:
                     done = active & (gnorm <= tol)
-                status[done] = NewtonStatus.CONVERGED
+                status.masked_fill_(done, NewtonStatus.CONVERGED)
                 active &= ~done
                 if not bool(active.any()) or int(iterations.max()) >= max_iter:
                     break
@@ -904,7 +908,7 @@ def minimize(
                 else:
                     Lc, ok = _shifted_cholesky(torch.nan_to_num(H), regularization)
                     step = -torch.cholesky_solve(grad.unsqueeze(-1), Lc).squeeze(-1)
-                status[active & ~ok] = NewtonStatus.SINGULAR
+                status.masked_fill_(active & ~ok, NewtonStatus.SINGULAR)
                 active &= ok
                 slope = (grad * step).sum(-1)  # < 0: descent direction (Theorem 7)
                 # a predicted decrease below the rounding error of the loss (Levenberg-Marquardt:
@@ -937,7 +941,7 @@ def minimize(
                 if adaptive:
                     # no decrease found where none can be resolved: the minimum is reached
                     flat = no_decrease & flat_step
-                    status[flat] = NewtonStatus.CONVERGED
+                    status.masked_fill_(flat, NewtonStatus.CONVERGED)
                     active &= ~flat
                     no_decrease &= ~flat
                     full = accepted & (t == 1)
@@ -948,8 +952,8 @@ def minimize(
                     # no decrease found: converged if the predicted decrease is at the rounding
                     # level of the loss, else a genuine failure
                     flat = no_decrease & flat_step
-                    status[flat] = NewtonStatus.CONVERGED
-                    status[no_decrease & ~flat] = NewtonStatus.LINE_SEARCH_FAILED
+                    status.masked_fill_(flat, NewtonStatus.CONVERGED)
+                    status.masked_fill_(no_decrease & ~flat, NewtonStatus.LINE_SEARCH_FAILED)
                     active &= ~no_decrease
                 move = active & accepted
                 dtheta = torch.where(move[..., None], t[..., None] * step, 0.0)
@@ -980,11 +984,11 @@ def minimize(
                     r = torch.where(keep[..., None], r, new[4])
                 history.append(loss_value)
                 stalled = active & small & torch.isfinite(loss_value)
-                status[stalled] = NewtonStatus.CONVERGED
+                status.masked_fill_(stalled, NewtonStatus.CONVERGED)
                 active &= ~stalled
                 if adaptive:
                     failed = no_decrease & (lam > 1e10)
-                    status[failed] = NewtonStatus.LINE_SEARCH_FAILED
+                    status.masked_fill_(failed, NewtonStatus.LINE_SEARCH_FAILED)
                     active &= ~failed
                 committed = snapshot()
                 if callback is not None:
@@ -994,7 +998,7 @@ def minimize(
                 raise
             theta, loss_value, grad, H, J, r, iterations, status, active, n_history = committed
             del history[n_history:]
-            status[active] = NewtonStatus.INTERRUPTED
+            status.masked_fill_(active, NewtonStatus.INTERRUPTED)
     converged = status == NewtonStatus.CONVERGED
     messages = _describe(status, grad.abs().amax(-1), label="gradient norm")
     if raise_on_failure and not bool(converged.all()):

@@ -85,14 +85,15 @@ from ._irk_dense import extrapolation_matrix
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
 from .inputs import CollocationInput
 from .methods import EXPLICIT_FIXED, resolve_method
-from .newton import _default_tol, batch_jacobian
+from .newton import NewtonStatus, _default_tol, batch_jacobian, newton
 from .solution import SolverStats
 from .tableau import ButcherTableau
 
 __all__ = ["SensitivityResult", "sensitivities", "variational_sensitivities"]
 
-#: a simplified-Newton iteration whose residual shrinks by less than this factor refreshes
-#: the Newton matrix at the current iterate
+#: a simplified-Newton iteration whose residual shrinks by less than this factor stops the
+#: stage solve (``newton``'s ``divergence_ratio``); the Newton matrix is then refreshed at
+#: the current stages and the solve resumes
 _SLOW_CONTRACTION = 0.5
 _MAX_NEWTON_ITER = 50
 #: ``compile="auto"`` compiles the explicit interval kernel once this many steps were taken
@@ -432,36 +433,52 @@ class _ImplicitStages:
         return torch.as_tensor(L, dtype=x.dtype, device=x.device) @ self.K_prev
 
     def step(self, stage_at, h, x, q, seed, where):
-        """One step: stages ``K_i`` (*batch, nx) and ``dK_i/d(x_k, q)`` (*batch, nx, nx + nq)."""
+        """One step: stages ``K_i`` (*batch, nx) and ``dK_i/d(x_k, q)`` (*batch, nx, nx + nq).
+
+        The stages come from :func:`~integrators.newton.newton` (simplified, with the kept
+        factorisation) on ``K - F(K) = 0``; a member whose residual shrinks by less than
+        ``_SLOW_CONTRACTION`` in one iteration stops it, and the matrix is refreshed at the
+        current stages before the iteration resumes (within ``_MAX_NEWTON_ITER`` in all)."""
         s, nx = self.s, x.shape[-1]
         K = self._guess(stage_at, x, h, q)
         if self.lu is None:  # first step: a starting Newton matrix at the guess
             self._factorize(stage_at, x, h, K, q, where)
-        norm_prev, refreshed = None, False
-        for _ in range(_MAX_NEWTON_ITER):
-            r = self._residual(stage_at, x, h, K, q)
-            norm = r.abs().flatten(-2).amax(-1)  # (*batch,)
-            if not bool(torch.isfinite(norm).all()):
+
+        def stage_equations(k):  # K - F(K) of eq. 8.20, flattened: (*batch, s nx)
+            return -self._residual(stage_at, x, h, k.unflatten(-1, (s, nx)), q).flatten(-2)
+
+        budget = _MAX_NEWTON_ITER
+        while True:
+            res = newton(
+                stage_equations,
+                K.flatten(-2),
+                method="simplified",
+                factorization=self.lu,
+                tol=self.tol,
+                max_iter=budget,
+                divergence_ratio=_SLOW_CONTRACTION,
+            )
+            K = res.x.unflatten(-1, (s, nx))
+            used = int(res.iterations.max())
+            self.n_iter, budget = self.n_iter + used, budget - used
+            status = res.status
+            if bool(res.converged.all()):
+                break
+            if bool((status == NewtonStatus.NON_FINITE).any()):
                 raise ConvergenceError(
                     f"sensitivities: the stage equations (eq. 8.20) of {self.tab.name!r} "
-                    f"became non-finite {where} for samples {_samples(~torch.isfinite(norm))}. "
+                    f"became non-finite {where} for samples "
+                    f"{_samples(status == NewtonStatus.NON_FINITE)}. Try more substeps."
+                )
+            if budget <= 0 or bool((status == NewtonStatus.MAX_ITER).any()):
+                raise ConvergenceError(
+                    f"sensitivities: the stage equations (eq. 8.20) of {self.tab.name!r} did "
+                    f"not reach ||r||_inf <= {self.tol:.3g} in {_MAX_NEWTON_ITER} Newton "
+                    f"iterations {where} for samples {_samples(~res.converged)}. "
                     "Try more substeps."
                 )
-            if bool((norm <= self.tol).all()):
-                break
-            slow = norm_prev is not None and bool((norm > _SLOW_CONTRACTION * norm_prev).any())
-            refreshed = slow and not refreshed
-            if refreshed:  # the frozen matrix contracts too slowly: refresh it here
-                self._factorize(stage_at, x, h, K, q, where)
-            K = K + self._solve(r.flatten(-2)[..., None])[..., 0].unflatten(-1, (s, nx))
-            self.n_iter += 1
-            norm_prev = norm
-        else:
-            raise ConvergenceError(
-                f"sensitivities: the stage equations (eq. 8.20) of {self.tab.name!r} did not "
-                f"reach ||r||_inf <= {self.tol:.3g} in {_MAX_NEWTON_ITER} Newton iterations "
-                f"{where} for samples {_samples(norm > self.tol)}. Try more substeps."
-            )
+            # the kept matrix contracts too slowly: refresh it at the current stages
+            self._factorize(stage_at, x, h, K, q, where)
         # the one factorisation of this step, at the converged stages: the last correction and
         # every sensitivity column in one solve (eq. 8.24-8.27)
         r, Fx, Fq = self._factorize(stage_at, x, h, K, q, where)
