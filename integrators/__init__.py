@@ -18,13 +18,13 @@ from .errors import (
 )
 from .implicit import daeint, solve_implicit_ode
 from .inputs import CollocationInput, bind_rhs
+from .jacobians import batch_jacobian, jacobian_rows
 from .layers import ODELayer
 from .methods import METHOD_NAMES
 from .newton import (
     MinimizeResult,
     NewtonResult,
     NewtonStatus,
-    batch_jacobian,
     minimize,
     newton,
 )
@@ -69,6 +69,7 @@ __all__ = [
     "NewtonResult",
     "NewtonStatus",
     "batch_jacobian",
+    "jacobian_rows",
     "minimize",
     "newton",
     "SensitivityResult",

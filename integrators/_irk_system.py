@@ -21,50 +21,7 @@ from collections.abc import Callable
 
 import torch
 
-
-def batched_jacobian(fun: Callable, v: torch.Tensor, rows: int | None = None) -> torch.Tensor:
-    """Jacobian of a sample-wise map ``fun: (*batch, d) -> (*batch, q)``: (*batch, q, d).
-
-    Members of the batch are independent, so the gradient of ``sum_batch y_i`` is row ``i`` of
-    every member's Jacobian. With ``rows = None``: one forward evaluation and ``q`` backward
-    passes. With ``rows = q``: ``fun`` is evaluated once on ``q`` stacked copies of ``v``
-    ((q, *batch, d), the copy index as leading batch dimension) and one backward pass with the
-    unit vectors ``e_i`` as output cotangents of copy ``i`` yields all rows at once; this needs
-    a ``fun`` that broadcasts over a leading extra dimension (see
-    :meth:`StageSystem.jacobian`). No functorch transform is involved, so any differentiable
-    ``fun`` works.
-    """
-    if rows is not None:
-        return _stacked_jacobian(fun, v, rows)
-    with torch.enable_grad():
-        vg = v.detach().requires_grad_(True)
-        y = fun(vg)
-        q = y.shape[-1]
-        y = y.expand(*v.shape[:-1], q)
-        if not y.requires_grad:
-            return torch.zeros(*y.shape, v.shape[-1], dtype=v.dtype, device=v.device)
-        rows = []
-        for i in range(q):
-            (g,) = torch.autograd.grad(
-                y[..., i].sum(), vg, retain_graph=i < q - 1, allow_unused=True
-            )
-            rows.append(torch.zeros_like(vg) if g is None else g)
-    return torch.stack(rows, dim=-2)
-
-
-def _stacked_jacobian(fun: Callable, v: torch.Tensor, q: int) -> torch.Tensor:
-    """``batched_jacobian`` by one forward and one backward pass on ``q`` stacked copies."""
-    batch, d = v.shape[:-1], v.shape[-1]
-    with torch.enable_grad():
-        vg = v.detach().expand(q, *batch, d).requires_grad_(True)
-        y = fun(vg).expand(q, *batch, q)
-        if not y.requires_grad:
-            return torch.zeros(*batch, q, d, dtype=v.dtype, device=v.device)
-        basis = torch.eye(q, dtype=y.dtype, device=y.device).reshape(q, *([1] * len(batch)), q)
-        (g,) = torch.autograd.grad(y, vg, basis.expand(q, *batch, q), allow_unused=True)
-    if g is None:
-        return torch.zeros(*batch, q, d, dtype=v.dtype, device=v.device)
-    return g.movedim(0, -2)
+from .jacobians import batch_jacobian
 
 
 class StageSystem:
@@ -109,19 +66,20 @@ class StageSystem:
         return self._call(self.fns[0], t, K, X, Z, u=u)
 
     def jacobian(self, fun: Callable, v: torch.Tensor, u) -> torch.Tensor:
-        """``batched_jacobian(fun, v)`` (*batch, p, d), by the stacked single backward pass
-        when the problem has no input and the stacked result reproduced the row-by-row one
-        at the first call with that number of dimensions of ``v`` (checked once per system,
-        like the stage stacking of ``IRKCore.residual``; the two agree to the last bit for
-        elementwise models)."""
+        """The Jacobian (*batch, p, d) of the sample-wise ``fun`` at ``v`` by
+        :func:`~integrators.jacobians.batch_jacobian`: one backward pass on stacked copies
+        (``"stacked"``) when the problem has no input and that reproduced the row-by-row
+        Jacobian (``"rows"``) at the first call with that number of dimensions of ``v``
+        (checked once per system, like the stage stacking of ``IRKCore.residual``; the two
+        agree to the last bit for elementwise models), else row by row."""
         stackable = self.stack_jacobian.get(v.dim())
         if u is not None or stackable is False:
-            return batched_jacobian(fun, v)
+            return batch_jacobian(fun, v, strategy="rows")[1]
         if stackable:
-            return batched_jacobian(fun, v, rows=self.p)
-        ref = batched_jacobian(fun, v)
+            return batch_jacobian(fun, v, strategy="stacked", outputs=self.p)[1]
+        ref = batch_jacobian(fun, v, strategy="rows")[1]
         try:
-            got = batched_jacobian(fun, v, rows=self.p)
+            got = batch_jacobian(fun, v, strategy="stacked", outputs=self.p)[1]
             tol = 1e3 * torch.finfo(v.dtype).eps
             stackable = got.shape == ref.shape and bool(
                 torch.allclose(got, ref, rtol=tol, atol=tol, equal_nan=True)

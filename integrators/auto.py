@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from ._irk_system import batched_jacobian
+from .jacobians import batch_jacobian
 
 __all__ = ["choose_method"]
 
@@ -37,7 +37,7 @@ def choose_method(rhs, x0, t, *, threshold: float = STIFFNESS_THRESHOLD):
     x0 = torch.as_tensor(x0)
     t = torch.as_tensor(t, dtype=x0.dtype, device=x0.device)
     with torch.no_grad():
-        J = batched_jacobian(lambda x: rhs(t[0], x), x0)
+        _, J = batch_jacobian(lambda x: rhs(t[0], x), x0, strategy="rows")
         rho = float(torch.linalg.eigvals(J).abs().amax()) if J.numel() else 0.0
     dt = float(t[-1] - t[0]) / max(t.shape[0] - 1, 1)
     stiffness = rho * dt

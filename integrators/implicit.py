@@ -582,7 +582,8 @@ def _root_derivatives(phi, v_star):
     """The converged root ``v_star`` of ``phi(v) = 0`` with its first and second derivatives
     with respect to everything ``phi`` uses (``x0``, module parameters, captured tensors;
     :func:`~integrators.newton.root_with_derivatives`, exact Jacobian at the root)."""
-    from .newton import batch_jacobian, root_with_derivatives
+    from .jacobians import batch_jacobian
+    from .newton import root_with_derivatives
 
     if not torch.is_grad_enabled():
         return v_star

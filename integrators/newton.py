@@ -36,12 +36,12 @@ import torch
 from .block_jacobian import BlockJacobian
 from .block_tridiagonal import BorderedBlockTridiagonal
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
+from .jacobians import batch_jacobian
 
 __all__ = [
     "MinimizeResult",
     "NewtonResult",
     "NewtonStatus",
-    "batch_jacobian",
     "minimize",
     "newton",
 ]
@@ -172,43 +172,6 @@ def _informative_tail(norms: torch.Tensor, iterations: torch.Tensor, k: int) -> 
     vals = norms.gather(0, idx.clamp(min=0))
     vals = torch.where(idx >= 0, vals, torch.full_like(vals, float("nan")))
     return vals.movedim(0, -1)
-
-
-def batch_jacobian(fn: Callable, x: torch.Tensor, *args):
-    """Batched Jacobian of ``fn(x, *args) -> (*batch, m)`` w.r.t. ``x`` of shape (*batch, n).
-
-    Members of the batch must be independent (output member ``i`` depends only on input
-    member ``i``), and the output batch shape must equal that of ``x``. Uses ``m``
-    vector-Jacobian products run as one vmapped backward pass, or a loop over the ``m`` output
-    components (never over batch members) when ``fn`` uses an operation without a batching
-    rule.
-
-    Returns:
-        ``(y, J)`` detached: ``y = fn(x, *args)`` of shape (*batch, m) and ``J`` of shape
-        (*batch, m, n).
-    """
-    with torch.enable_grad():
-        xg = x.detach().requires_grad_(True)
-        y = fn(xg, *args)
-        m = y.shape[-1]
-        if not y.requires_grad:  # fn does not depend on x
-            return y.detach(), y.new_zeros(*y.shape, x.shape[-1])
-        basis = torch.eye(m, dtype=y.dtype, device=y.device)
-        basis = basis.view(m, *([1] * (y.dim() - 1)), m).expand(m, *y.shape)
-        try:
-            (rows,) = torch.autograd.grad(
-                y, xg, basis, retain_graph=True, is_grads_batched=True, allow_unused=True
-            )
-        except (RuntimeError, NotImplementedError):
-            rows = torch.stack([_grad_or_zeros(y[..., i].sum(), xg) for i in range(m)])
-    if rows is None:
-        rows = xg.new_zeros(m, *xg.shape)
-    return y.detach(), rows.movedim(0, -2).detach()
-
-
-def _grad_or_zeros(out, inp):
-    (g,) = torch.autograd.grad(out, inp, retain_graph=True, allow_unused=True)
-    return torch.zeros_like(inp) if g is None else g
 
 
 def _detach(args):

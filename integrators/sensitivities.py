@@ -84,8 +84,9 @@ from ._fast import compiled_stepper
 from ._irk_dense import extrapolation_matrix
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
 from .inputs import CollocationInput
+from .jacobians import batch_jacobian
 from .methods import EXPLICIT_FIXED, resolve_method
-from .newton import NewtonStatus, _default_tol, batch_jacobian, newton
+from .newton import NewtonStatus, _default_tol, newton
 from .solution import SolverStats
 from .tableau import ButcherTableau
 

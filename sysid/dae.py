@@ -35,9 +35,9 @@ from integrators.errors import (
     HighIndexError,
     SingularMatrixError,
 )
+from integrators.jacobians import jacobian_rows
 from integrators.newton import NewtonStatus, minimize, newton
 
-from .linearize import _jacobian_rows
 from .mechanics import exact_higher_derivatives
 
 
@@ -75,7 +75,7 @@ def is_dae(F, xdot, x, z=None, u=None, *, t=None, rtol=1e-10):
     with torch.enable_grad():
         xd = _leaf(xdot)
         res = _call(F, _as_time(t, x), xd, x, z, u=u)
-        (jac,) = _jacobian_rows(res, (xd,), create=False)
+        (jac,) = jacobian_rows(res, (xd,))
     n_states = x.shape[-1] + z.shape[-1]
     return (_rank(jac.detach(), rtol) < n_states) | torch.tensor(res.shape[-1] < n_states)
 
@@ -85,7 +85,7 @@ def is_index1(F, xdot, x, z, u=None, *, t=None, rtol=1e-10):
     with torch.enable_grad():
         xd, zz = _leaf(xdot), _leaf(z)
         res = _call(F, _as_time(t, x), xd, x, zz, u=u)
-        jx, jz = _jacobian_rows(res, (xd, zz), create=False)
+        jx, jz = jacobian_rows(res, (xd, zz))
     jac = torch.cat([jx, jz], -1).detach()
     return _rank(jac, rtol) == jac.shape[-1]
 
@@ -95,7 +95,7 @@ def is_index1_semi_explicit(g, x, z, u=None, *, t=None, rtol=1e-10):
     with torch.enable_grad():
         zz = _leaf(z)
         res = _call(g, _as_time(t, x), x, zz, u=u)
-        (jz,) = _jacobian_rows(res, (zz,), create=False)
+        (jz,) = jacobian_rows(res, (zz,))
     return _rank(jz.detach(), rtol) == z.shape[-1]
 
 
@@ -228,7 +228,7 @@ def reduce_index(f, g, x, z, u=None, *, t=None, max_steps=5, rtol=1e-8):
             zz, uu = _leaf(z), None if u is None else _leaf(torch.as_tensor(u, dtype=x.dtype))
             res = _call(g_current, tt, x, zz, u=uu)
             inputs = (zz,) if u is None else (zz, uu)
-            jacs = _jacobian_rows(res, inputs, create=False)
+            jacs = jacobian_rows(res, inputs)
         jz = jacs[0].detach()
         if bool((_rank(jz, rtol) == z.shape[-1]).all()):
             cons = _stack_conditions(conditions)
@@ -328,7 +328,7 @@ def linearize_dae(f, g, x, z, u=None, *, t=None):
         out = {}
         for name, fn in (("f", f), ("g", g)):
             res = _call(fn, tt, xx, zz, u=uu)
-            jacs = [j.detach() for j in _jacobian_rows(res, inputs, create=False)]
+            jacs = [j.detach() for j in jacobian_rows(res, inputs)]
             if u is None:
                 jacs.append(x.new_zeros(*x.shape[:-1], res.shape[-1], 0))
             out[name + "x"], out[name + "z"], out[name + "u"] = jacs
@@ -343,7 +343,7 @@ def linearize_implicit_dae(F, xdot, x, z, u=None, *, t=None):
         if u is not None:
             leaves.append(_leaf(torch.as_tensor(u, dtype=x.dtype).expand(*x.shape[:-1], -1)))
         res = _call(F, tt, *leaves[:3], u=None if u is None else leaves[3])
-        jacs = [j.detach() for j in _jacobian_rows(res, tuple(leaves), create=False)]
+        jacs = [j.detach() for j in jacobian_rows(res, tuple(leaves))]
     if u is None:
         jacs.append(x.new_zeros(*x.shape[:-1], res.shape[-1], 0))
     return dict(zip(("Fxdot", "Fx", "Fz", "Fu"), jacs, strict=True))

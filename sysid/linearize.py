@@ -1,7 +1,8 @@
 """Linearisation of nonlinear state-space models and exact discretisation of LTI systems.
 
 - :func:`linearize`: A, B, C, D of xdot = f(t, x, u), y = h(x, u) (eq. 1.33-1.35) at a batch
-  of points (e.g. the samples of a trajectory, batched over time), by forward-mode autograd;
+  of points (e.g. the samples of a trajectory, batched over time), by reverse-mode autograd
+  (one backward pass per output component);
 - :func:`steady_state`: batched Newton on f(x, u) = 0 (eq. 1.36);
 - :func:`zoh_discretize`: exact zero-order-hold discretisation of xdot = A x + B u over a
   step dt by the matrix exponential of the augmented matrix [[A, B], [0, 0]] dt, which is
@@ -12,26 +13,12 @@
 import torch
 
 from integrators.errors import ConvergenceError, InputValidationError, SingularMatrixError
+from integrators.jacobians import jacobian_rows
 from integrators.newton import NewtonStatus, newton
 
 
 def _call(f, t, x, u):
     return f(t, x) if u is None else f(t, x, u)
-
-
-def _jacobian_rows(out, inputs, create):
-    """Per-sample Jacobians d out / d input for each input, (*batch, n_out, n_in), by n_out
-    reverse passes on the batch (samples are independent)."""
-    if not out.requires_grad:  # out does not depend on any input
-        return [x.new_zeros(*x.shape[:-1], out.shape[-1], x.shape[-1]) for x in inputs]
-    rows = [[] for _ in inputs]
-    for i in range(out.shape[-1]):
-        grads = torch.autograd.grad(
-            out[..., i].sum(), inputs, create_graph=create, retain_graph=True, allow_unused=True
-        )
-        for k, g in enumerate(grads):
-            rows[k].append(torch.zeros_like(inputs[k]) if g is None else g)
-    return [torch.stack(r, -2) for r in rows]
 
 
 def linearize(f, x, u=None, h=None, t=None):
@@ -61,13 +48,13 @@ def linearize(f, x, u=None, h=None, t=None):
             ul = u if (u.requires_grad and create) else u.detach().requires_grad_(True)
         inputs = (xl,) if u is None else (xl, ul)
         fx = _call(f, t, xl, ul)
-        jac = _jacobian_rows(fx, inputs, create)
+        jac = jacobian_rows(fx, inputs, create)
         a = jac[0]
         b = jac[1] if u is not None else x.new_zeros(*x.shape[:-1], nx, 0)
         c = d = None
         if h is not None:
             hx = h(xl) if u is None else h(xl, ul)
-            jac_h = _jacobian_rows(hx, inputs, create)
+            jac_h = jacobian_rows(hx, inputs, create)
             c = jac_h[0]
             d = jac_h[1] if u is not None else x.new_zeros(*x.shape[:-1], hx.shape[-1], 0)
     if not create:

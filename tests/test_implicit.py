@@ -12,7 +12,14 @@ from hypothesis import strategies as st
 from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
-from integrators import Status, gauss_legendre, odeint, radau_iia, solve_implicit_ode
+from integrators import (
+    Status,
+    batch_jacobian,
+    gauss_legendre,
+    odeint,
+    radau_iia,
+    solve_implicit_ode,
+)
 from integrators._irk_linalg import StageLinearSolver, _kron
 from integrators.inputs import bind_rhs
 from integrators.radau import embedded_weights
@@ -889,12 +896,10 @@ def test_stacked_jacobian_equals_row_by_row_and_central_differences():
     """One backward pass over q stacked copies (unit cotangents e_i) gives the same Jacobian
     as q backward passes, to the last bit, and both match central differences (also for a map
     with more inputs than outputs, as for the implicit residual F(K, X))."""
-    from integrators._irk_system import batched_jacobian
-
     v = torch.tensor([[0.3, -0.2], [1.1, 0.4], [-0.7, 2.0]])
     fun = lambda x: _pendulum_family(0.0, x)  # noqa: E731
-    rows = batched_jacobian(fun, v)
-    stacked = batched_jacobian(fun, v, rows=2)
+    rows = batch_jacobian(fun, v, strategy="rows")[1]
+    stacked = batch_jacobian(fun, v, strategy="stacked", outputs=2)[1]
     assert torch.equal(rows, stacked)
     d = 1e-6
     fd = torch.stack(
@@ -906,8 +911,8 @@ def test_stacked_jacobian_equals_row_by_row_and_central_differences():
         return kx[..., :2] - _pendulum_family(0.0, kx[..., 2:])
 
     kx = torch.cat([torch.ones(3, 2), v], -1)
-    J = batched_jacobian(implicit, kx, rows=2)
-    assert torch.equal(J, batched_jacobian(implicit, kx))
+    J = batch_jacobian(implicit, kx, strategy="stacked")[1]
+    assert torch.equal(J, batch_jacobian(implicit, kx, strategy="rows")[1])
     torch.testing.assert_close(J[..., :2], torch.eye(2).expand(3, 2, 2))
     torch.testing.assert_close(J[..., 2:], -fd, rtol=1e-7, atol=1e-8)
 

@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 from scipy.optimize import fsolve, least_squares
 
 from integrators import ConvergenceError, InputValidationError
-from integrators.newton import NewtonStatus, batch_jacobian, minimize, newton
+from integrators.jacobians import batch_jacobian
+from integrators.newton import NewtonStatus, minimize, newton
 
 F64 = torch.float64
 

@@ -40,8 +40,9 @@ from integrators import SemiExplicitDAE, sensitivities
 from integrators.auto import choose_method
 from integrators.errors import HighIndexError, InputValidationError
 from integrators.inputs import CollocationInput
+from integrators.jacobians import batch_jacobian
 from integrators.methods import resolve_method
-from integrators.newton import batch_jacobian, newton
+from integrators.newton import newton
 from integrators.tableau import ButcherTableau
 
 from ..data import IOData

@@ -53,8 +53,8 @@ from torch import nn
 from integrators import odeint, sensitivities
 from integrators.errors import InputValidationError
 from integrators.inputs import CollocationInput
+from integrators.jacobians import batch_jacobian
 from integrators.methods import resolve_method
-from integrators.newton import batch_jacobian
 
 from .._progress import progress_bar
 from ..data import IOData

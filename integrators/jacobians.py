@@ -1,0 +1,108 @@
+"""Jacobians of sample-wise maps by reverse-mode autograd.
+
+A sample-wise map sends a batch ``x`` (*batch, n) to ``y`` (*batch, m) with output member ``i``
+depending only on input member ``i`` (model right-hand sides, residuals, stage equations).
+The gradient of ``sum_batch y[..., k]`` is then row ``k`` of every member's Jacobian, so ``m``
+backward passes give all ``*batch`` Jacobians at once. Three ways to run them:
+
+* ``"vmap"``: the ``m`` backward passes as one vmapped pass (``is_grads_batched``); an operation
+  without a batching rule falls back to ``"rows"``;
+* ``"rows"``: ``m`` backward passes, one per output component (any differentiable map);
+* ``"stacked"``: one forward and one backward pass on ``m`` stacked copies of ``x`` (the copy
+  index a leading batch dimension, the unit vectors its output cotangents); the map must
+  broadcast over that extra leading dimension.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import torch
+
+from .errors import InputValidationError
+
+__all__ = ["batch_jacobian", "jacobian_rows"]
+
+STRATEGIES = ("vmap", "rows", "stacked")
+
+
+def jacobian_rows(
+    out: torch.Tensor, inputs: Sequence[torch.Tensor], create_graph: bool = False
+) -> list[torch.Tensor]:
+    """Per-sample Jacobians ``d out / d input`` (*batch, m, n_input) of an already computed
+    sample-wise ``out`` (*batch, m), one backward pass per output component.
+
+    An input ``out`` does not depend on gets zeros. ``create_graph=True`` keeps the result
+    differentiable (higher derivatives); the graph of ``out`` is kept either way.
+    """
+    if not out.requires_grad:  # out depends on no input
+        return [x.new_zeros(*x.shape[:-1], out.shape[-1], x.shape[-1]) for x in inputs]
+    rows = [[] for _ in inputs]
+    for k in range(out.shape[-1]):
+        grads = torch.autograd.grad(
+            out[..., k].sum(),
+            inputs,
+            create_graph=create_graph,
+            retain_graph=True,
+            allow_unused=True,
+        )
+        for i, g in enumerate(grads):
+            rows[i].append(torch.zeros_like(inputs[i]) if g is None else g)
+    return [torch.stack(r, -2) for r in rows]
+
+
+def batch_jacobian(
+    fn: Callable, x: torch.Tensor, *args, strategy: str = "vmap", outputs: int | None = None
+):
+    """Batched Jacobian of a sample-wise ``fn(x, *args) -> (*batch, m)`` w.r.t. ``x`` (*batch, n).
+
+    ``strategy``: ``"vmap"``, ``"rows"`` or ``"stacked"`` (module docstring). ``outputs``: ``m``
+    where the caller knows it ("stacked" otherwise evaluates ``fn`` once more to learn it). An
+    output without batch dimensions (a map that ignores ``x``'s batch) is broadcast to it.
+
+    Returns:
+        ``(y, J)`` detached: ``y = fn(x, *args)`` (*batch, m) and ``J`` (*batch, m, n).
+    """
+    if strategy not in STRATEGIES:
+        raise InputValidationError(
+            f"batch_jacobian: unknown strategy {strategy!r}; use one of {STRATEGIES}."
+        )
+    batch, n = x.shape[:-1], x.shape[-1]
+    with torch.enable_grad():
+        if strategy == "stacked":
+            return _stacked(fn, x, args, outputs)
+        xg = x.detach().requires_grad_(True)
+        y = fn(xg, *args)
+        y = y.expand(*batch, y.shape[-1])
+        if not y.requires_grad:  # fn does not depend on x
+            return y.detach(), y.new_zeros(*y.shape, n)
+        if strategy == "vmap":
+            m = y.shape[-1]
+            basis = torch.eye(m, dtype=y.dtype, device=y.device)
+            basis = basis.view(m, *([1] * (y.dim() - 1)), m).expand(m, *y.shape)
+            try:
+                (rows,) = torch.autograd.grad(
+                    y, xg, basis, retain_graph=True, is_grads_batched=True, allow_unused=True
+                )
+            except (RuntimeError, NotImplementedError):
+                pass
+            else:
+                J = xg.new_zeros(m, *xg.shape) if rows is None else rows
+                return y.detach(), J.movedim(0, -2).detach()
+        (J,) = jacobian_rows(y, (xg,))
+    return y.detach(), J.detach()
+
+
+def _stacked(fn, x, args, m):
+    """``batch_jacobian`` by one forward and one backward pass on ``m`` stacked copies of ``x``."""
+    batch, n = x.shape[:-1], x.shape[-1]
+    if m is None:
+        m = fn(x.detach(), *args).shape[-1]
+    xg = x.detach().expand(m, *batch, n).requires_grad_(True)
+    ys = fn(xg, *args).expand(m, *batch, m)
+    if not ys.requires_grad:
+        return ys[0].detach(), x.new_zeros(*batch, m, n)
+    basis = torch.eye(m, dtype=ys.dtype, device=ys.device).reshape(m, *([1] * len(batch)), m)
+    (g,) = torch.autograd.grad(ys, xg, basis.expand(m, *batch, m), allow_unused=True)
+    J = x.new_zeros(*batch, m, n) if g is None else g.movedim(0, -2)
+    return ys[0].detach(), J.detach()
