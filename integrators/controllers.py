@@ -265,14 +265,17 @@ def initial_step(rhs, t0, x0, f0, order, rtol, atol, span) -> torch.Tensor:
     tolerance. The result is ``min(100 h0, h1, span)``.
 
     Args:
-        rhs: ``rhs(t, x)`` on flat (B,) times and (B, n) states (one batched call here).
-        t0: (B,) start times.  x0, f0: (B, n) state and derivative at ``t0``.
+        rhs: ``rhs(t, x)`` on (*batch,) times and (*batch, n) states (one batched call here),
+            or None: no probe, the result is ``min(h0, span)`` (DAEs: an Euler probe of the
+            differential states alone would leave the algebraic constraints).
+        t0: (*batch,) or scalar start times.  x0, f0: (*batch, n) state and derivative at
+            ``t0``.
         order: order ``q`` of the error estimator.
-        rtol, atol: tolerances broadcastable to (B, n).
-        span: (B,) or float, length of the integration interval (an upper bound).
+        rtol, atol: tolerances broadcastable to (*batch, n).
+        span: (*batch,) or float, length of the integration interval (an upper bound).
 
     Returns:
-        (B,) positive step sizes.
+        (*batch,) positive step sizes.
     """
     n = x0.shape[-1]
     scale = atol + rtol * x0.abs()
@@ -284,7 +287,9 @@ def initial_step(rhs, t0, x0, f0, order, rtol, atol, span) -> torch.Tensor:
     small = (d0 < 1e-5) | (d1 < 1e-5)
     h0 = torch.where(small, torch.full_like(d0, 1e-6), 0.01 * d0 / torch.where(small, 1.0, d1))
     h0 = torch.minimum(h0, torch.as_tensor(span, dtype=h0.dtype, device=h0.device))
-    f1 = rhs(t0 + h0, x0 + h0[:, None] * f0)
+    if rhs is None:
+        return h0
+    f1 = rhs(t0 + h0, x0 + h0[..., None] * f0)
     d2 = rms(f1 - f0) / h0
     dmax = torch.maximum(d1, d2)
     flat = dmax <= 1e-15

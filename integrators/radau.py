@@ -49,7 +49,7 @@ from ._irk_core import IRKCore, IterationMatrix, host_shape, masked_update, to_d
 from ._irk_dense import StepRecords, extrapolation_matrix, stop_times
 from ._irk_fixed import _flag_high_index
 from ._per_sample import ArrayOps, ScalarOps
-from .controllers import GustafssonController
+from .controllers import GustafssonController, initial_step
 from .solution import Status
 
 
@@ -192,7 +192,7 @@ def adaptive_loop(
         """Stop the ``mask`` samples with status ``code`` and the message ``why``."""
         on_host(lambda m, st, ac, msgs, tc: stop_samples(m, code, st, ac, msgs, tc, why), mask)
 
-    h = ops.from_tensor(initial_step(core, x0, z0, xdot0, t[0], span, rtol, atol, expo, dt0))
+    h = ops.from_tensor(_first_step(core, x0, z0, xdot0, t[0], span, rtol, atol, s, dt0))
 
     with kernel.step_mode():
         while any_(active):
@@ -493,33 +493,19 @@ def _error_norm(core, mat, x_new, xdot, W, h, gamma_e, gamma, tcol, x, sc_x, tol
         return q
 
 
-def initial_step(core, x0, z0, xdot0, t0, span, rtol, atol, expo, dt0):
-    """First step: ``dt0`` or Hairer's estimate from ``x0``, ``x'(t0)`` (and ``f``'s change)."""
-    batch = x0.shape[:-1]
+def _first_step(core, x0, z0, xdot0, t0, span, rtol, atol, s, dt0):
+    """(*batch,) first step: ``dt0``, or :func:`~integrators.controllers.initial_step` with
+    the embedded estimate's order ``s`` (an explicit Euler probe of ``f`` for ODEs)."""
     if dt0 is not None:
-        return torch.full(batch, float(dt0), dtype=x0.dtype, device=x0.device)
-    with torch.no_grad():
-        sc = atol + rtol * x0.detach().abs()
-        d0 = (x0.detach() / sc).square().mean(-1).sqrt()
-        d1 = (xdot0 / sc).square().mean(-1).sqrt()
-        h0 = torch.where(
-            (d0 < 1e-5) | (d1 < 1e-5), torch.full_like(d0, 1e-6), 0.01 * d0 / d1.clamp_min(1e-300)
-        )
-        h0 = h0.clamp(max=span)
-        if core.system.kind != "ode":
-            return h0
-        t1 = (t0 + h0)[..., None]
-        x1 = x0.detach() + h0[..., None] * xdot0
+        return torch.full(x0.shape[:-1], float(dt0), dtype=x0.dtype, device=x0.device)
+
+    def probe(tt, x):
         core.n_f_evals += 1
-        f1 = core.system.rhs_f(t1, x1, z0, core.signal.at(t1))
-        d2 = ((f1 - xdot0) / sc).square().mean(-1).sqrt() / h0
-        dmax = torch.maximum(d1, d2)
-        h1 = torch.where(
-            dmax <= 1e-15,
-            torch.clamp(h0 * 1e-3, min=1e-6),
-            (0.01 / dmax.clamp_min(1e-300)).pow(expo),
-        )
-        return torch.minimum(100 * h0, h1).clamp(max=span)
+        t1 = tt[..., None]
+        return core.system.rhs_f(t1, x, z0, core.signal.at(t1))
+
+    rhs = probe if core.system.kind == "ode" else None
+    return initial_step(rhs, t0, x0.detach(), xdot0, s, rtol, atol, span)
 
 
 ESCAPE_GROWTH = 1e8  # growth of max |(x, z)| taken, at a collapsed step, as a finite escape

@@ -9,7 +9,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from integrators import IController, InputValidationError, PIController
+from integrators import IController, InputValidationError, PIController, odeint
 from integrators.controllers import error_norm, initial_step
 
 pytestmark = pytest.mark.usefixtures("float64_default")
@@ -103,6 +103,63 @@ def test_initial_step_on_linear_equation_by_hand():
         assert float(h[i]) == pytest.approx(min(100 * h0, h1), rel=1e-12)
     # f(x0) = 0: the probe is h0 = 1e-6 and there is no curvature, so h1 = max(1e-6, 1e-3 h0)
     assert float(h[2]) == pytest.approx(1e-6)
+
+
+def test_initial_step_batch_shapes_and_no_probe():
+    """The rule works on any batch shape (a (2, 3) batch gives the flat batch's steps, a
+    single trajectory a 0-d step), and without a probe (DAEs) it is ``min(h0, span)`` with
+    ``h0 = 0.01 d0 / d1``. Radau IIA's first step is this rule with the order s = 3 of its
+    error estimate: x' = -x from 1 at rtol 1e-6, atol 1e-9 gives d0 = d1 = 1 / (1e-9 + 1e-6),
+    h0 = 0.01, d2 = d1 (f changes by h0 along the probe), so h = min(1, (0.01 / d1)^(1/4));
+    the run equals the one started with that step as dt0, not one started 1 % off."""
+    g = torch.Generator().manual_seed(3)
+    lam = -torch.rand(2, 3, 1, generator=g) * 10
+    x0 = torch.randn(2, 3, 2, generator=g)
+
+    def linear(rate):
+        return lambda t, x: rate * x
+
+    f0 = lam * x0
+    h = initial_step(linear(lam), torch.zeros(2, 3), x0, f0, 4, 1e-6, 1e-9, 10.0)
+    flat = initial_step(
+        linear(lam.reshape(6, 1)),
+        torch.zeros(6),
+        x0.reshape(6, 2),
+        f0.reshape(6, 2),
+        4,
+        1e-6,
+        1e-9,
+        10.0,
+    )
+    torch.testing.assert_close(h.reshape(6), flat, rtol=0, atol=0)
+    one = initial_step(linear(lam[0, 0]), torch.zeros(()), x0[0, 0], f0[0, 0], 4, 1e-6, 1e-9, 10)
+    assert one.shape == () and float(one) == float(h[0, 0])
+    h_dae = initial_step(None, torch.zeros(2, 3), x0, f0, 4, 1e-6, 1e-9, 10.0)
+    scale = 1e-9 + 1e-6 * x0.abs()
+    d0 = (x0 / scale).square().mean(-1).sqrt()
+    d1 = (f0 / scale).square().mean(-1).sqrt()
+    torch.testing.assert_close(h_dae, (0.01 * d0 / d1).clamp(max=10.0))
+    # Radau IIA starts with the rule's step: the same run as with that step given as dt0
+    one = torch.ones(1)
+    rule = float(initial_step(lambda tt, x: -x, torch.zeros(()), one, -one, 3, 1e-6, 1e-9, 1.0))
+    assert rule == pytest.approx(min(1.0, (0.01 * (1e-9 + 1e-6)) ** 0.25), rel=1e-14)
+    t = torch.tensor([0.0, 1.0])
+    for host_loop in (False, True):
+        runs = [
+            odeint(
+                lambda tt, x: -x,
+                torch.ones(1),
+                t,
+                method="radau_iia",
+                rtol=1e-6,
+                atol=1e-9,
+                host_loop=host_loop,
+                **extra,
+            )
+            for extra in ({}, {"dt0": rule}, {"dt0": 1.01 * rule})
+        ]
+        assert torch.equal(runs[0].x, runs[1].x)
+        assert not torch.equal(runs[0].x, runs[2].x)
 
 
 def test_controller_arguments_are_validated():
