@@ -14,22 +14,15 @@ import functools
 import numpy as np
 import torch
 
-from .collocation import collocation_output_weights
+from .collocation import collocation_output_weights, lagrange_basis
 from .errors import TableauError
 
 
-def lagrange_basis(nodes: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
-    """``l_j(tau)`` (eq. 7.27) for nodes (q,) and points ``tau`` of any shape: (*tau, q)."""
-    q = nodes.shape[0]
-    diff = tau[..., None] - nodes  # (..., q)
-    denom = nodes[:, None] - nodes[None, :] + torch.eye(q, dtype=nodes.dtype, device=nodes.device)
-    factors = diff[..., None, :] / denom  # (..., j, m)
-    eye = torch.eye(q, dtype=torch.bool, device=nodes.device)
-    return torch.where(eye, torch.ones_like(factors), factors).prod(-1)
-
-
 def extrapolation_matrix(c: np.ndarray, ratio) -> np.ndarray:
-    """Lagrange matrix of the next step's stage guess, computed on the host.
+    """Lagrange matrix of the next step's stage guess, computed on the host: the basis of
+    :func:`~integrators.collocation.lagrange_basis` through its monomial coefficients, so a
+    batch of step ratios costs one 2-D product (the nodes are few and well separated; the
+    two agree to rounding).
 
     The previous step's stage polynomial ``sum_j W_j l_j(tau)`` evaluated at the next step's
     nodes ``tau_i = 1 + c_i ratio`` is ``L @ W`` with ``L[i, j] = l_j(1 + c_i ratio)``.

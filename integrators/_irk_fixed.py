@@ -25,10 +25,10 @@ from ._irk_dense import (
     StepRecords,
     extrapolation_matrix,
     is_collocation,
-    lagrange_basis,
     nan_beyond,
     stop_times,
 )
+from .collocation import lagrange_basis
 from .controllers import REUSE_THETA, slow_contraction
 from .errors import HighIndexWarning
 from .solution import Status

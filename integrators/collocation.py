@@ -43,7 +43,7 @@ from numpy.polynomial import legendre as npleg
 from .errors import InputValidationError, TableauError
 from .tableau import ButcherTableau
 
-__all__ = ["collocation_output_weights", "gauss_legendre", "radau_iia"]
+__all__ = ["collocation_output_weights", "gauss_legendre", "lagrange_basis", "radau_iia"]
 
 
 def _check_stages(s) -> int:
@@ -82,29 +82,31 @@ def _radau_nodes(s: int) -> np.ndarray:
     return np.append((interior + 1.0) / 2.0, 1.0)
 
 
-def _lagrange_basis(nodes: np.ndarray, tau: np.ndarray) -> np.ndarray:
-    """``l_j(tau)`` of eq. 7.27 in product form: (*tau.shape, s)."""
-    s = nodes.size
+def lagrange_basis(nodes: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
+    """``l_j(tau)`` of eq. 7.27 in product form, ``prod_{m != j} (tau - c_m) / (c_j - c_m)``,
+    for nodes (s,) and points ``tau`` of any shape: (*tau.shape, s)."""
+    s = nodes.shape[0]
     diff = tau[..., None] - nodes  # (..., s)
-    out = np.empty((*tau.shape, s))
-    for j in range(s):
-        others = np.delete(np.arange(s), j)
-        out[..., j] = np.prod(diff[..., others], axis=-1) / np.prod(nodes[j] - nodes[others])
-    return out
+    denom = nodes[:, None] - nodes[None, :] + torch.eye(s, dtype=nodes.dtype, device=nodes.device)
+    factors = diff[..., None, :] / denom  # (..., j, m)
+    eye = torch.eye(s, dtype=torch.bool, device=nodes.device)
+    return torch.where(eye, torch.ones_like(factors), factors).prod(-1)
 
 
-def _lagrange_integrals(nodes: np.ndarray, upper: np.ndarray) -> np.ndarray:
-    """``L_j(theta) = int_0^theta l_j`` (eq. 7.38) for each theta in ``upper``: (len, s)."""
-    xi, w = npleg.leggauss(max(nodes.size, 1))
-    xi, w = (xi + 1.0) / 2.0, w / 2.0  # Gauss rule on [0, 1]
-    upper = np.asarray(upper, dtype=np.float64)
-    points = upper[:, None] * xi[None, :]  # (len, q)
-    return upper[:, None] * np.einsum("q,nqj->nj", w, _lagrange_basis(nodes, points))
+def _lagrange_integrals(nodes: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    """``L_j(theta) = int_0^theta l_j`` (eq. 7.38): (*theta.shape, s), by the ``s``-point Gauss
+    rule on ``[0, theta]`` (exact for the degree ``s - 1`` integrand)."""
+    xi, w = npleg.leggauss(max(nodes.shape[0], 1))
+    xi = torch.as_tensor((xi + 1.0) / 2.0, dtype=nodes.dtype, device=nodes.device)
+    w = torch.as_tensor(w / 2.0, dtype=nodes.dtype, device=nodes.device)
+    basis = lagrange_basis(nodes, theta[..., None] * xi)  # (..., q, s)
+    return theta[..., None] * torch.einsum("q,...qj->...j", w, basis)
 
 
 def _collocation_tableau(nodes: np.ndarray, order: int, name: str) -> ButcherTableau:
-    A = _lagrange_integrals(nodes, nodes)
-    b = _lagrange_integrals(nodes, np.ones(1))[0]
+    c = torch.from_numpy(nodes)
+    A = _lagrange_integrals(c, c).numpy()
+    b = _lagrange_integrals(c, torch.ones((), dtype=c.dtype)).numpy()
     # c_i = sum_j a_ij holds analytically (sum_j l_j = 1) and to rounding here; keeping the
     # exact nodes as c makes c_s = 1 exact for Radau IIA (so its last row of A equals b).
     return ButcherTableau(A, b, c=nodes, order=order, name=name)
@@ -155,8 +157,8 @@ def _check_collocation(tab: ButcherTableau) -> np.ndarray:
             f"tableau {tab.name!r} has repeated nodes c = {nodes.tolist()}; dense output by "
             "collocation needs distinct nodes."
         )
-    expected = _lagrange_integrals(nodes, nodes)
-    if not np.allclose(tab.A, expected, rtol=0.0, atol=1e-10):
+    c = torch.from_numpy(nodes)
+    if not np.allclose(tab.A, _lagrange_integrals(c, c).numpy(), rtol=0.0, atol=1e-10):
         raise TableauError(
             f"tableau {tab.name!r} is not a collocation method (A differs from the integrated "
             "Lagrange polynomials of its nodes, eq. 7.41), so eq. 7.44 gives no dense output "
@@ -184,21 +186,9 @@ def collocation_output_weights(tab: ButcherTableau, theta):
     Raises:
         TableauError: when ``tab`` is not a collocation method.
     """
-    nodes = _check_collocation(tab)
-    s = nodes.size
-    xi, w = npleg.leggauss(s)
-    xi, w = (xi + 1.0) / 2.0, w / 2.0
+    nodes = torch.from_numpy(_check_collocation(tab))
     if not isinstance(theta, torch.Tensor):
-        th = np.asarray(theta, dtype=np.float64)
-        return _lagrange_integrals(nodes, th.reshape(-1)).reshape(*th.shape, s)
+        theta = torch.tensor(np.asarray(theta, dtype=np.float64))  # a copy: may be read-only
+        return _lagrange_integrals(nodes, theta).numpy()
     dtype = theta.dtype if theta.is_floating_point() else torch.get_default_dtype()
-    th = theta.to(dtype)
-    cn = torch.as_tensor(nodes, dtype=dtype, device=theta.device)
-    points = th[..., None] * torch.as_tensor(xi, dtype=dtype, device=theta.device)  # (..., q)
-    diff = points[..., None] - cn  # (..., q, s)
-    denom = cn[:, None] - cn[None, :] + torch.eye(s, dtype=dtype, device=theta.device)
-    factors = diff[..., None, :] / denom  # (..., q, j, m): (tau - c_m) / (c_j - c_m)
-    eye = torch.eye(s, dtype=torch.bool, device=theta.device)
-    basis = torch.where(eye, torch.ones_like(factors), factors).prod(dim=-1)  # (..., q, s)
-    wq = torch.as_tensor(w, dtype=dtype, device=theta.device)
-    return th[..., None] * torch.einsum("q,...qj->...j", wq, basis)
+    return _lagrange_integrals(nodes.to(dtype=dtype, device=theta.device), theta.to(dtype))

@@ -31,8 +31,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from ._irk_dense import lagrange_basis
-from .collocation import gauss_legendre, radau_iia
+from .collocation import gauss_legendre, lagrange_basis, radau_iia
 from .errors import InputValidationError
 
 INTERPOLATIONS = ("zoh", "linear")

@@ -956,7 +956,8 @@ def test_small_kronecker_products_by_one_matrix_product_are_exact():
 
 def test_stage_extrapolation_matrix_is_the_lagrange_basis():
     """L[i, j] = l_j(1 + c_i r) (eq. 7.27 basis at the next step's nodes), per member ratio."""
-    from integrators._irk_dense import extrapolation_matrix, lagrange_basis
+    from integrators._irk_dense import extrapolation_matrix
+    from integrators.collocation import lagrange_basis
 
     c = np.array(radau_iia(3).c)
     ratio = np.array([0.5, 1.0, 3.0])
