@@ -59,7 +59,7 @@ from integrators.methods import resolve_method
 from .._progress import progress_bar
 from ..data import IOData
 from ..estimation.results import FitResult, inverse_normal_matrix
-from ..validation import fit_percent
+from ..validation import fit_quality
 from .intersample import input_between_samples, stage_fractions
 
 __all__ = ["METHODS", "X0_MODES", "TrainingResult", "simulate", "train"]
@@ -285,9 +285,9 @@ class TrainingResult(FitResult):
         of a wrong initial state).
 
         Returns:
-            dict of (*batch, ny) tensors: ``"fit_percent"`` (MATLAB's fit,
-            :func:`sysid.validation.fit_percent`), ``"rmse"`` (output units) and ``"r2"``
-            (coefficient of determination, ``1 - SSE/SST`` per channel).
+            dict of (*batch, ny) tensors: ``"fit_percent"`` (MATLAB's fit), ``"rmse"`` (output
+            units) and ``"r2"`` (coefficient of determination, ``1 - SSE/SST`` per channel),
+            from :func:`sysid.validation.fit_quality` over the samples kept.
         """
         skip = self.n_init if skip is None else int(skip)
         _check_data(data, self.model, "validate")
@@ -302,16 +302,8 @@ class TrainingResult(FitResult):
             raise InputValidationError(
                 f"validate: skip = {skip} leaves fewer than 2 samples of {data.lengths}."
             )
-        y = data.y[..., keep, :].to(yhat.dtype)
-        yh = yhat[..., keep, :]
-        e = y - yh
-        sse = (e * e).sum(-2)
-        sst = ((y - y.mean(-2, keepdim=True)) ** 2).sum(-2)
-        return {
-            "fit_percent": fit_percent(y, yh),
-            "rmse": (sse / keep.numel()).sqrt(),
-            "r2": 1 - sse / sst,
-        }
+        quality = fit_quality(data.y[..., keep, :].to(yhat.dtype), yhat[..., keep, :])
+        return {"fit_percent": quality.fit_percent, "rmse": quality.rmse, "r2": quality.r_squared}
 
 
 def _offsets(data: IOData) -> list[int]:
