@@ -18,7 +18,9 @@ from .collocation import collocation_output_weights, lagrange_basis
 from .errors import TableauError
 
 
-def extrapolation_matrix(c: np.ndarray, ratio) -> np.ndarray:
+def extrapolation_matrix(
+    c: np.ndarray, ratio, coefficients: np.ndarray | None = None
+) -> np.ndarray:
     """Lagrange matrix of the next step's stage guess, computed on the host: the basis of
     :func:`~integrators.collocation.lagrange_basis` through its monomial coefficients, so a
     batch of step ratios costs one 2-D product (the nodes are few and well separated; the
@@ -29,18 +31,21 @@ def extrapolation_matrix(c: np.ndarray, ratio) -> np.ndarray:
 
     Args:
         c: (s,) nodes; ratio: float or (*batch,) array ``h_new / h_old``.
+        coefficients: :func:`lagrange_coefficients` of ``c`` where the caller keeps them.
 
     Returns:
         (*batch, s, s) ``L``.
     """
     s = c.shape[0]
     tau = 1.0 + c * np.asarray(ratio, dtype=np.float64)[..., None]  # (*batch, s)
-    powers = np.vander(tau.ravel(), s, increasing=True)  # (batch * s, s): one 2-D product
-    return (powers @ _lagrange_coefficients(tuple(c))).reshape(*tau.shape, s)
+    powers = tau.reshape(-1, 1) ** np.arange(s)  # (batch * s, s): one 2-D product
+    if coefficients is None:
+        coefficients = lagrange_coefficients(tuple(c))
+    return (powers @ coefficients).reshape(*tau.shape, s)
 
 
 @functools.lru_cache(maxsize=16)
-def _lagrange_coefficients(c: tuple) -> np.ndarray:
+def lagrange_coefficients(c: tuple) -> np.ndarray:
     """``C`` with ``l_j(tau) = sum_q C[q, j] tau^q``: the inverse of the Vandermonde matrix
     ``c_m^q`` of the nodes (``l_j(c_m) = delta_jm``)."""
     return np.linalg.inv(np.vander(np.array(c), len(c), increasing=True))

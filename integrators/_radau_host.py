@@ -30,7 +30,7 @@ import torch
 from scipy.linalg import get_lapack_funcs
 
 from ._irk_core import IRKCore, host_shape, masked_update
-from ._irk_dense import StepRecords
+from ._irk_dense import StepRecords, extrapolation_matrix, lagrange_coefficients
 from ._per_sample import ArrayOps
 from .errors import InputValidationError
 from .radau import embedded_weights
@@ -189,8 +189,8 @@ _any, _pick = ArrayOps.any, ArrayOps.pick
 def _method_constants(core: IRKCore, npdt):
     """The tableau's constants of both host loops: ``gamma e`` of the embedded estimate (see
     :mod:`integrators.radau`) (s,), the error-filter weights (:func:`_filter_weights`), ``A``
-    (s, s), ``b`` (s,), the nodes ``c`` (s,) float64, the Lagrange coefficients of the stage
-    guess (s, s) and the powers ``0..s-1``, the RMS factors ``1/sqrt(n)`` (error) and
+    (s, s), ``b`` (s,), the nodes ``c`` (s,) float64, their Lagrange coefficients (s, s) for
+    :func:`extrapolation_matrix`, the RMS factors ``1/sqrt(n)`` (error) and
     ``1/sqrt(s n)`` (Newton), and the step-size exponent ``1/(s+1)``."""
     n, s = core.system.n, core.s
     gamma, e_np = embedded_weights(core.tab)
@@ -201,8 +201,7 @@ def _method_constants(core: IRKCore, npdt):
         np.array(core.tab.A, dtype=npdt),
         np.array(core.tab.b, dtype=npdt),
         c,
-        np.linalg.inv(np.vander(c, s, increasing=True)),
-        np.arange(s),
+        lagrange_coefficients(tuple(c)),
         1.0 / n**0.5,
         1.0 / (s * n) ** 0.5,
         1.0 / (s + 1),
@@ -259,7 +258,6 @@ class NumpyKernel:
             self.b,
             self.c,
             self.lagrange,
-            self.powers,
             self.rms,
             self.rms_newton,
             _,
@@ -309,8 +307,8 @@ class NumpyKernel:
     def newton(self, live, have_prev, ratio):
         shape, model = live.shape, self.model
         self.sc_x = self.atol + self.rtol * np.abs(self.x)
-        W0 = _stage_guess(self.lagrange, self.powers, self.c, self.prev_W,
-                          have_prev.reshape(-1), ratio.reshape(-1), self.xdot)  # fmt: skip
+        W0 = _stage_guess(self.c, self.lagrange, self.prev_W, have_prev.reshape(-1),
+                          ratio.reshape(-1), self.xdot)  # fmt: skip
         self.W, conv, iters, theta, nonfin = _newton(
             model,
             self.A,
@@ -410,8 +408,7 @@ class OneTrajectoryKernel(NumpyKernel):
         if not live:
             return False, 0, 0.0, False
         if have_prev:  # previous stage polynomial at the new nodes 1 + c_i h / h_prev
-            tau = 1.0 + self.c * ratio
-            W = ((tau[:, None] ** self.powers) @ self.lagrange) @ self.prev_W
+            W = extrapolation_matrix(self.c, ratio, self.lagrange) @ self.prev_W
         else:
             W = np.repeat(self.xdot[:, None, :], self.core.s, axis=1)
         self.W, conv, iters, theta, nonfin = _newton_one(
@@ -514,17 +511,14 @@ def _factorize(A, filt, G, h):
     return out, inv_r, sing
 
 
-def _stage_guess(lagrange, powers, c, prev_W, have_prev, ratio, xdot):
+def _stage_guess(c, lagrange, prev_W, have_prev, ratio, xdot):
     """Newton start (B, s, n): the previous step's stage polynomial ``sum_j W_j l_j(tau)``
-    at the new nodes ``tau_i = 1 + c_i h_new / h_old`` (as ``extrapolation_matrix``), else
-    ``x'_k`` at every stage. ``lagrange`` (s, s) holds the coefficients of ``l_j``,
-    ``powers`` is ``0..s-1``."""
+    at the new nodes ``tau_i = 1 + c_i h_new / h_old`` (:func:`extrapolation_matrix`), else
+    ``x'_k`` at every stage."""
     s = len(c)
     if not _any(have_prev):
         return np.repeat(xdot[:, None, :], s, axis=1)
-    tau = 1.0 + c * ratio[:, None].astype(np.float64, copy=False)  # (B, s)
-    L = (tau[:, :, None] ** powers) @ lagrange  # L[b, i, j] = l_j(tau_bi)
-    ext = (L @ prev_W).astype(prev_W.dtype, copy=False)
+    ext = (extrapolation_matrix(c, ratio, lagrange) @ prev_W).astype(prev_W.dtype, copy=False)
     if _all(have_prev):
         return ext
     return _pick(have_prev, ext, np.repeat(xdot[:, None, :], s, axis=1))
