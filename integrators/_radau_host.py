@@ -385,6 +385,7 @@ class OneTrajectoryKernel(NumpyKernel):
         super().__init__(core, x0, z0, xdot0, t, rtol, atol, newton_tol, max_iter)
         self.A_kron = np.kron(self.A, np.eye(core.system.n))
         self.accept_mask = np.ones(1, dtype=bool)
+        self.powers = np.arange(core.s)
 
     def begin_step(self, tcur, h):
         self.h = h
@@ -408,7 +409,10 @@ class OneTrajectoryKernel(NumpyKernel):
         if not live:
             return False, 0, 0.0, False
         if have_prev:  # previous stage polynomial at the new nodes 1 + c_i h / h_prev
-            W = extrapolation_matrix(self.c, ratio, self.lagrange) @ self.prev_W
+            # extrapolation_matrix(c, ratio) written for one float ratio: per-array overhead
+            # dominates at this size, and the step loop runs it every step
+            tau = 1.0 + self.c * ratio
+            W = ((tau[:, None] ** self.powers) @ self.lagrange) @ self.prev_W
         else:
             W = np.repeat(self.xdot[:, None, :], self.core.s, axis=1)
         self.W, conv, iters, theta, nonfin = _newton_one(
