@@ -281,7 +281,7 @@ def test_lagrange_polynomials_orthogonal_only_for_gauss_type_nodes():
         (radau_iia(4).c, True),
         (np.array([0.0, 1 / 3, 2 / 3, 1.0]), False),
     ]:
-        basis = lagrange_basis(torch.as_tensor(nodes), torch.as_tensor(xi)).numpy()
+        basis = lagrange_basis(torch.tensor(nodes), torch.tensor(xi)).numpy()
         gram = basis.T @ (w[:, None] * basis)
         off = gram - np.diag(np.diag(gram))
         assert (np.abs(off).max() < 1e-14) == orthogonal
