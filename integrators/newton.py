@@ -455,13 +455,12 @@ def newton(
     with torch.no_grad():
         status = torch.full(batch, NewtonStatus.MAX_ITER, dtype=torch.int8, device=dev)
         iterations = torch.zeros(batch, dtype=torch.int64, device=dev)
-        norm = fx.abs().amax(-1)
-        active = torch.ones(batch, dtype=torch.bool, device=dev)
-        nonfinite = ~torch.isfinite(fx).all(-1)
+        norm = fx.abs().amax(-1)  # NaN where fx has a NaN
+        nonfinite = ~torch.isfinite(norm)
         status.masked_fill_(nonfinite, NewtonStatus.NON_FINITE)
         done = norm <= tol
         status.masked_fill_(done, NewtonStatus.CONVERGED)
-        active &= ~(done | nonfinite)
+        active = ~(done | nonfinite)
         norms, steps, history = [norm], [], [x.clone()] if return_history else None
         LU = pivots = None
         frozen_matrix = method == "simplified" or isinstance(jacobian, torch.Tensor)
@@ -470,11 +469,10 @@ def newton(
                 LU, pivots = (f.detach() for f in factorization)
                 LU = LU.to(dtype=x.dtype).expand(*batch, *LU.shape[-2:])
                 pivots = pivots.expand(*batch, pivots.shape[-1])
-                ok = torch.ones(batch, dtype=torch.bool, device=dev)
             else:
                 LU, pivots, ok = factorise(x)
-            status.masked_fill_(active & ~ok, NewtonStatus.SINGULAR)
-            active &= ok
+                status.masked_fill_(active & ~ok, NewtonStatus.SINGULAR)
+                active &= ok
         for _ in range(max_iter):
             if not bool(active.any()):
                 break
