@@ -203,16 +203,22 @@ def _lu_solve(LU, pivots, rhs):
 
 
 def _describe(status, norms, label="residual") -> list[str]:
-    bad = torch.nonzero(status != NewtonStatus.CONVERGED).tolist()
-    lines = []
-    for idx in bad[:_MAX_SHOWN]:
-        code = NewtonStatus(int(status[tuple(idx)]))
-        lines.append(
-            f"sample {tuple(idx) if len(idx) != 1 else idx[0]}: {code.name.lower()}, "
-            f"{label} {float(norms[tuple(idx)]):.3e}"
-        )
-    if len(bad) > _MAX_SHOWN:
-        lines.append(f"... and {len(bad) - _MAX_SHOWN} more")
+    """One line per member that did not converge (the first ``_MAX_SHOWN``), naming its index,
+    its status and its final ``norms`` value; one host transfer for all of them."""
+    failed = status != NewtonStatus.CONVERGED
+    bad = torch.nonzero(failed)
+    if bad.shape[0] == 0:
+        return []
+    shown = bad[:_MAX_SHOWN]
+    codes = status[failed][:_MAX_SHOWN].tolist()
+    values = norms.expand(status.shape)[failed][:_MAX_SHOWN].tolist()
+    lines = [
+        f"sample {tuple(i) if len(i) != 1 else i[0]}: {NewtonStatus(c).name.lower()}, "
+        f"{label} {v:.3e}"
+        for i, c, v in zip(shown.tolist(), codes, values, strict=True)
+    ]
+    if bad.shape[0] > _MAX_SHOWN:
+        lines.append(f"... and {bad.shape[0] - _MAX_SHOWN} more")
     return lines
 
 
