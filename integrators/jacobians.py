@@ -21,9 +21,32 @@ import torch
 
 from .errors import InputValidationError
 
-__all__ = ["batch_jacobian", "jacobian_rows"]
+__all__ = ["batch_jacobian", "gradients", "jacobian_rows"]
 
 STRATEGIES = ("vmap", "rows", "stacked")
+
+
+def gradients(output, inputs, grad_output=None, create_graph=False):
+    """``torch.autograd.grad(output, inputs, grad_output)`` with zeros for every input that
+    ``output`` does not depend on, and for all of them when ``output`` has no graph (the
+    derivative is then identically zero: autograd has nothing to differentiate). The graph of
+    ``output`` is kept. ``inputs``: a tensor (one gradient is returned) or a sequence."""
+    single = isinstance(inputs, torch.Tensor)
+    inputs = (inputs,) if single else tuple(inputs)
+    grads = (None,) * len(inputs)
+    if output.requires_grad:
+        grads = torch.autograd.grad(
+            output,
+            inputs,
+            grad_output,
+            create_graph=create_graph,
+            retain_graph=True,
+            allow_unused=True,
+        )
+    grads = tuple(
+        torch.zeros_like(x) if g is None else g for g, x in zip(grads, inputs, strict=True)
+    )
+    return grads[0] if single else grads
 
 
 def jacobian_rows(
@@ -35,20 +58,12 @@ def jacobian_rows(
     An input ``out`` does not depend on gets zeros. ``create_graph=True`` keeps the result
     differentiable (higher derivatives); the graph of ``out`` is kept either way.
     """
-    if not out.requires_grad:  # out depends on no input
-        return [x.new_zeros(*x.shape[:-1], out.shape[-1], x.shape[-1]) for x in inputs]
-    rows = [[] for _ in inputs]
-    for k in range(out.shape[-1]):
-        grads = torch.autograd.grad(
-            out[..., k].sum(),
-            inputs,
-            create_graph=create_graph,
-            retain_graph=True,
-            allow_unused=True,
-        )
-        for i, g in enumerate(grads):
-            rows[i].append(torch.zeros_like(inputs[i]) if g is None else g)
-    return [torch.stack(r, -2) for r in rows]
+    inputs = tuple(inputs)
+    rows = [
+        gradients(out[..., k].sum(), inputs, create_graph=create_graph)
+        for k in range(out.shape[-1])
+    ]
+    return [torch.stack([r[i] for r in rows], -2) for i in range(len(inputs))]
 
 
 def batch_jacobian(

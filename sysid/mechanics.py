@@ -52,6 +52,7 @@ from integrators.errors import (
     RKIdentWarning,
     SingularMatrixError,
 )
+from integrators.jacobians import gradients
 from integrators.newton import minimize
 
 
@@ -178,30 +179,6 @@ def _nested(method, self, args, kwargs):
         return method(self, *args, **kwargs)
     finally:
         _STATE.depth -= 1
-
-
-def _grad(output, inputs, grad_output=None, create_graph=False):
-    """``torch.autograd.grad(output, inputs, grad_output)`` with zeros for every input that
-    ``output`` does not depend on (positions affine in q, constraints linear in q, a kinetic
-    energy without q, constant force points: the derivative is then identically zero, and
-    autograd has no graph to differentiate). ``inputs``: a tensor or a tuple of tensors."""
-    single = isinstance(inputs, torch.Tensor)
-    inputs = (inputs,) if single else tuple(inputs)
-    if output.requires_grad:
-        grads = torch.autograd.grad(
-            output,
-            inputs,
-            grad_output,
-            create_graph=create_graph,
-            retain_graph=True,
-            allow_unused=True,
-        )
-    else:
-        grads = (None,) * len(inputs)
-    grads = tuple(
-        torch.zeros_like(x) if g is None else g for g, x in zip(grads, inputs, strict=True)
-    )
-    return grads[0] if single else grads
 
 
 def _solve(matrix: torch.Tensor, rhs: torch.Tensor, what: str, strict: bool = False):
@@ -491,8 +468,8 @@ class LagrangianSystem(nn.Module):
             qq = self._leaf(q)
             p = self.positions(qq)
             probe = torch.zeros_like(p, requires_grad=True)
-            jt_probe = _grad(p, qq, probe, create_graph=True)
-            pdot = _grad(jt_probe, probe, qdot, create_graph=True)
+            jt_probe = gradients(p, qq, probe, create_graph=True)
+            pdot = gradients(jt_probe, probe, qdot, create_graph=True)
         return pdot
 
     @_local_graph
@@ -534,7 +511,7 @@ class LagrangianSystem(nn.Module):
             with torch.enable_grad():
                 qq = self._leaf(q.expand(*batch, q.shape[-1]))
                 points = self.force_points(qq)
-                q_force = _grad(
+                q_force = gradients(
                     points, qq, forces.expand_as(points), create_graph=create
                 )  # per-sample J^T F: the points of different samples are independent
             q_force = q_force if create else q_force.detach()
@@ -572,10 +549,10 @@ class LagrangianSystem(nn.Module):
         with torch.enable_grad():
             qq, qdd = self._leaf(q), self._leaf(qdot)
             lag = self.lagrangian(qq, qdd).sum()
-            grad_l, momentum = _grad(lag, (qq, qdd), create_graph=True)
+            grad_l, momentum = gradients(lag, (qq, qdd), create_graph=True)
             rows, convective = [], []
             for j in range(n):
-                d_q, d_qd = _grad(momentum[..., j].sum(), (qq, qdd), create_graph=create)
+                d_q, d_qd = gradients(momentum[..., j].sum(), (qq, qdd), create_graph=create)
                 rows.append(d_qd)
                 convective.append((d_q * qdot).sum(-1))
         mass, convective = torch.stack(rows, -2), torch.stack(convective, -1)
@@ -603,15 +580,16 @@ class LagrangianSystem(nn.Module):
             p = self.positions(qq)
             flat = p.reshape(*p.shape[:-2], -1)
             probe = torch.zeros_like(flat, requires_grad=True)
-            jt_probe = _grad(flat, qq, probe, create_graph=True)
+            jt_probe = gradients(flat, qq, probe, create_graph=True)
             eye = torch.eye(n, dtype=q.dtype, device=q.device)
             columns = [
-                _grad(jt_probe, probe, eye[j].expand_as(q), create_graph=create) for j in range(n)
+                gradients(jt_probe, probe, eye[j].expand_as(q), create_graph=create)
+                for j in range(n)
             ]
-            pdot = _grad(jt_probe, probe, qdot, create_graph=True)
+            pdot = gradients(jt_probe, probe, qdot, create_graph=True)
             probe2 = torch.zeros_like(pdot, requires_grad=True)
-            jt2 = _grad(pdot, qq, probe2, create_graph=True)
-            accel = _grad(jt2, probe2, qdot, create_graph=create)
+            jt2 = gradients(pdot, qq, probe2, create_graph=True)
+            accel = gradients(jt2, probe2, qdot, create_graph=create)
         jac = torch.stack(columns, -1)  # (*batch, n_p * D, nq)
         masses = self._masses_of(p, q)
         dim = p.shape[-1]
@@ -628,7 +606,7 @@ class LagrangianSystem(nn.Module):
         with torch.enable_grad():
             qq = self._leaf(q)
             v = self.potential_energy(qq)
-            g = _grad(v, qq, torch.ones_like(v), create_graph=create)
+            g = gradients(v, qq, torch.ones_like(v), create_graph=create)
         return g if create else g.detach()
 
     @_local_graph
@@ -682,9 +660,9 @@ class LagrangianSystem(nn.Module):
             c = self.constraints(qq)
             rows, curvature = [], []
             for i in range(c.shape[-1]):
-                a_i = _grad(c[..., i].sum(), qq, create_graph=True)
+                a_i = gradients(c[..., i].sum(), qq, create_graph=True)
                 cdot_i = (a_i * qdot).sum(-1)
-                d_q = _grad(cdot_i.sum(), qq, create_graph=create)
+                d_q = gradients(cdot_i.sum(), qq, create_graph=create)
                 rows.append(a_i)
                 curvature.append((d_q * qdot).sum(-1))
             a = torch.stack(rows, -2)

@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from integrators import InputValidationError, batch_jacobian, jacobian_rows
+from integrators.jacobians import gradients
 
 F64 = torch.float64
 
@@ -92,3 +93,18 @@ def test_jacobian_rows_several_inputs_unused_inputs_and_second_derivatives():
     # an output that depends on no input: zeros of the right shapes
     (z,) = jacobian_rows(torch.ones(2, 3, dtype=F64), (x,))
     assert z.shape == (2, 3, 2) and not z.any()
+
+
+def test_gradients_fill_zeros_and_keep_the_graph():
+    """A vector-Jacobian product with zeros for unused inputs and for an output without a
+    graph; one tensor in, one gradient out; the graph stays for a second call."""
+    x = torch.tensor([1.0, 2.0], dtype=F64, requires_grad=True)
+    unused = torch.ones(3, dtype=F64, requires_grad=True)
+    y = x**2
+    gx, gu = gradients(y, (x, unused), torch.tensor([1.0, -1.0], dtype=F64))
+    torch.testing.assert_close(gx, torch.tensor([2.0, -4.0], dtype=F64))
+    assert torch.equal(gu, torch.zeros(3, dtype=F64))
+    again = gradients(y.sum(), x)  # the graph of y is still there
+    assert isinstance(again, torch.Tensor)
+    torch.testing.assert_close(again, 2 * x.detach())
+    assert torch.equal(gradients(torch.ones(2, dtype=F64).sum(), x), torch.zeros(2, dtype=F64))
