@@ -10,7 +10,11 @@ backward passes give all ``*batch`` Jacobians at once. Three ways to run them:
 * ``"rows"``: ``m`` backward passes, one per output component (any differentiable map);
 * ``"stacked"``: one forward and one backward pass on ``m`` stacked copies of ``x`` (the copy
   index a leading batch dimension, the unit vectors its output cotangents); the map must
-  broadcast over that extra leading dimension.
+  broadcast over that extra leading dimension;
+* ``"forward"``: one forward-mode pass on ``n`` stacked copies of ``x`` carrying the unit
+  tangents (columns instead of rows: the choice when ``m`` is much larger than ``n``, e.g.
+  residuals of a long record against a few parameters); the map must broadcast over the
+  copies and support forward-mode autograd.
 """
 
 from __future__ import annotations
@@ -18,12 +22,13 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 import torch
+import torch.autograd.forward_ad as fwAD
 
 from .errors import InputValidationError
 
 __all__ = ["batch_jacobian", "gradients", "jacobian_rows"]
 
-STRATEGIES = ("vmap", "rows", "stacked")
+STRATEGIES = ("vmap", "rows", "stacked", "forward")
 
 
 def gradients(output, inputs, grad_output=None, create_graph=False):
@@ -71,9 +76,10 @@ def batch_jacobian(
 ):
     """Batched Jacobian of a sample-wise ``fn(x, *args) -> (*batch, m)`` w.r.t. ``x`` (*batch, n).
 
-    ``strategy``: ``"vmap"``, ``"rows"`` or ``"stacked"`` (module docstring). ``outputs``: ``m``
-    where the caller knows it ("stacked" otherwise evaluates ``fn`` once more to learn it). An
-    output without batch dimensions (a map that ignores ``x``'s batch) is broadcast to it.
+    ``strategy``: ``"vmap"``, ``"rows"``, ``"stacked"`` or ``"forward"`` (module docstring).
+    ``outputs``: ``m`` where the caller knows it ("stacked" otherwise evaluates ``fn`` once
+    more to learn it). An output without batch dimensions (a map that ignores ``x``'s batch)
+    is broadcast to it.
 
     Returns:
         ``(y, J)`` detached: ``y = fn(x, *args)`` (*batch, m) and ``J`` (*batch, m, n).
@@ -86,6 +92,8 @@ def batch_jacobian(
     with torch.enable_grad():
         if strategy == "stacked":
             return _stacked(fn, x, args, outputs)
+        if strategy == "forward":
+            return _forward(fn, x, args)
         xg = x.detach().requires_grad_(True)
         y = fn(xg, *args)
         y = y.expand(*batch, y.shape[-1])
@@ -121,3 +129,18 @@ def _stacked(fn, x, args, m):
     (g,) = torch.autograd.grad(ys, xg, basis.expand(m, *batch, m), allow_unused=True)
     J = x.new_zeros(*batch, m, n) if g is None else g.movedim(0, -2)
     return ys[0].detach(), J.detach()
+
+
+def _forward(fn, x, args):
+    """``batch_jacobian`` by one forward-mode pass on ``n`` stacked copies of ``x`` whose
+    tangents are the unit vectors (copy ``j`` carries column ``j``)."""
+    batch, n = x.shape[:-1], x.shape[-1]
+    eye = torch.eye(n, dtype=x.dtype, device=x.device)
+    # materialised: forward-mode duals of broadcast views (stride 0) are not supported
+    tangent = eye.reshape(n, *([1] * len(batch)), n).expand(n, *x.shape).clone()
+    primal = x.detach().expand(n, *x.shape).clone()
+    with fwAD.dual_level():
+        y, columns = fwAD.unpack_dual(fn(fwAD.make_dual(primal, tangent), *args))
+    y = y.expand(n, *batch, y.shape[-1])
+    J = torch.zeros_like(y) if columns is None else columns.expand_as(y)
+    return y[0].detach(), J.movedim(0, -1).detach()

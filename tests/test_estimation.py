@@ -18,11 +18,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from integrators.errors import InputValidationError
+from integrators.jacobians import batch_jacobian
 from integrators.newton import minimize
 from sysid.data import IOData
 from sysid.errors import PoorExcitationWarning
 from sysid.estimation import fit, uniform_noise_mle_set
-from sysid.estimation.prediction_error import _jacobian, _OutputError
+from sysid.estimation.prediction_error import _OutputError
 from sysid.filters import iir_filter
 from sysid.models import ARMAX, ARX, BJ, FIR, OE
 from sysid.montecarlo import input_signal, simulate_data, summarize_estimates
@@ -224,7 +225,7 @@ def test_jacobian_matches_finite_differences():
         return model.prediction_errors(data, theta=t)[..., 0]
 
     theta = th.expand(2, -1).clone() + 0.01
-    r, J = _jacobian(res_fn, theta)
+    r, J = batch_jacobian(res_fn, theta, strategy="forward")
     h = 1e-6
     for j in range(len(th)):
         dt = torch.zeros_like(theta)
@@ -262,7 +263,7 @@ def test_output_error_jacobian_by_filtering_matches_finite_differences_and_autog
     torch.testing.assert_close(r, res_fn(th), rtol=0, atol=0)
     r2, J2 = _OutputError(model, data, sw).linearise(th + 0)  # computed afresh
     torch.testing.assert_close((r2, J2), (r, J), rtol=0, atol=0)
-    r_ad, J_ad = _jacobian(res_fn, th)
+    r_ad, J_ad = batch_jacobian(res_fn, th, strategy="forward")
     torch.testing.assert_close(J, J_ad, rtol=1e-10, atol=1e-12)
     h = 1e-6
     for j in range(th.shape[-1]):  # loop over parameters (finite differences)
@@ -299,7 +300,7 @@ def test_oe_fit_with_filtered_jacobian_equals_autograd_jacobian_fit():
         residual_fn,
         theta0,
         method="levenberg_marquardt",
-        jacobian=lambda t: _jacobian(residual_fn, t),
+        jacobian=lambda t: batch_jacobian(residual_fn, t, strategy="forward"),
         admissible=stable,
         xtol=1e-8,
     )

@@ -1,4 +1,4 @@
-"""Jacobians of sample-wise maps (integrators.jacobians): the three strategies of
+"""Jacobians of sample-wise maps (integrators.jacobians): the four strategies of
 ``batch_jacobian`` against each other, a closed form and central differences; ``jacobian_rows``
 with several inputs, unused inputs and a differentiable result."""
 
@@ -44,7 +44,7 @@ def test_strategies_agree_with_the_closed_form_and_differences(m, n, batch, seed
     x = torch.randn(*batch, n, generator=g, dtype=F64)
     fn = _map(weights, bias)
     truth = _closed_form(weights, bias, x)
-    for strategy in ("vmap", "rows", "stacked"):
+    for strategy in ("vmap", "rows", "stacked", "forward"):
         y, J = batch_jacobian(fn, x, strategy=strategy)
         assert not J.requires_grad and not y.requires_grad
         torch.testing.assert_close(y, fn(x), rtol=1e-14, atol=1e-15)  # stacked: a GEMM
@@ -62,7 +62,7 @@ def test_maps_that_ignore_x_or_its_batch():
     """A constant without batch dimensions is broadcast to the batch, with zero Jacobians; a
     map of part of x has zero columns for the rest."""
     x = torch.randn(3, 2, dtype=F64)
-    for strategy in ("vmap", "rows", "stacked"):
+    for strategy in ("vmap", "rows", "stacked", "forward"):
         y, J = batch_jacobian(lambda z: torch.ones(2, dtype=F64), x, strategy=strategy)
         assert y.shape == (3, 2) and torch.equal(J, torch.zeros(3, 2, 2, dtype=F64))
         y, J = batch_jacobian(lambda z: 3.0 * z[..., 1:], x, strategy=strategy)
@@ -70,8 +70,8 @@ def test_maps_that_ignore_x_or_its_batch():
 
 
 def test_unknown_strategy_is_refused_by_name():
-    with pytest.raises(InputValidationError, match="unknown strategy 'forward'"):
-        batch_jacobian(torch.sin, torch.zeros(2, 1), strategy="forward")
+    with pytest.raises(InputValidationError, match="unknown strategy 'jvp'"):
+        batch_jacobian(torch.sin, torch.zeros(2, 1), strategy="jvp")
 
 
 def test_jacobian_rows_several_inputs_unused_inputs_and_second_derivatives():

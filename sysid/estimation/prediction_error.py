@@ -16,14 +16,15 @@ to its residuals; linear-in-theta models use the regression form.
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 
 import torch
-import torch.autograd.forward_ad as fwAD
 import torch.nn.functional as F
 
 from integrators.errors import InputValidationError
+from integrators.jacobians import batch_jacobian
 from integrators.newton import NewtonStatus, minimize
 
 from ..data import IOData
@@ -50,25 +51,6 @@ def _max_root_modulus(theta: torch.Tensor, blocks: list[list[int]]) -> torch.Ten
             comp[..., k + 1, k] = 1.0
         out = torch.maximum(out, torch.linalg.eigvals(comp).abs().amax(dim=-1))
     return out
-
-
-def _jacobian(residual_fn, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Residuals ``(*batch, M)`` and Jacobian ``(*batch, M, p)`` by forward-mode autograd.
-
-    The ``p`` tangent directions are stacked as a leading batch dimension, so one dual pass
-    through the (batched) model gives every column; batch members never mix.
-    """
-    p = theta.shape[-1]
-    eye = torch.eye(p, dtype=theta.dtype, device=theta.device)
-    tangent = eye.reshape(p, *([1] * (theta.dim() - 1)), p).expand(p, *theta.shape).clone()
-    primal = theta.detach().unsqueeze(0).expand(p, *theta.shape).clone()
-    with fwAD.dual_level():
-        out = residual_fn(fwAD.make_dual(primal, tangent))
-        unpacked = fwAD.unpack_dual(out)
-        r, jt = unpacked.primal, unpacked.tangent
-    if jt is None:
-        jt = torch.zeros_like(r)
-    return r[0].detach(), jt.movedim(0, -1).detach()
 
 
 class _OutputError:
@@ -216,7 +198,10 @@ def _fit_iterative(
             f"the initial model gives an unstable predictor at batch index {idx}; start from a "
             "stable model (e.g. init=None for the automatic start)."
         )
-    linearise = jacobian_fn if jacobian_fn is not None else (lambda th: _jacobian(residual_fn, th))
+    if jacobian_fn is not None:
+        linearise = jacobian_fn
+    else:  # residuals (M entries) against a few parameters: columns by forward mode
+        linearise = functools.partial(batch_jacobian, residual_fn, strategy="forward")
     gauss = GaussianLoss()
     lm = _minimize_criterion(
         residual_fn, theta0, gauss, linearise, admissible, max_iter, xtol, ftol
