@@ -95,8 +95,7 @@ def batch_jacobian(
         if strategy == "forward":
             return _forward(fn, x, args)
         xg = x.detach().requires_grad_(True)
-        y = fn(xg, *args)
-        y = y.expand(*batch, y.shape[-1])
+        y = _batch_shaped(fn(xg, *args), batch)
         if not y.requires_grad:  # fn does not depend on x
             return y.detach(), y.new_zeros(*y.shape, n)
         if strategy == "vmap":
@@ -114,6 +113,20 @@ def batch_jacobian(
                 return y.detach(), J.movedim(0, -2).detach()
         (J,) = jacobian_rows(y, (xg,))
     return y.detach(), J.detach()
+
+
+def _batch_shaped(y: torch.Tensor, batch: torch.Size) -> torch.Tensor:
+    """``y`` (*batch, m), broadcast from fewer batch dimensions; a larger batch (the map mixes
+    in a batch of its own, e.g. batched parameters) is refused: the members would not be
+    independent."""
+    try:
+        return y.expand(*batch, y.shape[-1])
+    except RuntimeError:
+        raise InputValidationError(
+            f"batch_jacobian: fn returned shape {tuple(y.shape)} for x of batch shape "
+            f"{tuple(batch)}; the output's batch dimensions must be x's (expand x to the "
+            "batch of the map's parameters first)."
+        ) from None
 
 
 def _stacked(fn, x, args, m):
