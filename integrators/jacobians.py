@@ -1,9 +1,10 @@
-"""Jacobians of sample-wise maps by reverse-mode autograd.
+"""Jacobians of sample-wise maps by autograd.
 
 A sample-wise map sends a batch ``x`` (*batch, n) to ``y`` (*batch, m) with output member ``i``
 depending only on input member ``i`` (model right-hand sides, residuals, stage equations).
 The gradient of ``sum_batch y[..., k]`` is then row ``k`` of every member's Jacobian, so ``m``
-backward passes give all ``*batch`` Jacobians at once. Three ways to run them:
+backward passes give all ``*batch`` Jacobians at once (and ``n`` forward-mode passes give
+their columns). The strategies of :func:`batch_jacobian`:
 
 * ``"vmap"``: the ``m`` backward passes as one vmapped pass (``is_grads_batched``); an operation
   without a batching rule falls back to ``"rows"``;
