@@ -136,7 +136,7 @@ def _stacked(fn, x, args, m):
     if m is None:
         m = fn(x.detach(), *args).shape[-1]
     xg = x.detach().expand(m, *batch, n).requires_grad_(True)
-    ys = fn(xg, *args).expand(m, *batch, m)
+    ys = _batch_shaped(fn(xg, *args), torch.Size((m, *batch)))
     if not ys.requires_grad:
         return ys[0].detach(), x.new_zeros(*batch, m, n)
     basis = torch.eye(m, dtype=ys.dtype, device=ys.device).reshape(m, *([1] * len(batch)), m)
@@ -155,6 +155,6 @@ def _forward(fn, x, args):
     primal = x.detach().expand(n, *x.shape).clone()
     with fwAD.dual_level():
         y, columns = fwAD.unpack_dual(fn(fwAD.make_dual(primal, tangent), *args))
-    y = y.expand(n, *batch, y.shape[-1])
+    y = _batch_shaped(y, torch.Size((n, *batch)))
     J = torch.zeros_like(y) if columns is None else columns.expand_as(y)
     return y[0].detach(), J.movedim(0, -1).detach()

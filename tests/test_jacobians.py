@@ -113,7 +113,8 @@ def test_gradients_fill_zeros_and_keep_the_graph():
 def test_an_output_with_a_batch_of_its_own_is_refused_by_name():
     """A map whose parameters carry a batch that x lacks would sum the members' Jacobians."""
     rates = torch.tensor([[1.0], [2.0], [3.0]], dtype=F64)
-    with pytest.raises(InputValidationError, match="batch dimensions must be x's"):
-        batch_jacobian(lambda z: rates * z, torch.ones(1, dtype=F64))
+    for strategy in ("vmap", "rows", "stacked", "forward"):
+        with pytest.raises(InputValidationError, match="batch dimensions must be x's"):
+            batch_jacobian(lambda z: rates * z, torch.ones(1, dtype=F64), strategy=strategy)
     _, J = batch_jacobian(lambda z: rates * z, torch.ones(3, 1, dtype=F64))
     torch.testing.assert_close(J, rates[:, :, None])
