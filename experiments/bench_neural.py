@@ -21,10 +21,10 @@ of epochs (ours and ``odeint`` compute the same numbers, so they agree to roundi
 adjoint's gradient is that of the discretised adjoint, close but not equal). Memory of one
 long-horizon gradient (a single window of ``long`` intervals): the bytes autograd saves for
 the backward pass during the forward simulation (a ``saved_tensors_hooks`` count: exact and
-device-independent on CPU; the adjoint saves almost nothing in the forward pass and
-re-integrates backwards instead), and on CUDA ``torch.cuda.max_memory_allocated``.
+device-independent; the adjoint saves almost nothing in the forward pass and re-integrates
+backwards instead).
 
-Timings: wall clock, torch on one thread.
+Timings: wall clock, on the CPU, torch on one thread.
 
 Run: ``python -m experiments.bench_neural [--quick] [--out DIR]``.
 """
@@ -152,8 +152,7 @@ def train(peer, data, hidden, epochs, T):
 
 
 def saved_bytes(peer, data, hidden, n):
-    """Bytes saved for backward during the forward pass of one window of n intervals, and
-    on CUDA the peak allocation of the whole gradient."""
+    """Bytes saved for backward during the forward pass of one window of n intervals."""
     f = MLP(hidden)
     t = DT * torch.arange(n + 1, dtype=torch.float64)
     seen = {"bytes": 0}
