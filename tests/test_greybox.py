@@ -76,6 +76,14 @@ JACOBIAN_MODELS = {
     "lagrangian": lambda: GreyBoxModel(
         SpringMassDamper(), bounded(m=1.2, xi=0.4, K=3.0), output=["y"], substeps=2
     ),
+    # the same through the implicit stage equations (Newton with autograd inside f)
+    "lagrangian_irk": lambda: GreyBoxModel(
+        SpringMassDamper(),
+        bounded(m=1.2, xi=0.4, K=3.0),
+        output=["y"],
+        substeps=2,
+        method="radau_iia",
+    ),
 }
 
 
