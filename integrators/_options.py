@@ -140,3 +140,108 @@ def raise_shape_change(out, x: torch.Tensor, t) -> None:
         f"{tuple(x.shape)} in an evaluation at {when} (it returned the state's shape at t0): "
         "f(t, x) must return dx/dt of the shape of x at every call."
     )
+
+
+def first_nonfinite(value: torch.Tensor) -> tuple[int, ...] | None:
+    """Index of the first non-finite entry of ``value`` (row-major order), or None.
+
+    One reduction when every entry is finite (a finite sum; an overflowing one falls through to
+    the entry-wise test), the entry-wise search only on failure.
+    """
+    value = value.detach()
+    if bool(torch.isfinite(value.sum())):
+        return None
+    bad = ~torch.isfinite(value)
+    if not bool(bad.any()):
+        return None
+    return tuple(torch.nonzero(bad)[0].tolist())
+
+
+def check_finite(
+    value: torch.Tensor,
+    label: str,
+    time_dim: int | None = None,
+    advice: str = "clean or interpolate the data before simulating",
+) -> None:
+    """Raise InputValidationError naming the first non-finite entry of ``value``.
+
+    Args:
+        value: tensor to check.
+        label: name used in the message.
+        time_dim: the dimension that is the time axis (named as "time index"), if any; the
+            leading dimensions are then named as the sample index, the last as the channel.
+        advice: what the user should do, ending the message.
+    """
+    first = first_nonfinite(value)
+    if first is None:
+        return
+    where = f"at index {first}"
+    if time_dim is not None and value.dim() >= 2:
+        tdim = time_dim % value.dim()
+        batch = first[:tdim]
+        where = f"at time index {first[tdim]}" + (f", sample index {batch}" if batch else "")
+        where += f", channel {first[-1]}" if tdim != value.dim() - 1 else ""
+    raise InputValidationError(
+        f"{label} contains a non-finite value ({value.detach()[first].item()}) {where}; {advice}."
+    )
+
+
+def check_state(
+    x, label: str = "x0", *, dtype=None, device=None, min_width: int = 1
+) -> torch.Tensor:
+    """A state tensor ``(*batch, n)`` of real floating point, finite, ``n >= min_width``.
+
+    Numbers and sequences become tensors of ``dtype`` (float64 when None) on ``device``;
+    integer tensors are converted to float64. Complex and boolean values, dtypes other than
+    float32 / float64 (:func:`check_state_dtype`), a scalar, a last dimension narrower than
+    ``min_width`` and non-finite entries raise InputValidationError naming ``label``.
+    """
+    if not isinstance(x, torch.Tensor):
+        try:
+            x = torch.as_tensor(x, dtype=dtype or torch.float64, device=device)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise InputValidationError(f"{label} is not numeric: {exc}") from exc
+    if x.is_complex() or x.dtype == torch.bool:
+        raise InputValidationError(f"{label} must be real floating point, got dtype {x.dtype}.")
+    if not x.is_floating_point():
+        x = x.to(torch.float64)
+    check_state_dtype(x.dtype, label)
+    if x.dim() == 0 or x.shape[-1] < min_width:
+        raise InputValidationError(
+            f"{label} must have shape (*batch, n) with n >= {min_width}, got shape "
+            f"{tuple(x.shape)}; for a scalar state use shape (1,) or (batch, 1)."
+        )
+    first = first_nonfinite(x)
+    if first is not None:
+        sample = first[:-1] if len(first) > 1 else "(unbatched)"
+        raise InputValidationError(
+            f"{label} contains a non-finite value at sample index {sample}, state {first[-1]}."
+        )
+    return x
+
+
+def check_times(t, like: torch.Tensor) -> torch.Tensor:
+    """Output times: a finite, strictly increasing ``(T,)`` tensor, ``T >= 2``, in ``like``'s
+    dtype and device (a tensor keeps its graph; :func:`refuse_time_gradient` decides whether
+    that is allowed)."""
+    if isinstance(t, torch.Tensor):
+        t = t.to(dtype=like.dtype, device=like.device)
+    else:
+        try:
+            t = torch.as_tensor(t, dtype=like.dtype, device=like.device)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise InputValidationError(f"t is not numeric: {exc}") from exc
+    if t.dim() != 1 or t.shape[0] < 2:
+        raise InputValidationError(
+            f"t must be a 1-D tensor of T >= 2 output times, got shape {tuple(t.shape)}."
+        )
+    check_finite(t, "t", advice="output times must be finite")
+    steps = (t[1:] - t[:-1]).detach()
+    if bool((steps <= 0).any()):
+        k = int(torch.nonzero(steps <= 0)[0])
+        raise InputValidationError(
+            f"t must be strictly increasing, but t[{k + 1}] = {float(t[k + 1])} <= t[{k}] = "
+            f"{float(t[k])}. To integrate backwards in time, substitute s = -t "
+            "(x'(s) = -f(-s, x))."
+        )
+    return t

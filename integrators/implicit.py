@@ -26,6 +26,8 @@ differentiated.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 from ._irk_core import EPS, InputSignal, IRKCore
@@ -36,7 +38,8 @@ from ._options import (
     check_flag,
     check_int,
     check_positive,
-    check_state_dtype,
+    check_state,
+    check_times,
     check_tolerances,
     raise_shape_change,
     refuse_time_gradient,
@@ -75,36 +78,6 @@ def _implicit_tableau(method, stages, adaptive) -> tuple[ButcherTableau, bool]:
     return tab, kind == IMPLICIT_ADAPTIVE
 
 
-def _validate_state(x, label, dtype=None, device=None):
-    if not isinstance(x, torch.Tensor):
-        x = torch.as_tensor(x, dtype=dtype or torch.get_default_dtype(), device=device)
-    if not x.is_floating_point():
-        x = x.to(torch.get_default_dtype())
-    check_state_dtype(x.dtype, label)
-    if x.dim() < 1:
-        raise InputValidationError(f"{label} must have shape (*batch, n), got a scalar.")
-    bad = ~torch.isfinite(x.detach())
-    if bool(bad.any()):
-        first = tuple(torch.nonzero(bad)[0].tolist())
-        raise InputValidationError(f"{label} contains inf/nan at index {first}.")
-    return x
-
-
-def _validate_time(t, like: torch.Tensor) -> torch.Tensor:
-    t = torch.as_tensor(t, dtype=like.dtype, device=like.device).detach()
-    if t.dim() != 1 or t.shape[0] < 2:
-        raise InputValidationError(
-            f"t must be a 1-D tensor of at least 2 increasing output times, got shape "
-            f"{tuple(t.shape)}."
-        )
-    if not bool(torch.isfinite(t).all()) or not bool((t[1:] > t[:-1]).all()):
-        k = int(torch.nonzero(~(t[1:] > t[:-1]))[0]) if bool((t[1:] <= t[:-1]).any()) else 0
-        raise InputValidationError(
-            f"t must be finite and strictly increasing; check t[{k}] and t[{k + 1}]."
-        )
-    return t
-
-
 def _split_options(options: dict, adaptive: bool) -> dict:
     """Check the solver options (``**newton_options``) of an integration with or without
     step-size control (``adaptive``) and return them."""
@@ -139,12 +112,34 @@ def _split_options(options: dict, adaptive: bool) -> dict:
     return options
 
 
-def _check_run_options(t, rtol, atol, substeps, max_steps, dtype, method_name) -> None:
-    """The options shared by :func:`solve_implicit_ode` and :func:`daeint`."""
-    check_tolerances(rtol, atol, dtype)
-    check_int(substeps, "substeps")
-    check_int(max_steps, "max_steps")
-    refuse_time_gradient(t, method_name)
+@dataclass(frozen=True)
+class _Settings:
+    """The checked options of one implicit integration (:func:`_entry`)."""
+
+    tab: ButcherTableau
+    adaptive: bool
+    rtol: object
+    atol: object
+    substeps: int
+    max_steps: int
+    controller: object
+    options: dict
+
+
+def _entry(x0, t, method, stages, adaptive, controller, newton_options, run, min_width=1):
+    """The entry checks shared by :func:`solve_implicit_ode` and :func:`daeint`: the state
+    (:func:`check_state`), the method, the controller, the solver options, ``run`` (``rtol``,
+    ``atol``, ``substeps``, ``max_steps``) and the output times; returns ``(x0, t, settings)``."""
+    x0 = check_state(x0, "x0", min_width=min_width)
+    tab, adaptive = _implicit_tableau(method, stages, adaptive)
+    check_controller(controller, tab.name, adaptive)
+    options = _split_options(newton_options, adaptive)
+    check_tolerances(run["rtol"], run["atol"], x0.dtype)
+    check_int(run["substeps"], "substeps")
+    check_int(run["max_steps"], "max_steps")
+    refuse_time_gradient(t, tab.name)
+    t = check_times(t, x0).detach()
+    return x0, t, _Settings(tab, adaptive, controller=controller, options=options, **run)
 
 
 def _empty_solution(x0, z0, t, method_name, with_z) -> Solution:
@@ -171,24 +166,11 @@ def newton_tolerance(rtol: float, dtype, override=None) -> float:
     return max(10.0 * eps / rtol, min(0.03, rtol**0.5))
 
 
-def _run(
-    core,
-    x0,
-    z0,
-    xdot0,
-    t,
-    *,
-    adaptive,
-    rtol,
-    atol,
-    substeps,
-    max_steps,
-    options,
-    controller,
-    extra,
-    messages,
-    method_name,
-):
+def _run(core, settings: _Settings, x0, z0, xdot0, t, extra: dict, messages: list):
+    """Integrate from the consistent start ``(x0, z0, xdot0)`` with the adaptive loop and the
+    kernel :func:`integrators._radau_host.use_host_loop` picks, or at fixed steps."""
+    adaptive, rtol, atol = settings.adaptive, settings.rtol, settings.atol
+    options, controller = settings.options, settings.controller
     max_iter = int(options.get("max_iter", 7 if adaptive else 15))
     tol = newton_tolerance(rtol, x0.dtype, options.get("newton_tol"))
     index_tol = float(options.get("index_tol", 1e-10))
@@ -223,7 +205,7 @@ def _run(
             t,
             rtol=rtol,
             atol=atol,
-            max_steps=max_steps,
+            max_steps=settings.max_steps,
             max_iter=max_iter,
             index_check_every=every,
             dt0=options.get("dt0"),
@@ -236,7 +218,7 @@ def _run(
             z0,
             xdot0,
             t,
-            substeps=int(substeps),
+            substeps=settings.substeps,
             rtol=rtol,
             atol=atol,
             max_iter=max_iter,
@@ -269,7 +251,7 @@ def _run(
         stats=stats,
         z=out["z"] if core.system.m else None,
         messages=messages + out["messages"],
-        method=method_name,
+        method=settings.tab.name,
         interpolant=None if records is None else (lambda tq: records.evaluate(tq)[0]),
     )
 
@@ -339,12 +321,9 @@ def solve_implicit_ode(
             ``t`` requiring grad (output times are not differentiated); during the run, a
             model output whose shape differs from the state's.
     """
-    x0 = _validate_state(x0, "x0")
-    tab, adaptive = _implicit_tableau(method, stages, adaptive)
-    check_controller(controller, tab.name, adaptive)
-    options = _split_options(newton_options, adaptive)
-    _check_run_options(t, rtol, atol, substeps, max_steps, x0.dtype, tab.name)
-    t = _validate_time(t, x0)
+    run = dict(rtol=rtol, atol=atol, substeps=substeps, max_steps=max_steps)
+    x0, t, settings = _entry(x0, t, method, stages, adaptive, controller, newton_options, run)
+    tab, adaptive, options = settings.tab, settings.adaptive, settings.options
     kind = getattr(rhs, "kind", None)
     if kind is not None and hasattr(rhs, "f"):
         fn, has_input, signal = rhs.f, kind != "none", InputSignal(rhs)
@@ -359,23 +338,7 @@ def solve_implicit_ode(
     _check_derivative_shape(xdot0, x0)
     if x0.shape[:-1].numel() == 0:
         return _empty_solution(x0, z0, t, tab.name, with_z=False)
-    return _run(
-        core,
-        x0,
-        z0,
-        xdot0,
-        t,
-        adaptive=adaptive,
-        rtol=rtol,
-        atol=atol,
-        substeps=substeps,
-        max_steps=max_steps,
-        options=options,
-        controller=controller,
-        extra={},
-        messages=[],
-        method_name=tab.name,
-    )
+    return _run(core, settings, x0, z0, xdot0, t, extra={}, messages=[])
 
 
 def _shape_checked(fn):
@@ -460,12 +423,11 @@ def daeint(
             f"daeint expects an ImplicitODE, SemiExplicitDAE or ImplicitDAE, got "
             f"{type(problem).__name__}; for x' = f(t, x) use odeint."
         )
-    x0 = _validate_state(x0, "x0")
-    tab, adaptive = _implicit_tableau(method, stages, adaptive)
-    check_controller(controller, tab.name, adaptive)
-    options = _split_options(newton_options, adaptive)
-    _check_run_options(t, rtol, atol, substeps, max_steps, x0.dtype, tab.name)
-    t = _validate_time(t, x0)
+    run = dict(rtol=rtol, atol=atol, substeps=substeps, max_steps=max_steps)
+    x0, t, settings = _entry(
+        x0, t, method, stages, adaptive, controller, newton_options, run, min_width=0
+    )
+    tab, adaptive, options = settings.tab, settings.adaptive, settings.options
     if isinstance(problem, ImplicitODE):
         if z0 is not None and torch.as_tensor(z0).numel():
             raise InputValidationError("an ImplicitODE has no algebraic states: pass z0=None.")
@@ -476,7 +438,7 @@ def daeint(
                 f"{type(problem).__name__} needs a guess z0 of shape (*batch, m) of the "
                 "initial algebraic states (it is made consistent before the first step)."
             )
-        z0 = _validate_state(z0, "z0", x0.dtype, x0.device)
+        z0 = check_state(z0, "z0", dtype=x0.dtype, device=x0.device, min_width=0)
         if z0.shape[:-1] != x0.shape[:-1]:
             try:
                 fits = torch.broadcast_shapes(z0.shape[:-1], x0.shape[:-1]) == x0.shape[:-1]
@@ -511,23 +473,7 @@ def daeint(
     index_tol = float(options.get("index_tol", 1e-10))
     z0c, xdot0, correction, msgs = consistent_start(system, signal, t0, x0, z0, index_tol)
     extra = {"z0_correction": correction} if system.m else {}
-    return _run(
-        core,
-        x0,
-        z0c,
-        xdot0,
-        t,
-        adaptive=adaptive,
-        rtol=rtol,
-        atol=atol,
-        substeps=substeps,
-        max_steps=max_steps,
-        options=options,
-        controller=controller,
-        extra=extra,
-        messages=msgs,
-        method_name=tab.name,
-    )
+    return _run(core, settings, x0, z0c, xdot0, t, extra, msgs)
 
 
 def consistent_start(system: StageSystem, signal: InputSignal, t0, x0, z0, index_tol):

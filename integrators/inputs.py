@@ -31,6 +31,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
+from ._options import check_finite
 from .collocation import gauss_legendre, lagrange_basis, radau_iia
 from .errors import InputValidationError
 
@@ -147,31 +148,6 @@ def bind_rhs(f: Callable, u, t_grid, *, interpolation: str = "zoh") -> BoundRHS:
         )
     check_finite(samples, "input u", time_dim=-2)
     return BoundRHS(f, interpolation, samples=samples, t_grid=t_grid.to(dtype))
-
-
-def check_finite(value: torch.Tensor, label: str, time_dim: int | None = None) -> None:
-    """Raise InputValidationError naming the first non-finite entry of ``value``.
-
-    Args:
-        value: tensor to check (one host synchronisation).
-        label: name used in the message.
-        time_dim: the dimension that is the time axis (named as "time index"), if any.
-    """
-    bad = ~torch.isfinite(value.detach())
-    if not bool(bad.any()):
-        return
-    first = torch.nonzero(bad)[0].tolist()
-    where = f"at index {tuple(first)}"
-    if time_dim is not None and value.dim() >= 2:
-        tdim = time_dim % value.dim()
-        batch = tuple(first[:tdim])
-        where = f"at time index {first[tdim]}" + (f", sample index {batch}" if batch else "")
-        where += f", channel {first[-1]}" if tdim != value.dim() - 1 else ""
-    bad_value = value.detach()[tuple(first)].item()
-    raise InputValidationError(
-        f"{label} contains a non-finite value ({bad_value}) {where}; clean or interpolate "
-        "the data before simulating."
-    )
 
 
 class CollocationInput:

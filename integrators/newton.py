@@ -33,6 +33,7 @@ from enum import IntEnum
 
 import torch
 
+from ._options import check_state
 from .block_jacobian import BlockJacobian
 from .block_tridiagonal import BorderedBlockTridiagonal
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
@@ -328,22 +329,6 @@ def root_with_derivatives(residual: Callable, x_star: torch.Tensor, solve: Calla
 
 
 # ------------------------------------------------------------------------------ newton
-def _validate_x0(x0) -> torch.Tensor:
-    if not isinstance(x0, torch.Tensor):
-        x0 = torch.as_tensor(x0, dtype=torch.get_default_dtype())
-    if not x0.is_floating_point():
-        x0 = x0.to(torch.get_default_dtype())
-    if x0.dim() == 0 or x0.shape[-1] == 0:
-        raise InputValidationError(
-            f"newton: x0 must have shape (*batch, n) with n >= 1, got {tuple(x0.shape)}; "
-            "wrap a scalar unknown as x0[..., None]."
-        )
-    if not bool(torch.isfinite(x0).all()):
-        bad = torch.nonzero(~torch.isfinite(x0).all(-1)).tolist()[:_MAX_SHOWN]
-        raise InputValidationError(f"newton: x0 contains non-finite entries in sample(s) {bad}.")
-    return x0.detach()
-
-
 def _evaluate(phi, x, args, shape, what):
     y = phi(x, *args)
     if not isinstance(y, torch.Tensor) or y.shape != shape:
@@ -413,7 +398,7 @@ def newton(
         )
     if factorization is not None and method != "simplified":
         raise InputValidationError("newton: factorization= is only used by method='simplified'.")
-    x = _validate_x0(x0)
+    x = check_state(x0, "newton: x0").detach()
     frozen = _detach(args)
     params = tuple(params)
     with torch.no_grad():
@@ -816,7 +801,7 @@ def minimize(
         )
     if adaptive and not damping > 0:
         raise InputValidationError(f"minimize: damping must be > 0, got {damping}.")
-    theta = _validate_x0(theta0)
+    theta = check_state(theta0, "minimize: theta0").detach()
     frozen = _detach(args)
     batch, dev, n = theta.shape[:-1], theta.device, theta.shape[-1]
     eps = torch.finfo(theta.dtype).eps

@@ -26,12 +26,13 @@ from ._options import (
     check_flag,
     check_int,
     check_positive,
-    check_state_dtype,
+    check_state,
+    check_times,
     check_tolerances,
 )
 from .errors import InputValidationError
 from .explicit import solve_explicit
-from .inputs import bind_rhs, check_finite
+from .inputs import bind_rhs
 from .methods import (
     AUTO,
     EXPLICIT_ADAPTIVE,
@@ -138,8 +139,8 @@ def odeint(
         GraphMemoryError: a fixed-step explicit run with autograd whose graph would not fit
             in the available memory (the message names the remedies, e.g. ``checkpoint=True``).
     """
-    x0 = _validate_x0(x0)
-    t = _validate_t(t, x0)
+    x0 = check_state(x0)
+    t = check_times(t, x0)
     chosen = resolve_method(method)
     if substeps is not None:
         check_int(substeps, "substeps")
@@ -245,56 +246,6 @@ def _dispatch(rhs, x0, t, method: Method, stages, adaptive, options, kwargs) -> 
         compile=opts["compile"],
         checkpoint=opts["checkpoint"],
     )
-
-
-def _validate_x0(x0) -> torch.Tensor:
-    if not isinstance(x0, torch.Tensor):
-        try:
-            x0 = torch.as_tensor(x0, dtype=torch.float64)
-        except (TypeError, ValueError, RuntimeError) as exc:
-            raise InputValidationError(f"x0 is not numeric: {exc}") from exc
-    if x0.is_complex() or x0.dtype == torch.bool:
-        raise InputValidationError(f"x0 must be real floating point, got dtype {x0.dtype}.")
-    if not x0.is_floating_point():
-        x0 = x0.to(torch.float64)
-    check_state_dtype(x0.dtype)
-    if x0.dim() == 0 or x0.shape[-1] == 0:
-        raise InputValidationError(
-            f"x0 must have shape (*batch, nx) with nx >= 1, got shape {tuple(x0.shape)}; "
-            "for a scalar ODE use x0 of shape (1,) or (batch, 1)."
-        )
-    bad = ~torch.isfinite(x0.detach())
-    if bool(bad.any()):
-        first = tuple(torch.nonzero(bad)[0].tolist())
-        sample = first[:-1] if len(first) > 1 else "(unbatched)"
-        raise InputValidationError(
-            f"x0 contains a non-finite value at sample index {sample}, state {first[-1]}."
-        )
-    return x0
-
-
-def _validate_t(t, x0) -> torch.Tensor:
-    if isinstance(t, torch.Tensor):
-        t = t.to(dtype=x0.dtype, device=x0.device)
-    else:
-        try:
-            t = torch.as_tensor(t, dtype=x0.dtype, device=x0.device)
-        except (TypeError, ValueError, RuntimeError) as exc:
-            raise InputValidationError(f"t is not numeric: {exc}") from exc
-    if t.dim() != 1 or t.shape[0] < 2:
-        raise InputValidationError(
-            f"t must be a 1-D tensor of T >= 2 output times, got shape {tuple(t.shape)}."
-        )
-    check_finite(t, "t")
-    steps = (t[1:] - t[:-1]).detach()
-    if bool((steps <= 0).any()):
-        k = int(torch.nonzero(steps <= 0)[0])
-        raise InputValidationError(
-            f"t must be strictly increasing, but t[{k + 1}] = {float(t[k + 1])} <= t[{k}] = "
-            f"{float(t[k])}. To integrate backwards in time, substitute s = -t "
-            "(x'(s) = -f(-s, x))."
-        )
-    return t
 
 
 def _check_dt0(dt0) -> None:

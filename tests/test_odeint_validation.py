@@ -31,8 +31,8 @@ def decay(t, x):
 @pytest.mark.parametrize(
     "x0, match",
     [
-        (torch.tensor(1.0, dtype=torch.float64), r"shape \(\*batch, nx\)"),
-        (torch.zeros(3, 0, dtype=torch.float64), r"nx >= 1"),
+        (torch.tensor(1.0, dtype=torch.float64), r"shape \(\*batch, n\)"),
+        (torch.zeros(3, 0, dtype=torch.float64), r"n >= 1"),
         (torch.tensor([1.0 + 1j]), "real floating point"),
         (torch.tensor([[1.0], [float("nan")]], dtype=torch.float64), r"sample index \(1,\)"),
         ("abc", "not numeric"),
