@@ -207,9 +207,10 @@ def check_state(
         x = x.to(torch.float64)
     check_state_dtype(x.dtype, label)
     if x.dim() == 0 or x.shape[-1] < min_width:
+        width = f" with n >= {min_width}" if min_width else ""
         raise InputValidationError(
-            f"{label} must have shape (*batch, n) with n >= {min_width}, got shape "
-            f"{tuple(x.shape)}; for a scalar state use shape (1,) or (batch, 1)."
+            f"{label} must have shape (*batch, n){width}, got shape {tuple(x.shape)}; for a "
+            "scalar state use shape (1,) or (batch, 1)."
         )
     first = first_nonfinite(x)
     if first is not None:

@@ -431,3 +431,33 @@ def test_bad_newton_options_are_refused(option, values, kwargs):
 def test_other_numeric_options(call, match):
     with pytest.raises(InputValidationError, match=match):
         call()
+
+
+def _entry_points():
+    """Every public entry that takes an initial state, as ``run(x0) -> result tensor``."""
+    from integrators import ImplicitODE, minimize, newton
+
+    def implicit_decay(t, xd, x):
+        return xd + x
+
+    return {
+        "odeint dopri5": lambda x0: odeint(decay, x0, T).x,
+        "odeint rk4": lambda x0: odeint(decay, x0, T, method="rk4").x,
+        "solve_implicit_ode": lambda x0: solve_implicit_ode(decay, x0, T).x,
+        "daeint": lambda x0: daeint(ImplicitODE(implicit_decay), x0, None, T).x,
+        "newton": lambda x0: newton(lambda x: x - 0.5, x0).x,
+        "minimize": lambda x0: minimize(lambda x: ((x - 0.5) ** 2).sum(-1), x0).theta,
+    }
+
+
+@pytest.mark.parametrize("entry", list(_entry_points()))
+def test_state_check_is_shared(entry):
+    """One state check at every entry: numbers become float64 (not the default dtype), and
+    a non-finite or scalar state is refused with the same message."""
+    run = _entry_points()[entry]
+    assert run([[1.0], [2.0]]).dtype == torch.float64
+    assert run(torch.tensor([[1], [2]])).dtype == torch.float64
+    with pytest.raises(InputValidationError, match=r"non-finite value at sample index \(1,\)"):
+        run([[1.0], [float("inf")]])
+    with pytest.raises(InputValidationError, match=r"shape \(\*batch, n\).*got shape \(\)"):
+        run(torch.tensor(1.0, dtype=torch.float64))
