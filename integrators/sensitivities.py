@@ -12,7 +12,11 @@ differentiation, notes §8.2-8.3): for one step of size ``h`` from ``x_k`` with 
     B_{k+1}     = Phi_k B_k + Psi_k^p,          B_0 = 0                          (eq. 8.18c)
 
 where ``F_x^(i), F_q^(i)`` are the Jacobians of ``f`` at stage ``i`` (``F_q`` includes the chain
-rule through the input, eq. 8.30-8.31). The notes' eq. 8.16-8.17 write ``a_sj`` and ``b_j``
+rule through the input, eq. 8.30-8.31). ``[Phi_k Psi_k]`` is the Jacobian of the step map
+``(x_k, q) -> x_{k+1}``: eager explicit steps form it by one batched reverse pass through all
+stages (the chain rule of eq. 8.17 accumulated backwards: the same numbers to rounding, at one
+autograd call per step instead of one per stage); the compiled kernel
+(:func:`_interval_kernel`) runs eq. 8.17 forwards. The notes' eq. 8.16-8.17 write ``a_sj`` and ``b_j``
 inside the stage sums and an identity inside ``dK_i/dp``: typos; the stage sums use row ``i`` of
 ``A`` and the parameter derivative has no identity term (checked against autograd in
 tests/test_sensitivities.py). Eq. 8.28c likewise has ``dK/dp`` where ``dK/dx_k`` belongs in the
@@ -237,34 +241,31 @@ class _InputParameters:
         return self.weights[m, i] @ w.unflatten(-1, (self.q, self.nu))
 
 
-def _explicit_stages(stage_at, tab, h, x, q, seed, derivatives=True):
-    """Stages and their derivatives of an explicit step by the recursion of eq. 8.17 (only
-    the stages, with ``dKs`` None, when ``derivatives`` is False)."""
-    nx = x.shape[-1]
-    Ks, dKs = [], []
-    for i in range(tab.stages):
-        xs, dxs = x, seed
-        for j in range(i):
-            if tab.A[i, j] != 0.0:
-                xs = xs + h * float(tab.A[i, j]) * Ks[j]
-                if derivatives:
-                    dxs = dxs + h * float(tab.A[i, j]) * dKs[j]
-        if not derivatives:
-            Ks.append(stage_at(i)(torch.cat([xs, q], -1)).detach())
-            dKs.append(None)
-            continue
-        K, J = batch_jacobian(stage_at(i), torch.cat([xs, q], -1))
-        dK = J[..., :nx] @ dxs  # chain through the stage state ...
-        dK[..., nx:] += J[..., nx:]  # ... plus the direct parameter/input dependence
-        Ks.append(K)
-        dKs.append(dK)
-    return Ks, dKs
+def _explicit_step(stage_at, tab, h, nx: int):
+    """One explicit step ``z = (x_k, q) -> x_{k+1}`` (eq. 6.26) as a function of ``z``
+    (*batch, nx + nq), whose Jacobian is ``[Phi_k Psi_k]`` (eq. 8.18)."""
+
+    def step(z):
+        x, q = z[..., :nx], z[..., nx:]
+        Ks = []
+        for i in range(tab.stages):
+            xs = x
+            for j in range(i):
+                if tab.A[i, j] != 0.0:
+                    xs = xs + h * float(tab.A[i, j]) * Ks[j]
+            Ks.append(stage_at(i)(torch.cat([xs, q], -1)))
+        for i in range(tab.stages):
+            if tab.b[i] != 0.0:
+                x = x + h * float(tab.b[i]) * Ks[i]
+        return x
+
+    return step
 
 
 def _interval_kernel(g, tab: ButcherTableau, substeps: int, derivatives: bool, n_out, _layout):
     """One output interval of an explicit scheme as one function, for ``torch.compile``.
 
-    The same recursion as :func:`_explicit_stages` in forward mode: instead of the stage
+    The recursion of eq. 8.17 in forward mode: instead of the stage
     Jacobians ``F_x, F_q`` it propagates the tangent matrix ``S = [A B] = dx_k/d(x_0, p)``
     directly, ``dK_i = F_x^(i) dX_i + F_p^(i) [0 I]`` with ``dX_i = S + h sum_j a_ij dK_j``
     (eq. 8.17-8.18), each stage one Jacobian-vector product batched over the columns of ``S``.
@@ -664,23 +665,27 @@ def sensitivities(
 
                 return stage
 
+            n_steps += 1
             if solver is None:
-                Ks, dKs = _explicit_stages(stage_at, tab, h, x, q, seed, derivatives)
                 n_f += tab.stages
+                step = _explicit_step(stage_at, tab, h, nx)
+                if not derivatives:
+                    x = step(torch.cat([x, q], -1)).detach()
+                    continue
+                # [Phi Psi] of eq. 8.18: the step's Jacobian, one batched reverse pass
+                x, J = batch_jacobian(step, torch.cat([x, q], -1))
                 n_jac += tab.stages
             else:
                 where = f"in step {m} of interval {k} (t = {float(tk):.6g})"
                 Ks, dKs = solver.step(stage_at, h, x, q, seed, where)
-            n_steps += 1
-            step = seed.clone()
-            for i in range(tab.stages):
-                if tab.b[i] != 0.0:
-                    x = x + h * float(tab.b[i]) * Ks[i]
-                    if derivatives:
-                        step = step + h * float(tab.b[i]) * dKs[i]
-            if not derivatives:
-                continue
-            Phi, Psi = step[..., :nx], step[..., nx:]  # eq. 8.18b-c / 8.28b-c
+                J = seed.clone()
+                for i in range(tab.stages):
+                    if tab.b[i] != 0.0:
+                        x = x + h * float(tab.b[i]) * Ks[i]
+                        J = J + h * float(tab.b[i]) * dKs[i]
+                if not derivatives:
+                    continue
+            Phi, Psi = J[..., :nx], J[..., nx:]  # eq. 8.18b-c / 8.28b-c
             A = Phi @ A
             B = Phi @ B + Psi[..., :n_p]
             if C is not None:  # columns of later intervals are still zero (causality)
