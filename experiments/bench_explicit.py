@@ -63,7 +63,7 @@ import numpy as np
 import scipy.integrate
 import torch
 
-from experiments._common import plt
+from experiments._common import plt, readable_log_ticks
 from integrators import odeint
 
 try:  # the zoo's plant; a local copy keeps the benchmark usable without sysid
@@ -512,6 +512,8 @@ def work_precision_figure(sweep, matched, path):
             ax.axhline(target, color="gray", linestyle=":", linewidth=1)
             ax.set_xscale("log")
             ax.set_yscale("log")
+            readable_log_ticks(ax.xaxis)  # the wall times may span less than a decade
+            readable_log_ticks(ax.yaxis)
             ax.set_xlabel(xlabel, fontsize=8)
             ax.set_ylabel("max error")
             ax.set_title(f"t_end = {t_end:g}; stars: matched target error", fontsize=9)

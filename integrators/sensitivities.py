@@ -16,11 +16,12 @@ rule through the input, eq. 8.30-8.31). ``[Phi_k Psi_k]`` is the Jacobian of the
 ``(x_k, q) -> x_{k+1}``: eager explicit steps form it by one batched reverse pass through all
 stages (the chain rule of eq. 8.17 accumulated backwards: the same numbers to rounding, at one
 autograd call per step instead of one per stage); the compiled kernel
-(:func:`_interval_kernel`) runs eq. 8.17 forwards. The notes' eq. 8.16-8.17 write ``a_sj`` and ``b_j``
-inside the stage sums and an identity inside ``dK_i/dp``: typos; the stage sums use row ``i`` of
-``A`` and the parameter derivative has no identity term (checked against autograd in
-tests/test_sensitivities.py). Eq. 8.28c likewise has ``dK/dp`` where ``dK/dx_k`` belongs in the
-propagation factor.
+(:func:`_interval_kernel`) runs eq. 8.17 forwards.
+
+The notes' eq. 8.16-8.17 write ``a_sj`` and ``b_j`` inside the stage sums and an identity
+inside ``dK_i/dp``: typos; the stage sums use row ``i`` of ``A`` and the parameter derivative
+has no identity term (checked against autograd in tests/test_sensitivities.py). Eq. 8.28c
+likewise has ``dK/dp`` where ``dK/dx_k`` belongs in the propagation factor.
 
 Implicit tableaus. The stages solve ``r(K) = F(K) - K = 0`` (eq. 8.20, ``F_i = f(X_i)`` at the
 stage states ``X_i = x_k + h sum_j a_ij K_j``); ``M = -dr/dK = I - h [a_ij F_x^(i)]_ij`` is the

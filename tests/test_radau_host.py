@@ -10,7 +10,7 @@ results within ~1e-12 relative at the same steps.
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy.integrate import solve_ivp
 from scipy.linalg import expm
@@ -54,13 +54,15 @@ def both_paths(f, x0, t, **opts):
 
 
 def assert_same_run(host, dev, rtol=1e-10):
-    """Same step sequence and counters, same statuses, results agreeing to ``rtol``."""
+    """Same step sequence and counters, same statuses, results agreeing to ``rtol`` (and below
+    the smallest normal number, where the two drivers' subnormal roundings may differ)."""
     for name in COUNTERS:
         assert getattr(host.stats, name).tolist() == getattr(dev.stats, name).tolist(), name
     for name in ("n_f_evals", "n_jac_evals", "n_factorizations"):
         assert getattr(host.stats, name) == getattr(dev.stats, name), name
     assert host.status.tolist() == dev.status.tolist()
-    torch.testing.assert_close(host.x, dev.x, rtol=rtol, atol=rtol * float(dev.x.abs().max()))
+    atol = rtol * float(dev.x.abs().max()) + torch.finfo(dev.x.dtype).tiny
+    torch.testing.assert_close(host.x, dev.x, rtol=rtol, atol=atol)
 
 
 def test_factorisation_and_error_filter_block_against_direct_inverses():
@@ -312,6 +314,7 @@ def test_sampled_input_held_per_interval_against_exact_discretisation():
 
 @settings(max_examples=5, deadline=None)
 @given(lam=st.floats(-1e6, -1e-2), x0=st.floats(-3.0, 3.0))
+@example(lam=-3.0, x0=5e-324)  # a subnormal state: the drivers may round it differently
 def test_linear_test_equation_any_stiffness_same_as_torch_driver(lam, x0):
     """x' = lam x (eq. 6.40) for any stiffness: same steps as the torch driver, exact to tol."""
     t = torch.tensor([0.0, 0.3, 1.0])
