@@ -135,8 +135,11 @@ def _entry(x0, t, method, stages, adaptive, controller, newton_options, run, min
     check_controller(controller, tab.name, adaptive)
     options = _split_options(newton_options, adaptive)
     check_tolerances(run["rtol"], run["atol"], x0.dtype)
-    check_int(run["substeps"], "substeps")
-    check_int(run["max_steps"], "max_steps")
+    run = dict(
+        run,
+        substeps=check_int(run["substeps"], "substeps"),
+        max_steps=check_int(run["max_steps"], "max_steps"),
+    )
     refuse_time_gradient(t, tab.name)
     t = check_times(t, x0).detach()
     return x0, t, _Settings(tab, adaptive, controller=controller, options=options, **run)
