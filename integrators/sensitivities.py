@@ -266,10 +266,10 @@ def _explicit_step(stage_at, tab, h, nx: int):
 def _interval_kernel(g, tab: ButcherTableau, substeps: int, derivatives: bool, n_out, _layout):
     """One output interval of an explicit scheme as one function, for ``torch.compile``.
 
-    The recursion of eq. 8.17 in forward mode: instead of the stage
-    Jacobians ``F_x, F_q`` it propagates the tangent matrix ``S = [A B] = dx_k/d(x_0, p)``
-    directly, ``dK_i = F_x^(i) dX_i + F_p^(i) [0 I]`` with ``dX_i = S + h sum_j a_ij dK_j``
-    (eq. 8.17-8.18), each stage one Jacobian-vector product batched over the columns of ``S``.
+    The recursion of eq. 8.17 in forward mode: instead of the stage Jacobians ``F_x, F_q`` it
+    propagates the tangent matrix ``S = [A B] = dx_k/d(x_0, p)`` directly,
+    ``dK_i = F_x^(i) dX_i + F_p^(i) [0 I]`` with ``dX_i = S + h sum_j a_ij dK_j`` (eq.
+    8.17-8.18), each stage one Jacobian-vector product batched over the columns of ``S``.
     Compiled, the whole interval is one kernel; the rounding differs from the eager path's
     (``Phi A``, ``Phi B + Psi``) only in the order of the sums.
 
@@ -683,7 +683,8 @@ def sensitivities(
                 for i in range(tab.stages):
                     if tab.b[i] != 0.0:
                         x = x + h * float(tab.b[i]) * Ks[i]
-                        J = J + h * float(tab.b[i]) * dKs[i]
+                        if derivatives:
+                            J = J + h * float(tab.b[i]) * dKs[i]
                 if not derivatives:
                     continue
             Phi, Psi = J[..., :nx], J[..., nx:]  # eq. 8.18b-c / 8.28b-c
