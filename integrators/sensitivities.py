@@ -77,6 +77,7 @@ and "``Delta w``" is ``Delta K``.
 from __future__ import annotations
 
 import functools
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -102,16 +103,14 @@ __all__ = ["SensitivityResult", "sensitivities", "variational_sensitivities"]
 #: the current stages and the solve resumes
 _SLOW_CONTRACTION = 0.5
 _MAX_NEWTON_ITER = 50
-#: ``compile="auto"`` compiles the explicit interval kernel once this many steps were taken
-#: with the same model and configuration (over all calls): an eager step with derivatives
-#: costs about a millisecond of per-operation overhead, a compiled one a tenth of that or
-#: less, and the one-off compile about as long as these steps run eagerly (seconds).
-AUTO_COMPILE_MIN_STEPS = 5_000
-#: ``compile="auto"`` also compiles once this many seconds were spent in eager runs of the
-#: same model and configuration (over all calls): at most one compile of the interval kernel
-#: (which takes seconds), so a large batch, whose eager steps are slow, compiles after a few
-#: calls (rent-or-buy, see :func:`integrators._fast.compiled.compiled_stepper`)
-AUTO_COMPILE_EAGER_SECONDS = 5.0
+#: ``compile="auto"`` compiles the explicit interval kernel of a model and configuration once
+#: this many seconds were spent in its eager runs (over all calls). Rent-or-buy (see
+#: :func:`integrators._fast.compiled.compiled_stepper`): with the threshold near the one-off
+#: compile time ``C`` a run sequence costs at most ``1 + C / threshold`` times the better
+#: choice made in hindsight, whatever the batch size and the cost of a step. A pendulum RK4
+#: kernel compiles in 14-16 s in a fresh process with an empty inductor cache and in 5-10 s
+#: with a warm one (docs/benchmarks.md, "Tuning constants").
+AUTO_COMPILE_EAGER_SECONDS = 10.0
 
 
 @dataclass
@@ -555,8 +554,7 @@ def sensitivities(
         compile: explicit tableaus without input sensitivities: True runs each output
             interval as one ``torch.compile``-d kernel (forward-mode stage derivatives, see
             :func:`_interval_kernel`), False never; ``"auto"`` (default) compiles once
-            :data:`AUTO_COMPILE_MIN_STEPS` steps were taken, or
-            :data:`AUTO_COMPILE_EAGER_SECONDS` seconds spent stepping eagerly, with the same
+            :data:`AUTO_COMPILE_EAGER_SECONDS` seconds were spent stepping eagerly with the same
             ``f`` and configuration over all calls (compiled kernels are cached per ``f``). A
             model the compiler or forward-mode differentiation cannot handle (one calling
             autograd or a Newton solver inside ``f``) runs eagerly; ``stats.extra`` reports
@@ -600,28 +598,43 @@ def sensitivities(
         tol = _default_tol(x.dtype) if newton_tol is None else newton_tol
         solver = _ImplicitStages(tab, x, float(tol))
     n_steps = n_f = n_jac = 0
-    fast = None
-    if tab.is_explicit and not inputs.parameterised and compile is not False:
+
+    def interval_kernel(mode):
+        """The compiled interval kernel of this run (a Stepper), its stage inputs and ``p``."""
         config = ("sensitivities", _tableau_key(tab), substeps, derivatives, inputs.kind, n_p)
         with torch.no_grad():  # the results are detached: no graph through the kernel
-            fast = compiled_stepper(
+            stepper = compiled_stepper(
                 f,
                 config,
-                compile=compile,
-                n_steps=(T - 1) * substeps,
+                compile=mode,
+                n_steps=0,
                 x0=x,
                 make_chunk=functools.partial(_interval_kernel, g, tab, substeps, derivatives),
                 n_out=1,
-                auto_min_steps=AUTO_COMPILE_MIN_STEPS,
+                auto_min_steps=math.inf,
                 auto_min_eager_s=AUTO_COMPILE_EAGER_SECONDS,
             )
-        stage_u = _stage_inputs(inputs, u, t, tab, substeps, x) if fast.active else None
-        if inputs.kind in ("zoh", "collocation") and fast.active:
+        if not stepper.active:
+            return stepper, None, None
+        stage_u = _stage_inputs(inputs, u, t, tab, substeps, x)
+        if inputs.kind in ("zoh", "collocation"):
             stage_u = stage_u.expand(*batch, *stage_u.shape[-4:])
         # materialised: forward-mode duals of a broadcast view (stride 0) fail to compile
         p_kernel = x.new_zeros(*batch, 0) if p is None else p.expand(*batch, n_p).contiguous()
+        return stepper, stage_u, p_kernel
+
+    fast = None
+    if tab.is_explicit and not inputs.parameterised and compile is not False:
+        fast, stage_u, p_kernel = interval_kernel(compile)
     tic = time.perf_counter()
     for k in range(T - 1):
+        # "auto": compile for the rest of the run once its predicted eager time would reach
+        # the threshold (the eager intervals so far, extrapolated to the whole record)
+        elapsed = time.perf_counter() - tic
+        if fast is not None and k > 0 and fast.worth_compiling(elapsed * (T - 1) / k):
+            fast.add_eager_seconds(elapsed)
+            fast, stage_u, p_kernel = interval_kernel(True)
+            tic = time.perf_counter()
         if fast is not None and fast.active:
             S = torch.cat([A, B], -1) if derivatives else x.new_zeros(0)
             h = (t[k + 1] - t[k]) / substeps

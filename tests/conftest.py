@@ -34,7 +34,6 @@ def eager_sensitivities_unless_asked(monkeypatch):
     import importlib
 
     module = importlib.import_module("integrators.sensitivities")  # not the function
-    monkeypatch.setattr(module, "AUTO_COMPILE_MIN_STEPS", 2**62)
     monkeypatch.setattr(module, "AUTO_COMPILE_EAGER_SECONDS", math.inf)
 
 

@@ -109,45 +109,52 @@ def test_a_model_with_autograd_inside_runs_eagerly_and_says_why():
     torch.testing.assert_close(J1, J0, rtol=0, atol=0)
 
 
-def test_auto_compiles_only_past_its_threshold(monkeypatch):
-    """``compile="auto"`` runs short simulations eagerly (nothing to report) and compiles a
-    model once it has taken :data:`AUTO_COMPILE_MIN_STEPS` steps (lowered here)."""
-    module = importlib.import_module("integrators.sensitivities")  # the package re-exports
-    monkeypatch.setattr(module, "AUTO_COMPILE_MIN_STEPS", 100)  # the function by this name
+def test_a_compiled_kernel_that_differs_from_the_eager_kernel_is_not_used():
+    """The first call of the compiled interval kernel is checked against the same kernel run
+    eagerly: a model whose compiled form computes other numbers (a stand-in for a compiler
+    fault) runs eagerly, with the eager numbers, and ``compile_fallback`` says why."""
     x0, t, p, u = _collocation_case()
 
-    def model(t, x, u, p):  # a model object of its own: a fresh count
-        return pendulum(t, x, u, p)
+    def miscompiled(t, x, u, p):
+        y = pendulum(t, x, u, p)
+        return 2 * y if torch.compiler.is_compiling() else y
 
-    kw = dict(u=u, input_sensitivities=False, derivatives=False)
-    short = sensitivities(model, x0, t, p, compile="auto", **kw)
-    assert not short.stats.extra["compiled"] and short.stats.extra["compile_fallback"] is None
-    for _ in range(4):
-        last = sensitivities(model, x0, t, p, compile="auto", **kw)
-        if last.stats.extra["compiled"]:
-            break
-    assert last.stats.extra["compiled"]
-    torch.testing.assert_close(last.x, short.x, rtol=1e-13, atol=1e-14)
+    kw = dict(u=u, input_sensitivities=False)
+    eager = sensitivities(miscompiled, x0, t, p, compile=False, **kw)
+    fast = sensitivities(miscompiled, x0, t, p, compile=True, **kw)
+    assert not fast.stats.extra["compiled"]
+    assert "differs from the eager chunk" in fast.stats.extra["compile_fallback"]
+    torch.testing.assert_close(fast.x, eager.x, rtol=0, atol=0)
+    torch.testing.assert_close(fast.B, eager.B, rtol=0, atol=0)
 
 
 def test_auto_compiles_once_the_eager_time_reaches_its_threshold(monkeypatch):
-    """Rent-or-buy: few steps but slow eager runs (a large batch) compile once the eager time
-    spent on the model reaches :data:`AUTO_COMPILE_EAGER_SECONDS` (lowered here to a
-    nanosecond: the first run is eager and counted, the second compiled); the step count
-    alone would not."""
-    module = importlib.import_module("integrators.sensitivities")
-    monkeypatch.setattr(module, "AUTO_COMPILE_EAGER_SECONDS", 1e-9)
+    """Rent-or-buy: ``compile="auto"`` runs a model eagerly, counting the eager time over all
+    calls, and compiles it as soon as that time, with the current run's predicted by its
+    first intervals, reaches :data:`AUTO_COMPILE_EAGER_SECONDS`, whatever the number of
+    steps. A fake clock advances only in eager model calls, so every eager run takes the same
+    time W: with the threshold at 3.5 W, three runs are eager, the fourth compiles after its
+    first interval (3 W spent + W predicted), the fifth is compiled; same numbers."""
+    module = importlib.import_module("integrators.sensitivities")  # the package re-exports
+    clock = [0]  # the function by this name
+    monkeypatch.setattr(module, "time", types.SimpleNamespace(perf_counter=lambda: clock[0]))
     x0, t, p, u = _collocation_case()
 
-    def model(t, x, u, p):
+    def model(t, x, u, p):  # a model object of its own: a fresh count
+        if not torch.compiler.is_compiling():
+            clock[0] += 1
         return pendulum(t, x, u, p)
 
-    kw = dict(u=u, input_sensitivities=False)
-    first = sensitivities(model, x0, t, p, compile="auto", **kw)
-    assert not first.stats.extra["compiled"]
-    second = sensitivities(model, x0, t, p, compile="auto", **kw)
-    assert second.stats.extra["compiled"]
-    torch.testing.assert_close(second.B, first.B, rtol=1e-11, atol=1e-13)
+    kw = dict(u=u, substeps=10, input_sensitivities=False)  # 200 steps a run
+    eager = sensitivities(model, x0, t, p, compile=False, **kw)
+    W = clock[0]
+    monkeypatch.setattr(module, "AUTO_COMPILE_EAGER_SECONDS", 3.5 * W)
+    runs = [sensitivities(model, x0, t, p, compile="auto", **kw) for _ in range(5)]
+    assert [r.stats.extra["compiled"] for r in runs] == [False, False, False, True, True]
+    assert all(r.stats.extra["compile_fallback"] is None for r in runs)
+    for r in runs:
+        torch.testing.assert_close(r.x, eager.x, rtol=1e-13, atol=1e-14)
+        torch.testing.assert_close(r.B, eager.B, rtol=1e-11, atol=1e-13)
 
 
 @pytest.mark.parametrize("compile_mode", ["auto", False])

@@ -376,6 +376,46 @@ def test_compile_failure_falls_back_to_eager(monkeypatch):
     torch.testing.assert_close(sol.x[..., 0], exact, rtol=0, atol=1e-7)
 
 
+def _miscompiled(t, x):
+    """A harmonic oscillator whose compiled form is wrong (twice the derivative): a stand-in
+    for a compiler fault that changes the numbers without raising."""
+    y = torch.stack([x[..., 1], -x[..., 0]], -1)
+    return 2 * y if torch.compiler.is_compiling() else y
+
+
+@pytest.mark.parametrize("grad", [False, True])
+def test_a_compiled_chunk_that_differs_from_the_eager_chunk_is_not_used(grad):
+    """The first call of every compiled chunk is checked against the eager chunk: a compiled
+    model that computes other numbers is given up, the run continues eagerly with the eager
+    numbers, and ``compile_fallback`` says why."""
+    x0 = torch.tensor([[1.0, 0.0], [0.5, 0.5]], dtype=torch.float64, requires_grad=grad)
+    t = torch.linspace(0, 1, 11, dtype=torch.float64)
+    eager = odeint(_miscompiled, x0, t, method="rk4", compile=False)
+    fast = odeint(_miscompiled, x0, t, method="rk4", compile=True)
+    assert not fast.stats.extra["compiled"]
+    assert "differs from the eager chunk" in fast.stats.extra["compile_fallback"]
+    torch.testing.assert_close(fast.x, eager.x, rtol=0, atol=0)
+
+
+def test_zoo_crane_with_second_derivatives_inside_f_runs_eagerly_when_compiled():
+    """The Cartesian crane forms its constraint curvature by a second reverse pass inside
+    ``f`` (eq. 2.165b), which the compiled graph loses (it would return zeros): the compiled
+    run is refused by the check against the eager chunk, and equals the eager run."""
+    from sysid.zoo import RigidCraneCartesian
+
+    plant = RigidCraneCartesian(baumgarte=5.0).to(torch.float64)
+    q, qdot = plant.project_consistent(
+        torch.tensor([0.0, 0.5, 0.8], dtype=torch.float64), torch.full((3,), 0.3).double()
+    )
+    x0 = torch.cat([q, qdot]).detach().expand(3, 6)
+    t = torch.linspace(0, 0.5, 11, dtype=torch.float64)
+    with torch.no_grad():
+        eager = odeint(plant, x0, t, method="rk4", substeps=5, compile=False)
+        fast = odeint(plant, x0, t, method="rk4", substeps=5, compile=True)
+    assert not fast.stats.extra["compiled"] and fast.stats.extra["compile_fallback"]
+    torch.testing.assert_close(fast.x, eager.x, rtol=1e-12, atol=1e-12)
+
+
 def _oscillator_with_input(t, x, u):
     """x1' = x2, x2' = -x1 - 0.2 x2 + u (component-wise: unbind ... stack)."""
     x1, x2 = x.unbind(-1)

@@ -4,8 +4,10 @@ The solver (``integrators/explicit.py``) builds a chunk function that advances s
 and asks :func:`compiled_stepper` for a compiled version of it. Compiled chunks are cached per
 model (weakly: they go with the model) and configuration, so the one-off compile time is paid
 once per model and state shape. Compilation is given up, and the run continues with the
-solver's eager chunks, when ``torch.compile`` fails or when the compiled graph cannot be
-differentiated (a model that calls autograd inside ``f``); the reason is reported.
+solver's eager chunks, when ``torch.compile`` fails, when the first call of a compiled chunk
+gives other numbers than the eager chunk (a compiler fault: the compiled graph of a model that
+takes second derivatives inside ``f`` can silently drop them), or when the compiled graph
+cannot be differentiated (a model that calls autograd inside ``f``); the reason is reported.
 
 Component-wise models (``cat_forwarding.reads_only_components``) run without autograd get a
 component-major chunk compiled with the cat-forwarding graph pass (``cat_forwarding``).
@@ -61,6 +63,20 @@ def _backward_works(ys: torch.Tensor, x: torch.Tensor, f) -> bool:
     return True
 
 
+def _copy(y):
+    return y.detach().clone() if isinstance(y, torch.Tensor) else y
+
+
+def _same_numbers(compiled, eager) -> bool:
+    """Whether a compiled chunk's output equals the eager chunk's to rounding: within
+    ``sqrt(eps)`` of the largest finite magnitude, NaN where the eager output is NaN."""
+    if not isinstance(eager, torch.Tensor):
+        return compiled is None or not isinstance(compiled, torch.Tensor)
+    tol = math.sqrt(torch.finfo(eager.dtype).eps)
+    scale = float(eager.abs().nan_to_num(0.0, 0.0, 0.0).amax()) if eager.numel() else 0.0
+    return torch.allclose(compiled.detach(), eager, rtol=tol, atol=tol * scale, equal_nan=True)
+
+
 class _Entry:
     """Compiled chunk functions for one model/configuration, and their usage counters."""
 
@@ -68,6 +84,7 @@ class _Entry:
         self.steps_seen = 0
         self.eager_s = 0.0  # wall time of the eager runs reported by the solver
         self.compiled: dict = {}  # (outputs per chunk, component-major, shape...) -> chunk
+        self.reference: dict = {}  # the same key -> the eager chunk the compiled one must match
         self.failed = False
         self.failure = ""  # why the compiled chunk was given up (reported in the stats)
         self.backward_failed = False  # the compiled chunk's graph cannot be differentiated
@@ -113,17 +130,31 @@ class Stepper:
     a (nx, *batch) tensor; ``compile_s``: wall time spent compiling during this run.
     """
 
-    def __init__(self, f, entry: _Entry, want: bool, active: bool, key, compile_s: float):
+    def __init__(self, f, entry: _Entry, want, active, key, compile_s, auto_min_eager_s):
         self._f, self._entry, self._want, self._active = f, entry, want, active
-        self._key, self._chunk = key, entry.compiled.get(key)
+        self._key, self._chunk, self._reference = (
+            key,
+            entry.compiled.get(key),
+            entry.reference.get(key),
+        )
         self._grad_mode = torch.is_grad_enabled()
         self.n_out, self.component_major = (key[0], key[1]) if active else (1, False)
         self.compile_s = compile_s
+        self._auto_min_eager_s = auto_min_eager_s  # inf unless compile="auto"
 
     def add_eager_seconds(self, seconds: float) -> None:
         """Count ``seconds`` of eager stepping of this model and configuration towards
         ``"auto"`` (see :func:`compiled_stepper`)."""
         self._entry.eager_s += seconds
+
+    def worth_compiling(self, run_eager_s: float) -> bool:
+        """Whether an eager ``"auto"`` run predicted to take ``run_eager_s`` seconds in all
+        would bring the eager time of this model and configuration to the threshold: the
+        caller then compiles for the rest of the run (rent-or-buy with the run's length
+        known, see :func:`compiled_stepper`)."""
+        if self._active or self._entry.failed:
+            return False
+        return self._entry.eager_s + run_eager_s >= self._auto_min_eager_s
 
     @property
     def active(self) -> bool:
@@ -133,18 +164,31 @@ class Stepper:
     def __call__(self, x: torch.Tensor, *args):
         """The compiled chunk's ``(x_new, outputs)`` for ``chunk(x, *args)``, or None: nothing
         is compiled, or the compiled chunk failed now or before (the caller then runs the
-        same chunk eagerly). The first call of each signature counts as compile time."""
+        same chunk eagerly). The first call of each signature counts as compile time and is
+        checked against the eager chunk from the same arguments: a compiled chunk that raises
+        or gives other numbers (beyond ``sqrt(eps)`` of their magnitude) is given up for this
+        model and configuration."""
         entry = self._entry
         if not self._active or entry.failed:
             return None
         signature = (self._key, self._grad_mode, x.requires_grad)
         fresh = signature not in entry.signatures
-        tic = time.perf_counter()
         try:
+            if fresh:  # copies: a chunk may write its outputs into a buffer in ``args``
+                with torch.no_grad():
+                    reference = [_copy(y) for y in self._reference(x, *args)]
+            tic = time.perf_counter()
             x_new, ys = self._chunk(x, *args)
         except Exception as exc:  # compilation unavailable: fall back to eager, remember it
             entry.failed = True
             entry.failure = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
+            return None
+        if fresh and not all(map(_same_numbers, (x_new, ys), reference)):
+            entry.failed = True
+            entry.failure = (
+                "the compiled chunk's result differs from the eager chunk's (the compiler "
+                "lost part of f, e.g. second derivatives taken inside f)"
+            )
             return None
         if fresh and self._grad_mode and not _backward_works(ys, x, self._f):
             entry.backward_failed = True
@@ -186,9 +230,12 @@ def compiled_stepper(
         compile: True, False or ``"auto"``: compile once ``auto_min_steps`` steps were taken,
             or once ``auto_min_eager_s`` seconds were spent in eager runs (reported by the
             solver through :meth:`Stepper.add_eager_seconds`), with this model and
-            configuration over all calls. The second rule is rent-or-buy: with the threshold
-            at the one-off compile time, the total costs at most twice the better of the two
-            choices made in hindsight, whatever the batch size.
+            configuration over all calls; a solver that can predict a run's eager time
+            compiles as soon as the prediction reaches the threshold
+            (:meth:`Stepper.worth_compiling`). The time rule is rent-or-buy: with the
+            threshold at the one-off compile time, the total costs at most twice the better
+            of the two choices made in hindsight, whatever the batch size. A model compiled
+            once runs compiled in every later ``"auto"`` run.
         n_steps: the steps of this run (counted towards ``"auto"``).
         x0: (*batch, nx) initial state; the chunk is compiled for its shape, dtype and device.
         make_chunk: ``make_chunk(n_out, component_major)``, the chunk function to compile
@@ -208,6 +255,7 @@ def compiled_stepper(
     entry = _cache_entry(f, config)
     entry.steps_seen += n_steps
     enough = entry.steps_seen >= auto_min_steps or entry.eager_s >= auto_min_eager_s
+    enough = enough or bool(entry.compiled)  # compiled once: no more eager "auto" runs
     want = compile is True or (compile == "auto" and enough)
     grad_mode = torch.is_grad_enabled()
     active = want and not entry.failed and not torch.compiler.is_compiling()
@@ -227,10 +275,12 @@ def compiled_stepper(
         tic = time.perf_counter()  # the first torch.compile imports dynamo/inductor (seconds)
         from .cat_forwarding import CatForwardingPass
 
+        entry.reference[key] = make_chunk(n_out, component_major)
         entry.compiled[key] = torch.compile(
-            _with_own_code(make_chunk(n_out, component_major)),
+            _with_own_code(entry.reference[key]),
             dynamic=False,
             options={"post_grad_custom_pre_pass": CatForwardingPass()} if component_major else {},
         )
         compile_s += time.perf_counter() - tic
-    return Stepper(f, entry, want, active, key, compile_s)
+    threshold = auto_min_eager_s if compile == "auto" else math.inf
+    return Stepper(f, entry, want, active, key, compile_s, threshold)

@@ -104,11 +104,11 @@ class GreyBoxModel:
         compile: explicit methods: True runs each sample interval of the simulations and
             sensitivities as one compiled kernel (a one-off compile of seconds, then about
             ten times less time per step), False never, ``"auto"`` (default) once the model
-            has taken :data:`integrators.sensitivities.AUTO_COMPILE_MIN_STEPS` steps or spent
-            :data:`integrators.sensitivities.AUTO_COMPILE_EAGER_SECONDS` seconds in eager
-            steps (see :func:`integrators.sensitivities`). Models the compiler cannot handle
-            (autograd or a Newton solve inside ``f``) run eagerly; the fit's ``info`` says
-            which ran.
+            has spent :data:`integrators.sensitivities.AUTO_COMPILE_EAGER_SECONDS` seconds in
+            eager steps (see :func:`integrators.sensitivities`), or at once in a fit whose
+            first simulation shows that it would spend that long. Models the compiler cannot
+            handle (autograd or a Newton solve inside ``f``) run eagerly; the fit's ``info``
+            says which ran.
 
     Raises:
         InputValidationError: unknown parameter names, a non-scalar module parameter, a
