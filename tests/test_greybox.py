@@ -198,6 +198,27 @@ def test_dae_parameters_recovered_through_the_algebraic_equations():
     assert bool((res.standard_errors < 0.1 * truth_v.abs().clamp(min=0.2)).all())
 
 
+def test_a_dae_model_stays_eager_under_auto_compile(monkeypatch):
+    """A DAE's right-hand side runs a Newton solve on every evaluation, which the compiler
+    cannot trace: ``compile="auto"`` never tries, even past the eager-time threshold (set to
+    zero here, so any other model would compile at once); ``compile=True`` is kept."""
+    import importlib
+
+    monkeypatch.setattr(
+        importlib.import_module("integrators.sensitivities"), "AUTO_COMPILE_EAGER_SECONDS", 0.0
+    )
+    model = GreyBoxModel(DAE, {"a": Param(1.0, min=0), "b": Param(1.0)}, nx=1, nz=1, output=[0])
+    assert model.compile is False
+    asked = GreyBoxModel(DAE, {"a": 1.5, "b": 0.7}, nx=1, nz=1, output=[0], compile=True)
+    assert asked.compile is True
+    u = input_signal("prbs", 30, (), hold=3, generator=torch.Generator().manual_seed(4))
+    y = model.simulate(IOData(u, u, Ts=0.1), params={"a": 1.5, "b": 0.7})
+    with warnings.catch_warnings():  # two iterations: not converged, and not meant to
+        warnings.simplefilter("ignore")
+        res = fit(model, IOData(u, y, Ts=0.1), max_iter=2)
+    assert res.info["compiled"] is False and res.info["compile_fallback"] is None
+
+
 def test_high_index_dae_is_refused():
     with pytest.raises(HighIndexError, match="index 2.*Reduce the index"):
         GreyBoxModel(LinearIndex2DAE(), {}, nx=2)

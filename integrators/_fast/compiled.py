@@ -175,7 +175,8 @@ class Stepper:
         fresh = signature not in entry.signatures
         try:
             if fresh:  # copies: a chunk may write its outputs into a buffer in ``args``
-                with torch.no_grad():
+                devices = [x.device] if x.device.type == "cuda" else []
+                with torch.no_grad(), torch.random.fork_rng(devices):  # the user's stream
                     reference = [_copy(y) for y in self._reference(x, *args)]
             tic = time.perf_counter()
             x_new, ys = self._chunk(x, *args)
@@ -187,7 +188,8 @@ class Stepper:
             entry.failed = True
             entry.failure = (
                 "the compiled chunk's result differs from the eager chunk's (the compiler "
-                "lost part of f, e.g. second derivatives taken inside f)"
+                "lost part of f, e.g. second derivatives taken inside f, or f draws random "
+                "numbers)"
             )
             return None
         if fresh and self._grad_mode and not _backward_works(ys, x, self._f):

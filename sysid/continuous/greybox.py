@@ -106,9 +106,10 @@ class GreyBoxModel:
             ten times less time per step), False never, ``"auto"`` (default) once the model
             has spent :data:`integrators.sensitivities.AUTO_COMPILE_EAGER_SECONDS` seconds in
             eager steps (see :func:`integrators.sensitivities`), or at once in a fit whose
-            first simulation shows that it would spend that long. Models the compiler cannot
-            handle (autograd or a Newton solve inside ``f``) run eagerly; the fit's ``info``
-            says which ran.
+            first simulation shows that it would spend that long; never for a DAE (its
+            right-hand side runs a Newton solve, which the compiler cannot trace). Models the
+            compiler cannot handle (autograd or a Newton solve inside ``f``) run eagerly; the
+            fit's ``info`` says which ran.
 
     Raises:
         InputValidationError: unknown parameter names, a non-scalar module parameter, a
@@ -134,10 +135,13 @@ class GreyBoxModel:
     ):
         if compile not in (True, False, "auto"):
             raise InputValidationError(f"compile must be True, False or 'auto', got {compile!r}.")
-        self.compile = compile
         self._rhs_cache = None
         self.f = f
         self.kind = _kind(f)
+        # a DAE's right-hand side solves g = 0 by Newton at every evaluation, which the
+        # compiler cannot trace (it gives up after seconds of tracing): "auto" stays eager
+        dae = self.kind in ("dae_module", "dae_problem")
+        self.compile = False if dae and compile == "auto" else compile
         if self.kind in ("dae_module", "dae_problem"):
             index = getattr(f, "index", 1)
             if index is not None and int(index) > 1:
