@@ -135,8 +135,8 @@ def test_auto_compiles_once_the_eager_time_reaches_its_threshold(monkeypatch):
     steps. A fake clock advances only in eager model calls, so every eager run takes the same
     time W: with the threshold at 3.5 W, three runs are eager, the fourth compiles after its
     first interval (3 W spent + W predicted), the fifth is compiled; same numbers."""
-    module = importlib.import_module("integrators.sensitivities")  # the package re-exports
-    clock = [0]  # the function by this name
+    module = importlib.import_module("integrators.sensitivities")  # not the function
+    clock = [0]
     monkeypatch.setattr(module, "time", types.SimpleNamespace(perf_counter=lambda: clock[0]))
     x0, t, p, u = _collocation_case()
 
