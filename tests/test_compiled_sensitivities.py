@@ -145,7 +145,7 @@ def test_auto_compiles_once_the_eager_time_reaches_its_threshold(monkeypatch):
             clock[0] += 1
         return pendulum(t, x, u, p)
 
-    kw = dict(u=u, substeps=10, input_sensitivities=False)  # 200 steps a run
+    kw = dict(u=u, substeps=2, input_sensitivities=False)  # 40 steps a run
     eager = sensitivities(model, x0, t, p, compile=False, **kw)
     W = clock[0]
     monkeypatch.setattr(module, "AUTO_COMPILE_EAGER_SECONDS", 3.5 * W)

@@ -70,9 +70,11 @@ def test_blown_up_sample_gradient_equals_finite_sample_alone():
     torch.testing.assert_close(g_p, alone + escaping, rtol=1e-13, atol=0)
 
 
-def test_blown_up_sample_compiled_and_checkpointed_run(central_difference):
-    """compile=True, checkpoint=True: two compiled probe chunks of 8 steps, then eager
-    segments of 7 steps; the sample escapes inside a segment and the rerun starts there."""
+def test_blown_up_sample_compiled_and_checkpointed_run(central_difference, monkeypatch):
+    """compile=True, checkpoint=True with compiled chunks of 2 steps (a short graph to
+    compile): two compiled probe chunks, then eager segments of 8 steps (sqrt(40) rounded up
+    to whole chunks); the sample escapes inside a segment and the rerun starts there."""
+    monkeypatch.setattr(explicit, "CHUNK_STEPS", 2)
     p, f, _ = _escape_problem("none")
     x0 = torch.tensor(X0_BY_BATCH[(3,)], dtype=torch.float64)
     t = torch.linspace(0.0, 1.0, 41, dtype=torch.float64)
@@ -81,7 +83,7 @@ def test_blown_up_sample_compiled_and_checkpointed_run(central_difference):
     # can refuse a compilation late in a long process)
     extra = sol.stats.extra
     assert extra["compiled"] != bool(extra["compile_fallback"]), extra
-    assert extra["checkpoint_steps"] == 7
+    assert extra["checkpoint_steps"] == 8
     mask = sol.x.detach().abs() < 1e3
     (grad,) = torch.autograd.grad(sol.x[mask].sum(), p)
 
