@@ -241,9 +241,9 @@ def test_parameter_gradient_matches_central_differences(name, driver, monkeypatc
     step 1e-6 |p|.
 
     The compiled driver takes one step per output interval and compiles chunks of one
-    interval (a cold compile of a forward and backward graph grows by about 13 s per RK4
-    step in the chunk on 2 cores); its differences come from its eager twin, whose runs give
-    the compiled runs' numbers (``test_compiled_rk4_equals_eager``)."""
+    interval (the time to compile a forward and backward graph grows with the steps in a
+    chunk); its differences come from its eager twin, whose runs give the compiled runs'
+    numbers (``test_compiled_rk4_equals_eager``)."""
     sc, drv, plant = SCENARIOS[name], DRIVER[driver], _plant(name)
     differences = drv
     if driver == "rk4 compiled":
