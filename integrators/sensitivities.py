@@ -262,7 +262,7 @@ def _explicit_step(stage_at, tab, h, nx: int):
     return step
 
 
-def _interval_kernel(g, tab: ButcherTableau, substeps: int, derivatives: bool, n_out, _layout):
+def _interval_kernel(g, tab: ButcherTableau, substeps: int, n_out, _layout):
     """One output interval of an explicit scheme as one function, for ``torch.compile``.
 
     The recursion of eq. 8.17 in forward mode: instead of the stage Jacobians ``F_x, F_q`` it
@@ -272,8 +272,8 @@ def _interval_kernel(g, tab: ButcherTableau, substeps: int, derivatives: bool, n
     Compiled, the whole interval is one kernel; the rounding differs from the eager path's
     (``Phi A``, ``Phi B + Psi``) only in the order of the sums.
 
-    The kernel is ``(x, S, p, U, t0, h) -> (x_new, S_new)`` (``S_new`` None without
-    ``derivatives``): ``x`` (*batch, nx), ``S`` (*batch, nx, nx + np), ``p`` (*batch, np),
+    The kernel is ``(x, S, p, U, t0, h) -> (x_new, S_new)``: ``x`` (*batch, nx), ``S``
+    (*batch, nx, nx + np), ``p`` (*batch, np),
     ``U`` (*batch, substeps, stages, nu) the stage inputs (nu = 0 without input), ``t0`` and
     ``h`` 0-dim tensors (the interval's start and the step).
     """
@@ -283,12 +283,9 @@ def _interval_kernel(g, tab: ButcherTableau, substeps: int, derivatives: bool, n
     s = tab.stages
 
     def kernel(x, S, p, U, t0, h):
-        n_p = p.shape[-1]
-        dp = None
-        if derivatives:
-            nx = x.shape[-1]
-            eye = torch.eye(n_p, dtype=x.dtype, device=x.device)
-            dp = torch.cat([eye.new_zeros(n_p, nx), eye], -1).expand(*p.shape[:-1], n_p, nx + n_p)
+        n_p, nx = p.shape[-1], x.shape[-1]
+        eye = torch.eye(n_p, dtype=x.dtype, device=x.device)
+        dp = torch.cat([eye.new_zeros(n_p, nx), eye], -1).expand(*p.shape[:-1], n_p, nx + n_p)
         for m in range(substeps):
             tk = t0 + m * h
             Ks, dKs = [], []
@@ -298,16 +295,11 @@ def _interval_kernel(g, tab: ButcherTableau, substeps: int, derivatives: bool, n
                 for j in range(i):
                     if A[i][j] != 0.0:
                         xs = xs + h * A[i][j] * Ks[j]
-                        if derivatives:
-                            dxs = dxs + h * A[i][j] * dKs[j]
+                        dxs = dxs + h * A[i][j] * dKs[j]
                 u = U[..., m, i, :]
 
                 def rhs(xx, pp, ti=ti, u=u):
                     return g(ti, xx, u, pp)
-
-                if not derivatives:
-                    Ks.append(rhs(xs, p))
-                    continue
 
                 def column(dx, dpp, xs=xs, rhs=rhs):
                     return jvp(rhs, (xs, p), (dx, dpp))
@@ -318,9 +310,8 @@ def _interval_kernel(g, tab: ButcherTableau, substeps: int, derivatives: bool, n
             for i in range(s):
                 if b[i] != 0.0:
                     x = x + h * b[i] * Ks[i]
-                    if derivatives:
-                        S = S + h * b[i] * dKs[i]
-        return x, (S if derivatives else None)
+                    S = S + h * b[i] * dKs[i]
+        return x, S
 
     return kernel
 
@@ -555,7 +546,8 @@ def sensitivities(
             interval as one ``torch.compile``-d kernel (forward-mode stage derivatives, see
             :func:`_interval_kernel`), False never; ``"auto"`` (default) compiles once
             :data:`AUTO_COMPILE_EAGER_SECONDS` seconds were spent stepping eagerly with the same
-            ``f`` and configuration over all calls (compiled kernels are cached per ``f``). A
+            ``f``, configuration and batch shape over all calls (compiled kernels are cached
+            per ``f``; runs with and without ``derivatives`` share one kernel). A
             model the compiler or forward-mode differentiation cannot handle (one calling
             autograd or a Newton solver inside ``f``) runs eagerly; ``stats.extra`` reports
             ``compiled``, ``compile_fallback`` (why a wanted compile did not happen) and
@@ -601,7 +593,9 @@ def sensitivities(
 
     def interval_kernel(mode):
         """The compiled interval kernel of this run (a Stepper), its stage inputs and ``p``."""
-        config = ("sensitivities", _tableau_key(tab), substeps, derivatives, inputs.kind, n_p)
+        # one kernel with and without derivatives: a run without them drops S (one compile
+        # serves e.g. a fit's Jacobians and its line-search trials)
+        config = ("sensitivities", _tableau_key(tab), substeps, inputs.kind, n_p)
         with torch.no_grad():  # the results are detached: no graph through the kernel
             stepper = compiled_stepper(
                 f,
@@ -609,7 +603,7 @@ def sensitivities(
                 compile=mode,
                 n_steps=0,
                 x0=x,
-                make_chunk=functools.partial(_interval_kernel, g, tab, substeps, derivatives),
+                make_chunk=functools.partial(_interval_kernel, g, tab, substeps),
                 n_out=1,
                 auto_min_steps=math.inf,
                 auto_min_eager_s=AUTO_COMPILE_EAGER_SECONDS,
@@ -636,7 +630,7 @@ def sensitivities(
             fast, stage_u, p_kernel = interval_kernel(True)
             tic = time.perf_counter()
         if fast is not None and fast.active:
-            S = torch.cat([A, B], -1) if derivatives else x.new_zeros(0)
+            S = torch.cat([A, B], -1)
             h = (t[k + 1] - t[k]) / substeps
             with torch.no_grad():
                 out = fast(x, S, p_kernel, stage_u[..., k, :, :, :], t[k], h)
@@ -646,7 +640,7 @@ def sensitivities(
                     A, B = S[..., :nx], S[..., nx:]
                 n_steps += substeps
                 n_f += tab.stages * substeps
-                n_jac += tab.stages * substeps if derivatives else 0
+                n_jac += tab.stages * substeps  # the kernel propagates S either way
                 xs_out.append(x)
                 As_out.append(A)
                 Bs_out.append(B)

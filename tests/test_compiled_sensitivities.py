@@ -134,7 +134,9 @@ def test_auto_compiles_once_the_eager_time_reaches_its_threshold(monkeypatch):
     first intervals, reaches :data:`AUTO_COMPILE_EAGER_SECONDS`, whatever the number of
     steps. A fake clock advances only in eager model calls, so every eager run takes the same
     time W: with the threshold at 3.5 W, three runs are eager, the fourth compiles after its
-    first interval (3 W spent + W predicted), the fifth is compiled; same numbers."""
+    first interval (3 W spent + W predicted), the fifth is compiled; same numbers. A run
+    without derivatives uses the same compiled kernel (one compile), and a new batch shape,
+    which would compile a kernel of its own, starts its own account: eager."""
     module = importlib.import_module("integrators.sensitivities")  # not the function
     clock = [0]
     monkeypatch.setattr(module, "time", types.SimpleNamespace(perf_counter=lambda: clock[0]))
@@ -155,6 +157,17 @@ def test_auto_compiles_once_the_eager_time_reaches_its_threshold(monkeypatch):
     for r in runs:
         torch.testing.assert_close(r.x, eager.x, rtol=1e-13, atol=1e-14)
         torch.testing.assert_close(r.B, eager.B, rtol=1e-11, atol=1e-13)
+    states_only = sensitivities(model, x0, t, p, compile="auto", derivatives=False, **kw)
+    assert states_only.stats.extra["compiled"] and states_only.B is None
+    torch.testing.assert_close(states_only.x, eager.x, rtol=1e-13, atol=1e-14)
+    cache = importlib.import_module("integrators._fast.compiled")._CACHE
+    ((_, entry),) = cache[model].items()
+    assert len(entry.compiled) == 1
+    clock_before = clock[0]
+    wider = sensitivities(model, x0.expand(2, *x0.shape), t, p, compile="auto", **kw)
+    assert not wider.stats.extra["compiled"] and clock[0] > clock_before
+    assert len(entry.compiled) == 1
+    torch.testing.assert_close(wider.x, eager.x.expand_as(wider.x), rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("compile_mode", ["auto", False])

@@ -81,8 +81,11 @@ class _Entry:
     """Compiled chunk functions for one model/configuration, and their usage counters."""
 
     def __init__(self):
-        self.steps_seen = 0
-        self.eager_s = 0.0  # wall time of the eager runs reported by the solver
+        # per state shape, dtype and device (each compiles a kernel of its own, so each pays
+        # the one-off compile time of "auto" by itself): steps taken, wall time of the eager
+        # runs reported by the solver
+        self.steps_seen: dict = {}
+        self.eager_s: dict = {}
         self.compiled: dict = {}  # (outputs per chunk, component-major, shape...) -> chunk
         self.reference: dict = {}  # the same key -> the eager chunk the compiled one must match
         self.failed = False
@@ -132,6 +135,7 @@ class Stepper:
 
     def __init__(self, f, entry: _Entry, want, active, key, compile_s, auto_min_eager_s):
         self._f, self._entry, self._want, self._active = f, entry, want, active
+        self._state = key[2:]  # the state's shape, dtype and device: the "auto" account
         self._key, self._chunk, self._reference = (
             key,
             entry.compiled.get(key),
@@ -145,7 +149,8 @@ class Stepper:
     def add_eager_seconds(self, seconds: float) -> None:
         """Count ``seconds`` of eager stepping of this model and configuration towards
         ``"auto"`` (see :func:`compiled_stepper`)."""
-        self._entry.eager_s += seconds
+        eager_s = self._entry.eager_s
+        eager_s[self._state] = eager_s.get(self._state, 0.0) + seconds
 
     def worth_compiling(self, run_eager_s: float) -> bool:
         """Whether an eager ``"auto"`` run predicted to take ``run_eager_s`` seconds in all
@@ -154,7 +159,7 @@ class Stepper:
         known, see :func:`compiled_stepper`)."""
         if self._active or self._entry.failed:
             return False
-        return self._entry.eager_s + run_eager_s >= self._auto_min_eager_s
+        return self._entry.eager_s.get(self._state, 0.0) + run_eager_s >= self._auto_min_eager_s
 
     @property
     def active(self) -> bool:
@@ -231,13 +236,15 @@ def compiled_stepper(
         config: a hashable description of everything else the chunk depends on.
         compile: True, False or ``"auto"``: compile once ``auto_min_steps`` steps were taken,
             or once ``auto_min_eager_s`` seconds were spent in eager runs (reported by the
-            solver through :meth:`Stepper.add_eager_seconds`), with this model and
-            configuration over all calls; a solver that can predict a run's eager time
-            compiles as soon as the prediction reaches the threshold
-            (:meth:`Stepper.worth_compiling`). The time rule is rent-or-buy: with the
-            threshold at the one-off compile time, the total costs at most twice the better
-            of the two choices made in hindsight, whatever the batch size. A model compiled
-            once runs compiled in every later ``"auto"`` run.
+            solver through :meth:`Stepper.add_eager_seconds`), with this model,
+            configuration and state shape (dtype, device) over all calls; a solver that can
+            predict a run's eager time compiles as soon as the prediction reaches the
+            threshold (:meth:`Stepper.worth_compiling`). The time rule is rent-or-buy: with
+            the threshold at the one-off compile time, the total costs at most twice the
+            better of the two choices made in hindsight, whatever the batch size. Each state
+            shape compiles a kernel of its own and so keeps an account of its own: a model
+            compiled once for a shape runs compiled in every later ``"auto"`` run of that
+            shape, and a new shape starts eager.
         n_steps: the steps of this run (counted towards ``"auto"``).
         x0: (*batch, nx) initial state; the chunk is compiled for its shape, dtype and device.
         make_chunk: ``make_chunk(n_out, component_major)``, the chunk function to compile
@@ -255,9 +262,11 @@ def compiled_stepper(
         the chunk eagerly, and reports ``compiled``, ``compile_fallback`` and ``compile_s``.
     """
     entry = _cache_entry(f, config)
-    entry.steps_seen += n_steps
-    enough = entry.steps_seen >= auto_min_steps or entry.eager_s >= auto_min_eager_s
-    enough = enough or bool(entry.compiled)  # compiled once: no more eager "auto" runs
+    state = (tuple(x0.shape), x0.dtype, x0.device)
+    entry.steps_seen[state] = steps = entry.steps_seen.get(state, 0) + n_steps
+    enough = steps >= auto_min_steps or entry.eager_s.get(state, 0.0) >= auto_min_eager_s
+    # compiled once for this state: no more eager "auto" runs
+    enough = enough or any(key[2:] == state for key in entry.compiled)
     want = compile is True or (compile == "auto" and enough)
     grad_mode = torch.is_grad_enabled()
     active = want and not entry.failed and not torch.compiler.is_compiling()
@@ -272,7 +281,7 @@ def compiled_stepper(
         compile_s += time.perf_counter() - tic if first_check else 0.0
     # One compiled function (own code object, see _with_own_code) per chunk length, layout and
     # state shape/dtype/device: dynamo's recompile limit never turns a new shape eager.
-    key = (n_out, component_major, tuple(x0.shape), x0.dtype, x0.device)
+    key = (n_out, component_major, *state)
     if active and key not in entry.compiled:
         tic = time.perf_counter()  # the first torch.compile imports dynamo/inductor (seconds)
         from .cat_forwarding import CatForwardingPass
