@@ -56,15 +56,41 @@ def gradients(output, inputs, grad_output=None, create_graph=False):
 
 
 def jacobian_rows(
-    out: torch.Tensor, inputs: Sequence[torch.Tensor], create_graph: bool = False
+    out: torch.Tensor,
+    inputs: Sequence[torch.Tensor],
+    create_graph: bool = False,
+    batched: bool = False,
 ) -> list[torch.Tensor]:
     """Per-sample Jacobians ``d out / d input`` (*batch, m, n_input) of an already computed
-    sample-wise ``out`` (*batch, m), one backward pass per output component.
+    sample-wise ``out`` (*batch, m): the ``m`` backward passes of the module docstring, one
+    per output component, or with ``batched`` as one vmapped pass (the ``"vmap"`` strategy;
+    an operation without a batching rule falls back to one pass per component).
 
     An input ``out`` does not depend on gets zeros. ``create_graph=True`` keeps the result
     differentiable (higher derivatives); the graph of ``out`` is kept either way.
     """
     inputs = tuple(inputs)
+    m = out.shape[-1]
+    if batched and out.requires_grad:
+        basis = torch.eye(m, dtype=out.dtype, device=out.device)
+        basis = basis.view(m, *([1] * (out.dim() - 1)), m).expand(m, *out.shape)
+        try:
+            grads = torch.autograd.grad(
+                out,
+                inputs,
+                basis,
+                retain_graph=True,
+                create_graph=create_graph,
+                allow_unused=True,
+                is_grads_batched=True,
+            )
+        except (RuntimeError, NotImplementedError):
+            pass
+        else:
+            return [
+                x.new_zeros(*x.shape[:-1], m, x.shape[-1]) if g is None else g.movedim(0, -2)
+                for g, x in zip(grads, inputs, strict=True)
+            ]
     rows = [
         gradients(out[..., k].sum(), inputs, create_graph=create_graph)
         for k in range(out.shape[-1])
@@ -99,20 +125,7 @@ def batch_jacobian(
         y = _batch_shaped(fn(xg, *args), batch)
         if not y.requires_grad:  # fn does not depend on x
             return y.detach(), y.new_zeros(*y.shape, n)
-        if strategy == "vmap":
-            m = y.shape[-1]
-            basis = torch.eye(m, dtype=y.dtype, device=y.device)
-            basis = basis.view(m, *([1] * (y.dim() - 1)), m).expand(m, *y.shape)
-            try:
-                (rows,) = torch.autograd.grad(
-                    y, xg, basis, retain_graph=True, is_grads_batched=True, allow_unused=True
-                )
-            except (RuntimeError, NotImplementedError):
-                pass
-            else:
-                J = xg.new_zeros(m, *xg.shape) if rows is None else rows
-                return y.detach(), J.movedim(0, -2).detach()
-        (J,) = jacobian_rows(y, (xg,))
+        (J,) = jacobian_rows(y, (xg,), batched=strategy == "vmap")
     return y.detach(), J.detach()
 
 

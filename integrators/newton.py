@@ -37,7 +37,7 @@ from ._options import check_state
 from .block_jacobian import BlockJacobian
 from .block_tridiagonal import BorderedBlockTridiagonal
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
-from .jacobians import batch_jacobian
+from .jacobians import batch_jacobian, jacobian_rows
 
 __all__ = [
     "MinimizeResult",
@@ -401,10 +401,18 @@ def newton(
     x = check_state(x0, "newton: x0").detach()
     frozen = _detach(args)
     params = tuple(params)
-    with torch.no_grad():
-        fx = phi(x, *frozen)
+    # the autograd Jacobian at x0 (the first one any method takes) comes from the graph of
+    # this first evaluation: one evaluation of phi fewer per solve
+    start_graph = jacobian is None and factorization is None
+    x_start = x.clone().requires_grad_(start_graph)
+    with torch.set_grad_enabled(start_graph):
+        fx = phi(x_start, *frozen)
     if not isinstance(fx, torch.Tensor):
         raise InputValidationError(f"newton: phi must return a tensor, got {type(fx).__name__}.")
+    # (graph at x0, its output) while unused; None: phi at x0 has no graph through x
+    same_layout = fx.shape == x.shape and fx.dtype == x.dtype
+    start = (x_start, fx) if fx.requires_grad and same_layout else None
+    fx = fx.detach()
     if fx.shape != x.shape:
         try:
             x = x.expand(fx.shape).clone()
@@ -424,7 +432,12 @@ def newton(
         return _evaluate(phi, z, frozen, x.shape, "during the iteration")
 
     def iteration_matrix(z):
+        nonlocal start
         counts["jac"] += 1
+        if start is not None:  # z is x0: the rows from the first evaluation's graph
+            (J,) = jacobian_rows(start[1], start[:1], batched=True)
+            start = None
+            return J.detach()
         if jacobian is None:
             _, J = batch_jacobian(phi, z, *frozen)
             counts["phi"] += 1

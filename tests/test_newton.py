@@ -72,6 +72,31 @@ def test_full_newton_converges_quadratically_on_a_vector_problem():
     assert float(res.observed_order[0]) > 1.7
 
 
+@pytest.mark.parametrize("method", ["full", "damped", "simplified"])
+def test_the_jacobian_at_x0_reuses_the_first_evaluation(method):
+    """A linear phi(x) = A x - b converges in one step from any x0: the Jacobian at x0 comes
+    from the graph of phi's first evaluation, so a solve calls phi twice (x0 and x1), and
+    the step is exactly A^{-1} (A x0 - b). A guess broadcast to phi's batch (no graph of
+    that shape) takes its Jacobian by a separate evaluation."""
+    g = torch.Generator().manual_seed(4)
+    A = torch.randn(5, 3, 3, generator=g, dtype=F64) + 4 * torch.eye(3, dtype=F64)
+    b = torch.randn(5, 3, generator=g, dtype=F64)
+    calls = []
+
+    def phi(x, A, b):
+        calls.append(x.shape)
+        return (A @ x.unsqueeze(-1)).squeeze(-1) - b
+
+    res = newton(phi, torch.ones(5, 3, dtype=F64), A, b, method=method, tol=1e-12)
+    assert bool(res.converged.all()) and res.iterations.tolist() == [1] * 5
+    assert len(calls) == res.n_phi_evals == 2 and res.n_jac_evals == 1
+    torch.testing.assert_close(res.x, torch.linalg.solve(A, b), rtol=1e-13, atol=1e-13)
+    calls.clear()
+    broadcast = newton(phi, torch.ones(3, dtype=F64), A, b, method=method, tol=1e-12)
+    assert len(calls) == broadcast.n_phi_evals == 3
+    torch.testing.assert_close(broadcast.x, res.x, rtol=1e-13, atol=1e-13)
+
+
 def test_simplified_newton_converges_linearly_at_the_theorem_6_rate():
     """Frozen M = phi'(x0): the error ratio tends to kappa = |1 - phi'(x*) / M| (eq. 3.47)."""
     a = torch.tensor([[2.0]], dtype=F64)
