@@ -273,9 +273,9 @@ def _interval_kernel(g, tab: ButcherTableau, substeps: int, n_out, _layout):
     (``Phi A``, ``Phi B + Psi``) only in the order of the sums.
 
     The kernel is ``(x, S, p, U, t0, h) -> (x_new, S_new)``: ``x`` (*batch, nx), ``S``
-    (*batch, nx, nx + np), ``p`` (*batch, np),
-    ``U`` (*batch, substeps, stages, nu) the stage inputs (nu = 0 without input), ``t0`` and
-    ``h`` 0-dim tensors (the interval's start and the step).
+    (*batch, nx, nx + np), ``p`` (*batch, np), ``U`` (*batch, substeps, stages, nu) the stage
+    inputs (nu = 0 without input), ``t0`` and ``h`` 0-dim tensors (the interval's start and
+    the step).
     """
     # Python floats: dynamo would trace numpy scalars as tensors
     A = np.asarray(tab.A, dtype=np.float64).tolist()
@@ -540,7 +540,8 @@ def sensitivities(
             ``T * T * nx * nu`` entries per batch member, quadratic in the record length.
         derivatives: False returns only the states (``A``, ``B``, ``C`` None): the same
             discrete simulation, arithmetic for arithmetic, without the derivative work for an
-            explicit tableau (an implicit one still needs the Newton matrix), e.g. for the
+            eager explicit tableau (an implicit one still needs the Newton matrix; a compiled
+            run uses the kernel of the runs with derivatives and drops them), e.g. for the
             trial points of a line search whose Jacobians come from this function.
         compile: explicit tableaus without input sensitivities: True runs each output
             interval as one ``torch.compile``-d kernel (forward-mode stage derivatives, see
