@@ -110,10 +110,20 @@ def batch_jacobian(
 
     Returns:
         ``(y, J)`` detached: ``y = fn(x, *args)`` (*batch, m) and ``J`` (*batch, m, n).
+
+    Raises:
+        InputValidationError: an unknown strategy, or a call under ``torch.inference_mode()``
+            (which switches autograd off: every Jacobian would come out zero).
     """
     if strategy not in STRATEGIES:
         raise InputValidationError(
             f"batch_jacobian: unknown strategy {strategy!r}; use one of {STRATEGIES}."
+        )
+    if torch.is_inference_mode_enabled():
+        raise InputValidationError(
+            "batch_jacobian: Jacobians by autograd cannot be formed under "
+            "torch.inference_mode(), which switches autograd off; run the solver under "
+            "torch.no_grad() instead (it keeps autograd available to the solver)."
         )
     batch, n = x.shape[:-1], x.shape[-1]
     with torch.enable_grad():

@@ -7,8 +7,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from integrators import InputValidationError, batch_jacobian, jacobian_rows
+from integrators import InputValidationError, batch_jacobian, jacobian_rows, newton, odeint
 from integrators.jacobians import gradients
+from integrators.sensitivities import sensitivities
 
 F64 = torch.float64
 
@@ -67,6 +68,45 @@ def test_maps_that_ignore_x_or_its_batch():
         assert y.shape == (3, 2) and torch.equal(J, torch.zeros(3, 2, 2, dtype=F64))
         y, J = batch_jacobian(lambda z: 3.0 * z[..., 1:], x, strategy=strategy)
         torch.testing.assert_close(J, torch.tensor([[[0.0, 3.0]]], dtype=F64).expand(3, 1, 2))
+
+
+def test_inference_mode_is_refused_by_name_and_no_grad_works():
+    """torch.inference_mode() switches autograd off, so every autograd Jacobian would be zero
+    (forward sensitivities of zero, Newton matrices of the identity): the Jacobian, Newton,
+    the sensitivities and an implicit integrator refuse it by name; under torch.no_grad()
+    they give the right numbers."""
+    x = torch.tensor([[0.5, -1.0], [2.0, 0.3]], dtype=F64)
+
+    def cube(z):
+        return z**3 - 2.0
+
+    def decay(t, x, p):
+        return -p * x
+
+    t = torch.linspace(0.0, 1.0, 5, dtype=F64)
+    p = torch.tensor([2.0], dtype=F64)
+    calls = {
+        "batch_jacobian": lambda: batch_jacobian(cube, x),
+        "newton": lambda: newton(cube, x.abs() + 1.0),
+        "sensitivities": lambda: sensitivities(decay, x, t, p, substeps=4, compile=False),
+        "odeint": lambda: odeint(lambda t, z: -50.0 * z, x, t, method="radau_iia"),
+    }
+    for name, call in calls.items():
+        with torch.inference_mode(), pytest.raises(InputValidationError, match="inference_mode"):
+            call()
+        with torch.no_grad():
+            result = call()
+        if name == "batch_jacobian":
+            torch.testing.assert_close(result[1], torch.diag_embed(3 * x**2))
+        elif name == "newton":
+            assert bool(result.converged.all())
+            torch.testing.assert_close(result.x, torch.full_like(x, 2 ** (1 / 3)))
+        elif name == "sensitivities":
+            expected = -t[:, None] * torch.exp(-2.0 * t[:, None]) * x[:, None, :]
+            torch.testing.assert_close(result.B[..., 0], expected, rtol=1e-3, atol=1e-6)
+        else:
+            expected = torch.exp(-50.0 * t[:, None]) * x[:, None, :]
+            torch.testing.assert_close(result.x, expected, rtol=1e-3, atol=1e-6)
 
 
 def test_unknown_strategy_is_refused_by_name():
