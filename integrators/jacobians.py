@@ -32,11 +32,24 @@ __all__ = ["batch_jacobian", "gradients", "jacobian_rows"]
 STRATEGIES = ("vmap", "rows", "stacked", "forward")
 
 
+def _refuse_inference_mode(who: str) -> None:
+    """Raise :class:`InputValidationError` under ``torch.inference_mode()``: it switches
+    autograd off, so every derivative taken here would come out zero."""
+    if torch.is_inference_mode_enabled():
+        raise InputValidationError(
+            f"{who}: derivatives by autograd cannot be taken under torch.inference_mode(), "
+            "which switches autograd off; run under torch.no_grad() instead (it keeps "
+            "autograd available to the solvers and models that differentiate inside)."
+        )
+
+
 def gradients(output, inputs, grad_output=None, create_graph=False):
     """``torch.autograd.grad(output, inputs, grad_output)`` with zeros for every input that
     ``output`` does not depend on, and for all of them when ``output`` has no graph (the
     derivative is then identically zero: autograd has nothing to differentiate). The graph of
-    ``output`` is kept. ``inputs``: a tensor (one gradient is returned) or a sequence."""
+    ``output`` is kept. ``inputs``: a tensor (one gradient is returned) or a sequence.
+    Refused under ``torch.inference_mode()`` (:class:`InputValidationError`)."""
+    _refuse_inference_mode("gradients")
     single = isinstance(inputs, torch.Tensor)
     inputs = (inputs,) if single else tuple(inputs)
     grads = (None,) * len(inputs)
@@ -67,8 +80,10 @@ def jacobian_rows(
     an operation without a batching rule falls back to one pass per component).
 
     An input ``out`` does not depend on gets zeros. ``create_graph=True`` keeps the result
-    differentiable (higher derivatives); the graph of ``out`` is kept either way.
+    differentiable (higher derivatives); the graph of ``out`` is kept either way. Refused
+    under ``torch.inference_mode()`` (:class:`InputValidationError`).
     """
+    _refuse_inference_mode("jacobian_rows")
     inputs = tuple(inputs)
     m = out.shape[-1]
     if batched and out.requires_grad:
@@ -119,12 +134,7 @@ def batch_jacobian(
         raise InputValidationError(
             f"batch_jacobian: unknown strategy {strategy!r}; use one of {STRATEGIES}."
         )
-    if torch.is_inference_mode_enabled():
-        raise InputValidationError(
-            "batch_jacobian: Jacobians by autograd cannot be formed under "
-            "torch.inference_mode(), which switches autograd off; run the solver under "
-            "torch.no_grad() instead (it keeps autograd available to the solver)."
-        )
+    _refuse_inference_mode("batch_jacobian")
     batch, n = x.shape[:-1], x.shape[-1]
     with torch.enable_grad():
         if strategy == "stacked":

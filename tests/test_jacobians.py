@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 from integrators import InputValidationError, batch_jacobian, jacobian_rows, newton, odeint
 from integrators.jacobians import gradients
 from integrators.sensitivities import sensitivities
+from sysid.zoo import Crane
 
 F64 = torch.float64
 
@@ -72,9 +73,9 @@ def test_maps_that_ignore_x_or_its_batch():
 
 def test_inference_mode_is_refused_by_name_and_no_grad_works():
     """torch.inference_mode() switches autograd off, so every autograd Jacobian would be zero
-    (forward sensitivities of zero, Newton matrices of the identity): the Jacobian, Newton,
-    the sensitivities and an implicit integrator refuse it by name; under torch.no_grad()
-    they give the right numbers."""
+    (forward sensitivities of zero, Newton matrices of the identity, a Lagrangian plant's
+    mass matrix): the Jacobian, Newton, the sensitivities, an implicit integrator and a
+    Lagrangian plant refuse it by name; under torch.no_grad() they give the right numbers."""
     x = torch.tensor([[0.5, -1.0], [2.0, 0.3]], dtype=F64)
 
     def cube(z):
@@ -85,11 +86,14 @@ def test_inference_mode_is_refused_by_name_and_no_grad_works():
 
     t = torch.linspace(0.0, 1.0, 5, dtype=F64)
     p = torch.tensor([2.0], dtype=F64)
+    crane = Crane().to(F64)  # its equations of motion are formed by autograd
+    state = torch.tensor([[0.1, 0.3, 0.0, 0.2]], dtype=F64)
     calls = {
         "batch_jacobian": lambda: batch_jacobian(cube, x),
         "newton": lambda: newton(cube, x.abs() + 1.0),
         "sensitivities": lambda: sensitivities(decay, x, t, p, substeps=4, compile=False),
         "odeint": lambda: odeint(lambda t, z: -50.0 * z, x, t, method="radau_iia"),
+        "Lagrangian plant": lambda: crane(0.0, state),
     }
     for name, call in calls.items():
         with torch.inference_mode(), pytest.raises(InputValidationError, match="inference_mode"):
@@ -104,9 +108,11 @@ def test_inference_mode_is_refused_by_name_and_no_grad_works():
         elif name == "sensitivities":
             expected = -t[:, None] * torch.exp(-2.0 * t[:, None]) * x[:, None, :]
             torch.testing.assert_close(result.B[..., 0], expected, rtol=1e-3, atol=1e-6)
-        else:
+        elif name == "odeint":
             expected = torch.exp(-50.0 * t[:, None]) * x[:, None, :]
             torch.testing.assert_close(result.x, expected, rtol=1e-3, atol=1e-6)
+        else:
+            torch.testing.assert_close(result, crane(0.0, state), rtol=0, atol=0)
 
 
 def test_unknown_strategy_is_refused_by_name():
