@@ -366,8 +366,8 @@ def solve_explicit(
         substeps: integer number of equal steps per output interval (>= 1).
         compile: True (``torch.compile`` the chunked step, eager fallback if compilation
             fails), False, or ``"auto"`` (compile once
-            ``_fast.compiled.AUTO_COMPILE_MIN_STEPS`` steps were taken with this model over
-            all calls).
+            ``_fast.compiled.AUTO_COMPILE_MIN_STEPS`` steps were taken with this model and
+            state shape over all calls).
         checkpoint: with autograd, ``False`` keeps every step's graph; ``True`` runs the
             steps in segments of about ``sqrt(n_steps)`` steps under
             ``torch.utils.checkpoint`` (non-reentrant), whose saved tensors the backward pass

@@ -22,8 +22,9 @@ import weakref
 
 import torch
 
-#: ``compile="auto"`` compiles once this many steps were taken with the same model and
-#: configuration (over all calls): the one-off compile (seconds) then pays for itself.
+#: ``compile="auto"`` compiles once this many steps were taken with the same model,
+#: configuration and state shape (over all calls): the one-off compile (seconds) then pays
+#: for itself.
 AUTO_COMPILE_MIN_STEPS = 50_000
 #: Compiled runs of models with at most this many states keep the state component-major
 #: (a (nx, *batch) tensor whose rows the cat-forwarding graph pass lets inductor read straight
