@@ -62,6 +62,26 @@ class StageTimes:
         return self._stacked
 
 
+class StageInputs(list):
+    """The inputs ``u(t_k + c_i h)`` of one step's stages (a list, None entries without an
+    input); ``stacked`` holds them as one (s, 1.., *batch', nu) tensor, singleton batch
+    dimensions inserted so that it broadcasts like the stacked stage states (s, *batch, n),
+    or None without an input. Built on first use."""
+
+    def __init__(self, inputs: list, batch_ndim: int):
+        super().__init__(inputs)
+        self.batch_ndim = batch_ndim
+        self._stacked = None
+
+    @property
+    def stacked(self) -> torch.Tensor | None:
+        if self._stacked is None and self[0] is not None:
+            u = torch.stack(torch.broadcast_tensors(*self))  # (s, *batch', nu)
+            missing = max(self.batch_ndim - (u.dim() - 2), 0)
+            self._stacked = u.reshape(u.shape[0], *(1,) * missing, *u.shape[1:])
+        return self._stacked
+
+
 class FrozenLUSolve(torch.autograd.Function):
     """``y = M^{-1} b`` for a fixed LU factorisation; backward is ``M^{-T} grad`` (one solve)."""
 
@@ -143,10 +163,14 @@ class IRKCore:
         caller already has them."""
         return StageTimes(self.c, tk, h, batch_ndim, stacked)
 
-    def stage_inputs(self, times, tk, fixed: bool):
+    def stage_inputs(self, times, tk, fixed: bool) -> StageInputs:
+        """The stage inputs (:class:`StageInputs`) at the stage times ``times``; on a fixed
+        step (``fixed``) a zero-order-hold input holds ``u(t_k)`` (``InputSignal.at``)."""
         if self.signal.source is None or self.signal.source.kind == "none":
-            return [None] * self.s
-        return [self.signal.at(ti, tk if fixed else None) for ti in times]
+            return StageInputs([None] * self.s, times.batch_ndim)
+        return StageInputs(
+            [self.signal.at(ti, tk if fixed else None) for ti in times], times.batch_ndim
+        )
 
     def stage_states(self, xk, h, K):
         """``X_i = x_k + h sum_j a_ij K_j``: (*batch, s, n); h is (*batch,)."""
@@ -165,9 +189,10 @@ class IRKCore:
     def residual(self, times, inputs, h, xk, W):
         """Stage residuals (*batch, s, p) of the stage unknowns ``W`` (*batch, s, p).
 
-        When the problem has no input and its functions accept a leading extra batch
-        dimension (tested once, see :meth:`stacking_works`), all stages are evaluated in
-        one call with the stage index as leading batch dimension; otherwise stage by stage.
+        When the problem's functions accept a leading extra batch dimension (tested once, see
+        :meth:`stacking_works`), all stages are evaluated in one call with the stage index as
+        leading batch dimension of the times, states and inputs (``inputs.stacked``);
+        otherwise stage by stage.
         """
         n = self.system.n
         K = W[..., :n] if self.system.m else W
@@ -178,9 +203,9 @@ class IRKCore:
         if self.stack_stages:
             Xs = torch.addcmul(xk, h[..., None], self._apply_A(K).movedim(-2, 0))
             if self.system.kind == "ode":  # K - f(t, X) (eq. 7.14), laid out like K
-                return K - self.system.rhs_f(times.stacked, Xs, None, None).movedim(0, -2)
-            Zs = None if self.system.kind == "ode" else W[..., n:].movedim(-2, 0)
-            R = self.system.residual(times.stacked, K.movedim(-2, 0), Xs, Zs, None)
+                return K - self.system.rhs_f(times.stacked, Xs, None, inputs.stacked).movedim(0, -2)
+            Zs = W[..., n:].movedim(-2, 0)
+            R = self.system.residual(times.stacked, K.movedim(-2, 0), Xs, Zs, inputs.stacked)
             return R.movedim(0, -2)
         X = self.stage_states(xk, h, K)
         return self._residual_by_stage(times, inputs, K, X, W[..., n:])
@@ -200,8 +225,6 @@ class IRKCore:
         every entry (so a function that mixes up batch and stage dimensions is caught). A
         function that raises there is simply evaluated stage by stage (at the real stage
         values, where its own errors surface)."""
-        if any(u is not None for u in inputs):
-            return False
         with torch.no_grad():
 
             def perturb(v):
@@ -213,7 +236,11 @@ class IRKCore:
             try:
                 ref = self._residual_by_stage(times, inputs, Kp, Xp, Zp)
                 got = self.system.residual(
-                    times.stacked, Kp.movedim(-2, 0), Xp.movedim(-2, 0), Zp.movedim(-2, 0), None
+                    times.stacked,
+                    Kp.movedim(-2, 0),
+                    Xp.movedim(-2, 0),
+                    Zp.movedim(-2, 0),
+                    inputs.stacked,
                 ).movedim(0, -2)
             except Exception:  # noqa: BLE001 - any failure means "not stackable"
                 return False
@@ -369,7 +396,11 @@ class IRKCore:
         with torch.no_grad():
             if self.stack_stages:
                 E, G, _, _ = self.system.blocks(
-                    times.stacked, K.movedim(-2, 0), X.movedim(-2, 0), Z.movedim(-2, 0), None
+                    times.stacked,
+                    K.movedim(-2, 0),
+                    X.movedim(-2, 0),
+                    Z.movedim(-2, 0),
+                    inputs.stacked,
                 )
             else:
                 pairs = [

@@ -68,12 +68,12 @@ class StageSystem:
     def jacobian(self, fun: Callable, v: torch.Tensor, u) -> torch.Tensor:
         """The Jacobian (*batch, p, d) of the sample-wise ``fun`` at ``v`` by
         :func:`~integrators.jacobians.batch_jacobian`: one backward pass on stacked copies
-        (``"stacked"``) when the problem has no input and that reproduced the row-by-row
-        Jacobian (``"rows"``) at the first call with that number of dimensions of ``v``
+        (``"stacked"``) when that reproduced the row-by-row Jacobian (``"rows"``) at the
+        first call with that number of dimensions of ``v``
         (checked once per system, like the stage stacking of ``IRKCore.residual``; the two
         agree to the last bit for elementwise models), else row by row."""
         stackable = self.stack_jacobian.get(v.dim())
-        if u is not None or stackable is False:
+        if stackable is False:
             return batch_jacobian(fun, v, strategy="rows")[1]
         if stackable:
             return batch_jacobian(fun, v, strategy="stacked", outputs=self.p)[1]

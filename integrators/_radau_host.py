@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from scipy.linalg import get_lapack_funcs
 
-from ._irk_core import IRKCore, host_shape, masked_update
+from ._irk_core import IRKCore, StageInputs, host_shape, masked_update
 from ._irk_dense import StepRecords, extrapolation_matrix, lagrange_coefficients
 from ._per_sample import ArrayOps
 from .errors import InputValidationError
@@ -120,7 +120,8 @@ class _HostModel:
         core = self.core
         core.n_f_evals += core.s
         if core.stack_stages:
-            return self.back(core.system.rhs_f(t_stage, self.state(X), None, None), X)
+            inputs = StageInputs([core.signal.at(t_i) for t_i in t_stage], len(self.batch))
+            return self.back(core.system.rhs_f(t_stage, self.state(X), None, inputs.stacked), X)
         out = np.empty(X.shape, dtype=self.npdt)
         for i in range(core.s):
             t_i = t_stage[i]

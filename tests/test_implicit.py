@@ -740,6 +740,48 @@ def test_stage_stacking_probe_falls_back_for_functions_that_need_it(adaptive, ho
     assert float((ref.x[:, -1] - exact).abs().max()) < 1e-6
 
 
+def _forced_rotation(t, x, u):
+    """rotation_rhs plus a force u (*batch, 2), elementwise: its stages stack with their
+    inputs."""
+    return rotation_rhs(t, x) + u
+
+
+def _forced_rotation_first_axis_only(t, x, u):
+    """_forced_rotation written for (batch, nu) inputs (u[:, i]): wrong values, or an error,
+    when the stages and their inputs are stacked on a leading axis."""
+    u = u.expand(x.shape[0], -1) if u.dim() == 1 else u
+    return rotation_rhs(t, x) + torch.stack([u[:, 0], u[:, 1]], -1)
+
+
+@pytest.mark.parametrize("shared_input", [True, False])
+@pytest.mark.parametrize("adaptive, host_loop", [(False, False), (True, False), (True, True)])
+def test_stages_stack_with_their_inputs(adaptive, host_loop, shared_input):
+    """With an input, the stages and their inputs are evaluated in one stacked call where the
+    probe allows it, and give the stage-by-stage results; a model that mixes up the stage and
+    batch axes of u is evaluated stage by stage. Fixed steps: samples (T, nu) or
+    (*batch, T, nu) held at u_k over each step (eq. 8.34); adaptive steps: a smooth callable
+    u(t) (a held input's jumps would make the step control sensitive to rounding), shared or
+    scaled per sample."""
+    x0 = torch.tensor([[1.0, 0.0], [0.3, -0.4]], dtype=torch.float64)
+    t = torch.linspace(0.0, 1.0, 6, dtype=torch.float64)
+    scale = torch.ones(()) if shared_input else torch.tensor([[1.0], [-0.5]], dtype=t.dtype)
+
+    def smooth(t):
+        t = t if t.dim() else t.reshape(1)
+        return scale * torch.cat([torch.sin(3 * t), torch.cos(2 * t)], -1)
+
+    samples = smooth(t[:, None]) if shared_input else smooth(t[:, None, None]).movedim(0, -2)
+    u = smooth if adaptive else samples  # held samples: (T, 2) or (2, T, 2)
+    opts = dict(method="radau_iia", rtol=1e-10, atol=1e-12, host_loop=host_loop)
+    opts = opts if adaptive else dict(opts, adaptive=False, substeps=4)
+    sol = odeint(_forced_rotation, x0, t, u=u, **opts)
+    ref = odeint(_forced_rotation_first_axis_only, x0, t, u=u, **opts)
+    assert sol.stats.extra["stacked_stages"] and not ref.stats.extra["stacked_stages"]
+    assert sol.stats.extra["host_loop"] is ref.stats.extra["host_loop"] is host_loop
+    torch.testing.assert_close(sol.x, ref.x, rtol=1e-12, atol=1e-12)
+    assert sol.stats.n_f_evals == ref.stats.n_f_evals
+
+
 @pytest.mark.parametrize("adaptive", [False, True])
 def test_unbatched_state_equals_a_batch_of_one(adaptive):
     """x0 of shape (n,) (no batch dimension): same numbers and statuses as (1, n), with the
