@@ -16,6 +16,8 @@ exact as well (:meth:`IRKCore.ift`). Nothing of the Newton iterations is stored.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 
@@ -80,6 +82,31 @@ class StageInputs(list):
             missing = max(self.batch_ndim - (u.dim() - 2), 0)
             self._stacked = u.reshape(u.shape[0], *(1,) * missing, *u.shape[1:])
         return self._stacked
+
+
+def stacked_call_agrees(by_stage: Callable, stacked: Callable, *values: torch.Tensor) -> bool:
+    """Whether ``stacked(*values)``, one call of the user's functions with the stage index as
+    leading batch dimension, reproduces ``by_stage(*values)``, one call per stage (both
+    (*batch, s, p) from stage values (*batch, s, .)), to ``1000 eps``. Checked at ``values``
+    perturbed differently in every entry, so that a function mixing up the batch and stage
+    dimensions is caught; a function that raises there is evaluated stage by stage (at the
+    real stage values, where its own errors surface)."""
+
+    def perturb(v):
+        pattern = torch.linspace(0.1, 0.2, v.numel(), dtype=v.dtype, device=v.device)
+        pattern = pattern.reshape(v.shape)
+        return v * (1 + 1e-3 * pattern) + 1e-3 * pattern
+
+    with torch.no_grad():
+        perturbed = [perturb(v) for v in values]
+        try:
+            ref, got = by_stage(*perturbed), stacked(*perturbed)
+        except Exception:  # noqa: BLE001 - any failure means "not stackable"
+            return False
+    if got.shape != ref.shape:
+        return False
+    tol = 1e3 * EPS.get(ref.dtype, EPS[torch.float32])
+    return bool(torch.allclose(got, ref, rtol=tol, atol=tol, equal_nan=True))
 
 
 class FrozenLUSolve(torch.autograd.Function):
@@ -221,33 +248,17 @@ class IRKCore:
 
     def stacking_works(self, times, inputs, K, X, Z) -> bool:
         """Whether one call with stacked stages (s, *batch, .) reproduces the stage-by-stage
-        residuals, checked at a point near the first stage values perturbed differently in
-        every entry (so a function that mixes up batch and stage dimensions is caught). A
-        function that raises there is simply evaluated stage by stage (at the real stage
-        values, where its own errors surface)."""
-        with torch.no_grad():
+        residuals (:func:`stacked_call_agrees`, near the first stage values)."""
 
-            def perturb(v):
-                pattern = torch.linspace(0.1, 0.2, v.numel(), dtype=v.dtype, device=v.device)
-                pattern = pattern.reshape(v.shape)
-                return v * (1 + 1e-3 * pattern) + 1e-3 * pattern
+        def stacked(K, X, Z):
+            R = self.system.residual(
+                times.stacked, K.movedim(-2, 0), X.movedim(-2, 0), Z.movedim(-2, 0), inputs.stacked
+            )
+            return R.movedim(0, -2)
 
-            Kp, Xp, Zp = perturb(K), perturb(X), perturb(Z)
-            try:
-                ref = self._residual_by_stage(times, inputs, Kp, Xp, Zp)
-                got = self.system.residual(
-                    times.stacked,
-                    Kp.movedim(-2, 0),
-                    Xp.movedim(-2, 0),
-                    Zp.movedim(-2, 0),
-                    inputs.stacked,
-                ).movedim(0, -2)
-            except Exception:  # noqa: BLE001 - any failure means "not stackable"
-                return False
-            if got.shape != ref.shape:
-                return False
-            tol = 1e3 * self.eps
-            return bool(torch.allclose(got, ref, rtol=tol, atol=tol, equal_nan=True))
+        return stacked_call_agrees(
+            lambda K, X, Z: self._residual_by_stage(times, inputs, K, X, Z), stacked, K, X, Z
+        )
 
     def step_end(self, xk, h, W):
         """``x_{k+1} = x_k + h sum_i b_i K_i`` (eq. 7.18): (*batch, n)."""

@@ -87,6 +87,7 @@ import torch
 from torch.func import jvp, vmap
 
 from ._fast import compiled_stepper
+from ._irk_core import StageInputs, stacked_call_agrees
 from ._irk_dense import extrapolation_matrix
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
 from .inputs import CollocationInput
@@ -129,7 +130,10 @@ class SensitivityResult:
         stats: :class:`~integrators.solution.SolverStats`: ``n_steps``, ``n_f_evals`` and
             ``n_jac_evals`` (batched calls of ``f`` and of its stage Jacobian),
             ``n_newton_iters`` and ``n_factorizations`` (LU factorisations of the Newton matrix,
-            one per step plus one to start, see the module docstring; 0 for explicit tableaus).
+            one per step plus one to start, see the module docstring; 0 for explicit tableaus);
+            implicit tableaus: ``extra["stacked_stages"]``, whether the stages of a step were
+            evaluated in one call of ``f`` with the stage index as leading batch dimension
+            (where that reproduces the stage-by-stage values, checked once per run).
     """
 
     t: torch.Tensor
@@ -239,6 +243,15 @@ class _InputParameters:
         if self.kind == "zoh":
             return w
         return self.weights[m, i] @ w.unflatten(-1, (self.q, self.nu))
+
+    def stacked_stage_input(self, w: torch.Tensor, m: int, batch_ndim: int) -> torch.Tensor:
+        """The inputs of all stages of substep ``m`` from ``w``, (s, *batch, size) per stage or
+        (*batch, size) shared by the stages: (s, *batch, nu) (held samples: ``w`` itself, the
+        same at every stage)."""
+        if self.kind == "zoh":
+            return w
+        weights = self.weights[m].reshape(-1, *(1,) * batch_ndim, self.q, 1)
+        return (weights * w.unflatten(-1, (self.q, self.nu))).sum(-2)
 
 
 def _explicit_step(stage_at, tab, h, nx: int):
@@ -371,31 +384,52 @@ class _ImplicitStages:
         self.extrapolate = np.unique(self.c).size == self.s
         self.lu = None
         self.K_prev = self.h_prev = None
+        self.stack = None  # whether all stages are evaluated in one call (decided once)
         self.n_lu = self.n_iter = self.n_f = self.n_jac = 0
 
-    def _stage_states(self, x, h, K):
-        """``X_i = x_k + h sum_j a_ij K_j``: (*batch, s, nx)."""
-        return x[..., None, :] + h * (self.a @ K)
+    def _stage_arguments(self, x, h, K, q):
+        """``(X_i, q)`` with the stage states ``X_i = x_k + h sum_j a_ij K_j``:
+        (*batch, s, nx + nq)."""
+        X = x[..., None, :] + h * (self.a @ K)
+        return torch.cat([X, q[..., None, :].expand(*X.shape[:-1], q.shape[-1])], -1)
 
-    def _residual(self, stage_at, x, h, K, q):
-        """``r(K) = F(K) - K`` of eq. 8.20: (*batch, s, nx)."""
-        X = self._stage_states(x, h, K)
+    def _stage_values(self, stage_at, stacked, x, h, K, q, jacobians=False):
+        """``F_i`` (*batch, s, nx) at the stages ``K``, and with ``jacobians`` also the stage
+        Jacobians ``[F_x^(i) F_q^(i)]`` (*batch, s, nx, nx + nq) (:func:`batch_jacobian`).
+
+        ``stage_at(i)`` is stage ``i``'s function of ``(X_i, q)`` (*batch, nx + nq);
+        ``stacked`` that of all stages at once, the stage index a leading batch dimension
+        (s, *batch, nx + nq): used where it reproduces the stage-by-stage values (checked
+        once per run, :func:`~integrators._irk_core.stacked_call_agrees`)."""
+        Z = self._stage_arguments(x, h, K, q)
         self.n_f += self.s
-        F = torch.stack([stage_at(i)(torch.cat([X[..., i, :], q], -1)) for i in range(self.s)], -2)
-        return F - K
+        self.n_jac += self.s if jacobians else 0
 
-    def _factorize(self, stage_at, x, h, K, q, where):
+        def by_stage(Z):
+            return torch.stack([stage_at(i)(Z[..., i, :]) for i in range(self.s)], -2)
+
+        def at_once(Z):
+            return stacked(Z.movedim(-2, 0)).movedim(0, -2)
+
+        if self.stack is None:
+            self.stack = stacked_call_agrees(by_stage, at_once, Z)
+        if not jacobians:
+            return at_once(Z) if self.stack else by_stage(Z)
+        if self.stack:
+            F, J = batch_jacobian(stacked, Z.movedim(-2, 0))
+            return F.movedim(0, -2), J.movedim(0, -3)
+        pairs = [batch_jacobian(stage_at(i), Z[..., i, :]) for i in range(self.s)]
+        return torch.stack([v for v, _ in pairs], -2), torch.stack([d for _, d in pairs], -3)
+
+    def _residual(self, stage_at, stacked, x, h, K, q):
+        """``r(K) = F(K) - K`` of eq. 8.20: (*batch, s, nx)."""
+        return self._stage_values(stage_at, stacked, x, h, K, q) - K
+
+    def _factorize(self, stage_at, stacked, x, h, K, q, where):
         """Linearise at ``K``: keeps the LU of ``M`` and returns ``r(K)`` (*batch, s, nx) and the
         stage Jacobians ``F_x`` (*batch, s, nx, nx), ``F_q`` (*batch, s, nx, nq)."""
         nx = x.shape[-1]
-        X = self._stage_states(x, h, K)
-        pairs = [
-            batch_jacobian(stage_at(i), torch.cat([X[..., i, :], q], -1)) for i in range(self.s)
-        ]
-        self.n_f += self.s
-        self.n_jac += self.s
-        F = torch.stack([v for v, _ in pairs], -2)
-        J = torch.stack([d for _, d in pairs], -3)
+        F, J = self._stage_values(stage_at, stacked, x, h, K, q, jacobians=True)
         Fx, Fq = J[..., :nx], J[..., nx:]
         # M[(i, r), (j, c)] = delta_ij delta_rc - h a_ij F_x^(i)[r, c]
         blocks = torch.einsum("ij,...irc->...irjc", self.a, Fx).flatten(-4, -3).flatten(-2, -1)
@@ -425,8 +459,9 @@ class _ImplicitStages:
         L = extrapolation_matrix(self.c, float(h / self.h_prev))
         return torch.as_tensor(L, dtype=x.dtype, device=x.device) @ self.K_prev
 
-    def step(self, stage_at, h, x, q, seed, where):
-        """One step: stages ``K_i`` (*batch, nx) and ``dK_i/d(x_k, q)`` (*batch, nx, nx + nq).
+    def step(self, stage_at, stacked, h, x, q, seed, where):
+        """One step: stages ``K_i`` (*batch, nx) and ``dK_i/d(x_k, q)`` (*batch, nx, nx + nq);
+        ``stage_at``, ``stacked``: the stage functions (see :meth:`_stage_values`).
 
         The stages come from :func:`~integrators.newton.newton` (simplified, with the kept
         factorisation) on ``K - F(K) = 0``; a member whose residual shrinks by less than
@@ -435,10 +470,10 @@ class _ImplicitStages:
         s, nx = self.s, x.shape[-1]
         K = self._guess(stage_at, x, h, q)
         if self.lu is None:  # first step: a starting Newton matrix at the guess
-            self._factorize(stage_at, x, h, K, q, where)
+            self._factorize(stage_at, stacked, x, h, K, q, where)
 
         def stage_equations(k):  # K - F(K) of eq. 8.20, flattened: (*batch, s nx)
-            return -self._residual(stage_at, x, h, k.unflatten(-1, (s, nx)), q).flatten(-2)
+            return -self._residual(stage_at, stacked, x, h, k.unflatten(-1, (s, nx)), q).flatten(-2)
 
         budget = _MAX_NEWTON_ITER
         while True:
@@ -471,10 +506,10 @@ class _ImplicitStages:
                     "Try more substeps."
                 )
             # the kept matrix contracts too slowly: refresh it at the current stages
-            self._factorize(stage_at, x, h, K, q, where)
+            self._factorize(stage_at, stacked, x, h, K, q, where)
         # the one factorisation of this step, at the converged stages: the last correction and
         # every sensitivity column in one solve (eq. 8.24-8.27)
-        r, Fx, Fq = self._factorize(stage_at, x, h, K, q, where)
+        r, Fx, Fq = self._factorize(stage_at, stacked, x, h, K, q, where)
         rhs = Fx @ seed[..., None, :, :]  # (*batch, s, nx, nx + nq)
         rhs[..., nx:] += Fq
         sol = self._solve(torch.cat([r[..., None], rhs], -1).flatten(-3, -2)).unflatten(-2, (s, nx))
@@ -587,6 +622,9 @@ def sensitivities(
     xs_out, As_out, Bs_out, Cs_out = [x], [A], [B], [C]
     seed = torch.cat([eye, eye.new_zeros(nx, nq)], -1).expand(*batch, nx, nx + nq)
     solver = None
+    # stacked stage times t_k + c h broadcast like stacked stage states (s, *batch, nx)
+    c_stacked = torch.as_tensor(np.array(tab.c), dtype=t.dtype, device=t.device)
+    c_stacked = c_stacked.reshape(-1, *(1,) * (len(batch) + 1))
     if not tab.is_explicit:
         tol = _default_tol(x.dtype) if newton_tol is None else newton_tol
         solver = _ImplicitStages(tab, x, float(tol))
@@ -674,6 +712,19 @@ def sensitivities(
 
                 return stage
 
+            def stacked_stages(z, tk=tk, h=h, m=m, held=held):
+                """All stages at once: z (s, *batch, nx + nq) -> (s, *batch, nx)."""
+                ti = tk + c_stacked * h
+                zp = z[..., nx : nx + n_p] if p is not None else None
+                zu = None
+                if inputs.kind == "callable":
+                    zu = StageInputs([u(tk + float(c) * h) for c in tab.c], len(batch)).stacked
+                elif inputs.parameterised:
+                    zu = inputs.stacked_stage_input(z[..., nx + n_p :], m, len(batch))
+                elif held is not None:
+                    zu = inputs.stacked_stage_input(held, m, len(batch))
+                return g(ti, z[..., :nx], zu, zp)
+
             n_steps += 1
             if solver is None:
                 n_f += tab.stages
@@ -686,7 +737,7 @@ def sensitivities(
                 n_jac += tab.stages
             else:
                 where = f"in step {m} of interval {k} (t = {float(tk):.6g})"
-                Ks, dKs = solver.step(stage_at, h, x, q, seed, where)
+                Ks, dKs = solver.step(stage_at, stacked_stages, h, x, q, seed, where)
                 J = seed.clone()
                 for i in range(tab.stages):
                     if tab.b[i] != 0.0:
@@ -716,6 +767,7 @@ def sensitivities(
     if solver is not None:
         stats.n_f_evals, stats.n_jac_evals = solver.n_f, solver.n_jac
         stats.n_newton_iters, stats.n_factorizations = solver.n_iter, solver.n_lu
+        stats.extra["stacked_stages"] = bool(solver.stack)
     return SensitivityResult(
         t=t,
         x=torch.stack(xs_out, -2),

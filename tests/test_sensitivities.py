@@ -310,6 +310,56 @@ def test_collocation_input_sensitivities_equal_autograd(tab, q, substeps, nodes)
     assert bool(torch.all(res.C[:, 3, :, 3:] == 0))  # x_3 ignores the intervals j >= 3
 
 
+def _forced(t, x, u, p):
+    """pendulum_free plus an input force u[..., 0] (none for u None), elementwise over the
+    leading dimensions: its stages stack."""
+    force = 0.0 if u is None else u[..., 0]
+    acc = -p[..., 0] * torch.sin(x[..., 0]) - p[..., 1] * x[..., 1] + force
+    return torch.stack([x[..., 1], acc], -1)
+
+
+def _forced_first_axis_only(t, x, u, p):
+    """_forced written for (batch, nx) states (x[:, i]): wrong values, or an error, for
+    stages stacked on a leading axis."""
+    force = 0.0 if u is None else u[..., 0]
+    acc = -p[..., 0] * torch.sin(x[:, 0]) - p[..., 1] * x[:, 1] + force
+    return torch.stack([x[:, 1], acc], -1)
+
+
+STAGE_INPUTS = {
+    "none": None,
+    "samples": U,
+    "collocation": CollocationInput(P_IN[2], T_GRID, "radau"),
+    "callable": lambda t: torch.cos(2.0 * t).reshape(1),
+}
+
+
+@pytest.mark.parametrize("kind", list(STAGE_INPUTS))
+@pytest.mark.parametrize("method", ["radau_iia", "gauss_legendre"])
+def test_implicit_stages_stack_with_their_inputs(kind, method):
+    """Implicit tableaus evaluate all stages of a step (and their Jacobians) in one call of
+    f, with the stage times, states and inputs stacked on a leading axis, wherever that
+    reproduces the stage-by-stage values: x, A, B, C and the Newton work are those of a model
+    that must be evaluated stage by stage, for every kind of input."""
+    u = STAGE_INPUTS[kind]
+    runs = []
+    for f in (_forced, _forced_first_axis_only):
+        model = (lambda t, x, p, f=f: f(t, x, None, p)) if u is None else f
+        runs.append(
+            sensitivities(model, X0, T_GRID, P, u=u, method=method, substeps=2, newton_tol=1e-13)
+        )
+    stacked, by_stage = runs
+    assert stacked.stats.extra["stacked_stages"] and not by_stage.stats.extra["stacked_stages"]
+    for name in ("x", "A", "B", "C"):
+        got, ref = getattr(stacked, name), getattr(by_stage, name)
+        if ref is None:
+            assert got is None and kind in ("none", "callable")
+            continue
+        torch.testing.assert_close(got, ref, rtol=1e-12, atol=1e-12)
+    assert stacked.stats.n_newton_iters == by_stage.stats.n_newton_iters
+    assert stacked.stats.n_f_evals == by_stage.stats.n_f_evals
+
+
 @pytest.mark.parametrize(("method", "stages"), [("gauss_legendre", 2), ("gauss_legendre", 3)])
 def test_collocation_input_agrees_with_odeint_given_the_same_callable(method, stages):
     """The stages of Gauss-Legendre lie inside the steps, so odeint calling the input as
