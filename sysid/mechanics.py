@@ -110,14 +110,19 @@ class _AttachInputs(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, *grad_out):
-        grads = torch.autograd.grad(
-            ctx.local_out,
-            ctx.local_in,
-            grad_out,
-            retain_graph=True,
-            create_graph=torch.is_grad_enabled(),
-            allow_unused=True,
-        )
+        # an output that does not depend on the inputs (e.g. the curvature term of quadratic
+        # constraints when only the multipliers carry a history) contributes nothing
+        used = [i for i, out in enumerate(ctx.local_out) if out.requires_grad]
+        grads = (None,) * len(ctx.local_in)
+        if used:
+            grads = torch.autograd.grad(
+                [ctx.local_out[i] for i in used],
+                ctx.local_in,
+                [grad_out[i] for i in used],
+                retain_graph=True,
+                create_graph=torch.is_grad_enabled(),
+                allow_unused=True,
+            )
         return (None, *grads, *([None] * (len(ctx.local_in) + len(ctx.local_out))))
 
 
@@ -751,13 +756,18 @@ class LagrangianSystem(nn.Module):
         return torch.cat([xdot[..., : self.nq] - v, wv - rhs], -1)
 
     @_local_graph
-    def _f_with_multipliers(self, t, x, z, u=None):
+    def _dynamics_with_multipliers(self, x, z, u=None):
+        """xdot = [v, W^-1 (r - a^T z)] (eq. 2.126) for multipliers z (*batch, nc), and the
+        constraint terms (c, a, cdot, curvature) of :meth:`constraint_terms` it used."""
         q, v = self._split_state(x, "index3_dae/index1_dae f")
         mass, rhs = self.lagrange_terms(q, v, u)
-        _, a, _, _ = self.constraint_terms(q, v)
-        rhs = rhs - (a.transpose(-1, -2) @ z.unsqueeze(-1)).squeeze(-1)
+        terms = self.constraint_terms(q, v)
+        rhs = rhs - (terms[1].transpose(-1, -2) @ z.unsqueeze(-1)).squeeze(-1)
         vdot = rhs / mass if mass.dim() == rhs.dim() else _solve(mass, rhs, "W(q)")
-        return torch.cat([v, vdot], -1)
+        return torch.cat([v, vdot], -1), *terms
+
+    def _f_with_multipliers(self, t, x, z, u=None):
+        return self._dynamics_with_multipliers(x, z, u)[0]
 
     def index3_dae(self):
         """Semi-explicit index-3 DAE (eq. 2.126): returns (f, g) with xdot = f(t, x, z, u) =
@@ -774,10 +784,8 @@ class LagrangianSystem(nn.Module):
         alpha = self.baumgarte if baumgarte is None else baumgarte
 
         def g(t, x, z, u=None):
-            q, v = x[..., : self.nq], x[..., self.nq :]
-            vdot = self._f_with_multipliers(t, x, z, u)[..., self.nq :]
-            c, a, cdot, curv = self.constraint_terms(q, v)
-            res = (a @ vdot.unsqueeze(-1)).squeeze(-1) + curv
+            xdot, c, a, cdot, curv = self._dynamics_with_multipliers(x, z, u)
+            res = (a @ xdot[..., self.nq :].unsqueeze(-1)).squeeze(-1) + curv
             if alpha is not None:
                 res = res + 2 * alpha * cdot + alpha**2 * c
             return res

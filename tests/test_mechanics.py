@@ -126,6 +126,24 @@ def test_dae_forms_and_consistency_projection():
     torch.testing.assert_close(qd2, qd)
 
 
+def test_index1_algebraic_equation_differentiates_in_the_multipliers_alone():
+    """g of the index-1 form (eq. 2.187) is affine in z with dg/dz = -a W^-1 a^T (eq. 2.168):
+    autograd through g where only z carries a history (the state is data) gives that matrix,
+    although the curvature term of the crane's quadratic constraint depends on neither."""
+    plant = RigidCraneCartesian(L=1.1, baumgarte=2.0)
+    q, qd = _random(2, 3, 7)
+    q[:, 2] = q[:, 2].abs() + 0.5
+    q, qd = plant.project_consistent(q, qd)
+    x = torch.cat([q, qd], -1)
+    z_leaf = torch.randn(2, 1, dtype=DT, requires_grad=True)
+    _, g = plant.index1_dae()
+    dg_dz = torch.autograd.grad(g(0.0, x, 1.0 * z_leaf).sum(), z_leaf)[0]
+    _, a, _, _ = plant.constraint_terms(q, qd)
+    mass = plant.mass_matrix(q)
+    expected = -(a @ torch.linalg.solve(mass, a.transpose(-1, -2)))[..., 0, :]
+    torch.testing.assert_close(dg_dz, expected, rtol=1e-12, atol=1e-12)
+
+
 def _bowl_drift(alpha, dt=0.1, t_end=40.0):
     """max |c| over the first and second half of an RK4 run, and max |cdot|."""
     bowl = Bowl(baumgarte=alpha)
