@@ -86,6 +86,7 @@ class _HostModel:
     def __init__(self, core: IRKCore, batch, npdt):
         self.core, self.batch, self.npdt = core, tuple(batch), npdt
         self.B = int(np.prod(batch)) if len(batch) else 1
+        self._inputs_at = self._inputs = None  # stage times and the inputs there
 
     def times(self, tt: np.ndarray) -> torch.Tensor:
         """Host times (*lead, B) as a tensor (*lead, *batch, 1)."""
@@ -119,15 +120,23 @@ class _HostModel:
         one call per stage; counts ``s`` calls. Runs under the caller's ``torch.no_grad``."""
         core = self.core
         core.n_f_evals += core.s
+        inputs = self._stage_inputs(t_stage)
         if core.stack_stages:
-            inputs = StageInputs([core.signal.at(t_i) for t_i in t_stage], len(self.batch))
             return self.back(core.system.rhs_f(t_stage, self.state(X), None, inputs.stacked), X)
         out = np.empty(X.shape, dtype=self.npdt)
         for i in range(core.s):
-            t_i = t_stage[i]
-            y = core.system.rhs_f(t_i, self.state(X[i]), z, core.signal.at(t_i))
+            y = core.system.rhs_f(t_stage[i], self.state(X[i]), z, inputs[i])
             out[i] = self.back(y, X[i])
         return out
+
+    def _stage_inputs(self, t_stage: torch.Tensor) -> StageInputs:
+        """The inputs at the stage times ``t_stage`` (s, *batch, 1), looked up once per step:
+        kept while the Newton iterations pass the same stage-time tensor."""
+        if self._inputs_at is not t_stage:
+            signal = self.core.signal
+            self._inputs_at = t_stage
+            self._inputs = StageInputs([signal.at(t_i) for t_i in t_stage], len(self.batch))
+        return self._inputs
 
     def decide_stacking(self, tk, h, t_stage, K, X) -> None:
         """Set ``core.stack_stages`` once, by the torch driver's own test
