@@ -227,7 +227,8 @@ def _describe(status, norms, label="residual") -> list[str]:
 class _ImplicitSolution(torch.autograd.Function):
     """Attach IFT gradients (eq. 3.40) to a converged root ``x*`` of ``phi(x, *args) = 0``.
 
-    Backward: solve ``J(x*)^T lam = grad_x`` once with the exact Jacobian at ``x*``, then
+    Backward: one evaluation of ``phi`` at ``x*`` gives the exact Jacobian ``J(x*)`` (its rows
+    in one vmapped pass) and, after ``J(x*)^T lam = grad_x`` is solved once,
     ``grad_{args, params} = -(dphi/d(args, params))^T lam`` by one vector-Jacobian product.
     Under ``create_graph=True`` the gradient is instead built from differentiable operations
     (:func:`_second_order_root`), so second derivatives through the solve are exact too.
@@ -240,8 +241,22 @@ class _ImplicitSolution(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_x):
-        frozen = _detach(ctx.inputs[: ctx.n_args])
-        _, J = batch_jacobian(lambda x: ctx.phi(x, *frozen), ctx.x_star)
+        inputs = list(ctx.inputs)
+        wanted = [
+            i for i, t in enumerate(inputs) if isinstance(t, torch.Tensor) and t.requires_grad
+        ]
+        create_graph = torch.is_grad_enabled()
+        with torch.enable_grad():
+            # one evaluation at x* serves J (rows wrt x) and, first order, the product with
+            # the arguments (fresh graph leaves) and closure parameters
+            x_star = ctx.x_star.detach().requires_grad_(True)
+            args = _detach(inputs[: ctx.n_args]) if create_graph else inputs[: ctx.n_args]
+            if not create_graph:
+                for i, t in enumerate(args):
+                    if isinstance(t, torch.Tensor):
+                        args[i] = t.detach().requires_grad_(i in wanted)
+            y = ctx.phi(x_star, *args)
+            (J,) = jacobian_rows(y, (x_star,), batched=True)
         LU, pivots, ok = _lu(J)
         if not bool(ok.all()):
             bad = torch.nonzero(~ok).tolist()[:_MAX_SHOWN]
@@ -250,22 +265,12 @@ class _ImplicitSolution(torch.autograd.Function):
                 f"for sample(s) {bad}; the root is not regular (eq. 3.38), so x(args) is not "
                 "differentiable there."
             )
-        inputs = list(ctx.inputs)
-        wanted = [
-            i for i, t in enumerate(inputs) if isinstance(t, torch.Tensor) and t.requires_grad
-        ]
-        if torch.is_grad_enabled():  # create_graph: a differentiable backward
+        if create_graph:  # a differentiable backward
             grads = _second_order_root(ctx, LU, pivots, grad_x, wanted)
         else:
             lam = torch.linalg.lu_solve(LU, pivots, grad_x.unsqueeze(-1), adjoint=True)
-            lam = lam.squeeze(-1)
-            with torch.enable_grad():
-                for i, t in enumerate(inputs[: ctx.n_args]):  # args become fresh graph leaves
-                    if isinstance(t, torch.Tensor):
-                        inputs[i] = t.detach().requires_grad_(i in wanted)
-                y = ctx.phi(ctx.x_star, *inputs[: ctx.n_args])
-                targets = [inputs[i] for i in wanted]  # closure params are used as they are
-                grads = torch.autograd.grad(y, targets, -lam, allow_unused=True) if targets else ()
+            targets = [args[i] if i < ctx.n_args else inputs[i] for i in wanted]
+            grads = torch.autograd.grad(y, targets, -lam.squeeze(-1), allow_unused=True)
         out = [None] * len(inputs)
         for i, g in zip(wanted, grads, strict=True):
             out[i] = torch.zeros_like(inputs[i]) if g is None else g
