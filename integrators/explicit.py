@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import functools
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -365,9 +366,10 @@ def solve_explicit(
         tab: an explicit :class:`~integrators.tableau.ButcherTableau` (``b_err`` is ignored).
         substeps: integer number of equal steps per output interval (>= 1).
         compile: True (``torch.compile`` the chunked step, eager fallback if compilation
-            fails), False, or ``"auto"`` (compile once
-            ``_fast.compiled.AUTO_COMPILE_MIN_STEPS`` steps were taken with this model and
-            state shape over all calls).
+            fails), False, or ``"auto"``: compile once the eager runs of this model and state
+            shape, over all calls and this run's predicted eager time included, reach
+            ``_fast.compiled.AUTO_COMPILE_EAGER_SECONDS`` (rent-or-buy; a run compiles from
+            its start, or for the rest of it once its first steps, extrapolated, say so).
         checkpoint: with autograd, ``False`` keeps every step's graph; ``True`` runs the
             steps in segments of about ``sqrt(n_steps)`` steps under
             ``torch.utils.checkpoint`` (non-reentrant), whose saved tensors the backward pass
@@ -385,6 +387,8 @@ def solve_explicit(
         (SUCCESS or NON_FINITE) and ``stats`` (n_steps, n_f_evals; ``extra["compiled"]``,
         ``extra["compile_fallback"]`` why a requested compiled run went eager, else None,
         ``extra["compile_s"]`` the wall time of calls that triggered a compilation, else 0;
+        ``extra["compiled_from_step"]`` the step from which chunks ran compiled (0: the whole
+        run; later: ``"auto"`` decided during the run), None for an eager run;
         ``extra["layout"]``: ``"component-major"`` for compiled runs without autograd of a
         component-wise model with at most ``_fast.compiled.COMPONENT_MAJOR_MAX_STATES``
         states, else ``"interleaved"``; ``extra["checkpoint_steps"]``: steps per checkpointed
@@ -454,20 +458,30 @@ def solve_explicit(
             return f(t0, x)
         return f(t0, x, u_fn(t0) if kind == "callable" else u0[..., 0, :])
 
-    fast = compiled_stepper(
-        f,
-        (id(tab), tab.A.tobytes(), tab.b.tobytes(), kind, id(u_fn), m),
-        compile=compile,
-        n_steps=n_steps,
-        x0=x0,
-        make_chunk=functools.partial(_make_chunk, f, kind, u_fn, scheme, m),
-        n_out=_outputs_per_chunk(x0, m),
-        f_at_start=f_at_start,
-    )
+    def stepper(mode):
+        return compiled_stepper(
+            f,
+            (id(tab), tab.A.tobytes(), tab.b.tobytes(), kind, id(u_fn), m),
+            compile=mode,
+            x0=x0,
+            make_chunk=functools.partial(_make_chunk, f, kind, u_fn, scheme, m),
+            n_out=_outputs_per_chunk(x0, m),
+            f_at_start=f_at_start,
+            n_steps=n_steps,
+        )
+
+    fast = n_out_chunk = component_major = chunk_eager = tail_eager = None
+
+    def use(new):
+        """Run the chunks of the Stepper ``new``: its chunk length and state layout."""
+        nonlocal fast, n_out_chunk, component_major, chunk_eager, tail_eager
+        fast, n_out_chunk, component_major = new, new.n_out, new.component_major
+        chunk_eager = _make_chunk(f, kind, u_fn, scheme, m, n_out_chunk)
+        tail_eager = chunk_eager if n_out_chunk == 1 else _make_chunk(f, kind, u_fn, scheme, m, 1)
+
+    use(stepper(compile))
+    compiled_from = 0 if fast.active else None  # the step from which chunks may run compiled
     grad_mode = torch.is_grad_enabled()
-    n_out_chunk, component_major = fast.n_out, fast.component_major
-    chunk_eager = _make_chunk(f, kind, u_fn, scheme, m, n_out_chunk)
-    tail_eager = chunk_eager if n_out_chunk == 1 else _make_chunk(f, kind, u_fn, scheme, m, 1)
     seg_steps = _segment_steps(checkpoint, n_steps, n_out_chunk * m) if grad_mode else None
 
     # Component-major runs keep the state as a contiguous (nx, *batch) tensor and the outputs
@@ -476,13 +490,19 @@ def solve_explicit(
     def to_state(y, lead=0):
         return y.movedim(lead, -1) if component_major else y
 
-    x = x0.movedim(-1, 0).contiguous() if component_major else x0  # layout of the compiled chunk
+    def chunk_layout(x):
+        return x.movedim(-1, 0).contiguous() if component_major else x
+
+    def output_buffer():
+        shape = (T, x0.shape[-1], *batch) if component_major else (T, *x0.shape)
+        return empty_buffer(shape, x0.dtype, x0.device)
+
+    x = chunk_layout(x0)
     # With autograd the per-chunk outputs are kept and concatenated at the end; without it
     # the chunks write into one preallocated time-major buffer (half the memory, no big cat).
     buffer = None
     if not grad_mode:
-        shape = (T, x0.shape[-1], *batch) if component_major else (T, *x0.shape)
-        buffer = empty_buffer(shape, x0.dtype, x0.device)
+        buffer = output_buffer()
         to_state(buffer, 1)[0] = x0
     partial_chunks: dict = {}
     x_safe = x0.detach()  # where frozen samples evaluate f (finite: validated by odeint)
@@ -529,6 +549,20 @@ def solve_explicit(
         x = x_state.movedim(-1, 0) if component_major else x_state
         return x, s_new, ys if n_y else None
 
+    def compile_rest(x, s, eager_s):
+        """Switch an eager ``"auto"`` run, ``eager_s`` seconds and ``s`` steps in, to compiled
+        chunks; returns the state ``x`` in their layout. Without autograd ``s`` is at an
+        output time, and the outputs so far move to a buffer of the new layout."""
+        nonlocal buffer, compiled_from
+        fast.add_eager_seconds(eager_s, s)
+        use(stepper(True))
+        compiled_from = s
+        if buffer is not None and component_major:
+            reached = s // m + 1
+            moved, buffer = buffer, output_buffer()
+            to_state(buffer, 1)[:reached] = moved[:reached]
+        return chunk_layout(x)
+
     def segment(x, s, s_end, fail_interval):
         """Steps ``s .. s_end - 1``: the final state and the outputs reached (or None)."""
         ys = []
@@ -550,6 +584,7 @@ def solve_explicit(
         """
         pieces: list = []
         probes: list = []
+        s_start, tic = s, time.perf_counter()
         while s < n_steps:
             probing = fail_interval is None and grad_mode and len(probes) < 2
             if probing:
@@ -581,6 +616,13 @@ def solve_explicit(
                 x, s, ys = step_chunk(x, s, n_steps, fail_interval)
             if buffer is None:
                 pieces.append((s, x, ys))
+            # "auto": compile for the rest of the run once its predicted eager time (the
+            # steps so far, extrapolated) would reach the threshold (checkpointed segments
+            # and reruns stay eager)
+            if compile == "auto" and fail_interval is None and seg_steps is None and s < n_steps:
+                eager_s = time.perf_counter() - tic
+                if fast.worth_compiling(eager_s * (n_steps - s_start) / (s - s_start)):
+                    x = compile_rest(x, s, eager_s)
         return x, pieces
 
     def time_major(pieces):
@@ -589,7 +631,10 @@ def solve_explicit(
             return to_state(buffer, 1)
         return torch.cat([x0.unsqueeze(0)] + [ys for _, _, ys in pieces if ys is not None])
 
+    tic = time.perf_counter()
     x, pieces = run(x, 0)
+    if compile == "auto" and not fast.active:
+        fast.add_eager_seconds(time.perf_counter() - tic, n_steps)
     x_time_major = time_major(pieces)
     status = torch.zeros(batch, dtype=torch.int8, device=x0.device)
     messages: list[str] = []
@@ -623,6 +668,7 @@ def solve_explicit(
         n_steps=n_steps,
         extra={
             **fast.stats(),
+            "compiled_from_step": compiled_from if fast.active else None,
             "substeps": m,
             "layout": "component-major" if component_major else "interleaved",
             "checkpoint_steps": seg_steps,

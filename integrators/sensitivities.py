@@ -77,7 +77,6 @@ and "``Delta w``" is ``Delta K``.
 from __future__ import annotations
 
 import functools
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -104,14 +103,6 @@ __all__ = ["SensitivityResult", "sensitivities", "variational_sensitivities"]
 #: the current stages and the solve resumes
 _SLOW_CONTRACTION = 0.5
 _MAX_NEWTON_ITER = 50
-#: ``compile="auto"`` compiles the explicit interval kernel of a model and configuration once
-#: this many seconds were spent in its eager runs (over all calls). Rent-or-buy (see
-#: :func:`integrators._fast.compiled.compiled_stepper`): with the threshold near the one-off
-#: compile time ``C`` a run sequence costs at most ``1 + C / threshold`` times the better
-#: choice made in hindsight, whatever the batch size and the cost of a step. A pendulum RK4
-#: kernel compiles in 14-16 s in a fresh process with an empty inductor cache and in 5-10 s
-#: with a warm one (docs/benchmarks.md, "Tuning constants").
-AUTO_COMPILE_EAGER_SECONDS = 10.0
 
 
 @dataclass
@@ -581,8 +572,9 @@ def sensitivities(
         compile: explicit tableaus without input sensitivities: True runs each output
             interval as one ``torch.compile``-d kernel (forward-mode stage derivatives, see
             :func:`_interval_kernel`), False never; ``"auto"`` (default) compiles once
-            :data:`AUTO_COMPILE_EAGER_SECONDS` seconds were spent stepping eagerly with the same
-            ``f``, configuration and batch shape over all calls (compiled kernels are cached
+            ``integrators._fast.compiled.AUTO_COMPILE_EAGER_SECONDS`` seconds were spent
+            stepping eagerly with the same ``f``, configuration and batch shape over all
+            calls, this run's predicted eager time included (compiled kernels are cached
             per ``f``; runs with and without ``derivatives`` share one kernel). A
             model the compiler or forward-mode differentiation cannot handle (one calling
             autograd or a Newton solver inside ``f``) runs eagerly; ``stats.extra`` reports
@@ -640,12 +632,9 @@ def sensitivities(
                 f,
                 config,
                 compile=mode,
-                n_steps=0,
                 x0=x,
                 make_chunk=functools.partial(_interval_kernel, g, tab, substeps),
                 n_out=1,
-                auto_min_steps=math.inf,
-                auto_min_eager_s=AUTO_COMPILE_EAGER_SECONDS,
             )
         if not stepper.active:
             return stepper, None, None

@@ -26,14 +26,15 @@ def fresh_dynamo():
 
 
 @pytest.fixture(autouse=True)
-def eager_sensitivities_unless_asked(monkeypatch):
-    """Sensitivities compile only when a test asks (``compile=True`` or a lowered
-    threshold): ``compile="auto"`` would otherwise compile every model a test module fits
-    long enough, for every batch shape, at seconds each. The compiled kernel is checked
-    against the eager recursion in tests/test_compiled_sensitivities.py."""
+def eager_unless_asked(monkeypatch):
+    """The solvers compile only when a test asks (``compile=True`` or a lowered threshold):
+    ``compile="auto"`` would otherwise compile every model a test module simulates or fits
+    long enough, for every batch shape, at seconds each. The compiled chunks and kernels are
+    checked against the eager ones in tests/test_correctness_matrix.py,
+    tests/test_explicit.py and tests/test_compiled_sensitivities.py."""
     import importlib
 
-    module = importlib.import_module("integrators.sensitivities")  # not the function
+    module = importlib.import_module("integrators._fast.compiled")
     monkeypatch.setattr(module, "AUTO_COMPILE_EAGER_SECONDS", math.inf)
 
 

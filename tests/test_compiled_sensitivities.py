@@ -137,9 +137,10 @@ def test_auto_compiles_once_the_eager_time_reaches_its_threshold(monkeypatch):
     first interval (3 W spent + W predicted), the fifth is compiled; same numbers. A run
     without derivatives uses the same compiled kernel (one compile), and a new batch shape,
     which would compile a kernel of its own, starts its own account: eager."""
-    module = importlib.import_module("integrators.sensitivities")  # not the function
+    module = importlib.import_module("integrators._fast.compiled")
+    driver = importlib.import_module("integrators.sensitivities")  # not the function
     clock = [0]
-    monkeypatch.setattr(module, "time", types.SimpleNamespace(perf_counter=lambda: clock[0]))
+    monkeypatch.setattr(driver, "time", types.SimpleNamespace(perf_counter=lambda: clock[0]))
     x0, t, p, u = _collocation_case()
 
     def model(t, x, u, p):  # a model object of its own: a fresh count
@@ -160,8 +161,7 @@ def test_auto_compiles_once_the_eager_time_reaches_its_threshold(monkeypatch):
     states_only = sensitivities(model, x0, t, p, compile="auto", derivatives=False, **kw)
     assert states_only.stats.extra["compiled"] and states_only.B is None
     torch.testing.assert_close(states_only.x, eager.x, rtol=1e-13, atol=1e-14)
-    cache = importlib.import_module("integrators._fast.compiled")._CACHE
-    ((_, entry),) = cache[model].items()
+    ((_, entry),) = module._CACHE[model].items()
     assert len(entry.compiled) == 1
     clock_before = clock[0]
     wider = sensitivities(model, x0.expand(2, *x0.shape), t, p, compile="auto", **kw)
@@ -176,7 +176,7 @@ def test_a_fit_compiles_at_once_when_its_first_simulation_is_slow(monkeypatch, c
     simulation times the runs to come times _FIT_EVALUATIONS reaches the eager-time
     threshold, the fit compiles from the start (only for compile="auto"); below it, the
     model's setting stays. The simulation is made to take exactly one second."""
-    module = importlib.import_module("integrators.sensitivities")
+    module = importlib.import_module("integrators._fast.compiled")
     fit_module = importlib.import_module("sysid.continuous.fit")
     clock = iter(range(1000))
     fake_time = types.SimpleNamespace(perf_counter=lambda: float(next(clock)))

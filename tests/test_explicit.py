@@ -1,8 +1,10 @@
 """Fixed-step explicit Runge-Kutta (notes eq. 6.26) checked against closed forms, observed
 convergence orders, matrix exponentials, finite differences and per-sample runs."""
 
+import importlib
 import math
 import re
+import types
 
 import numpy as np
 import pytest
@@ -248,6 +250,68 @@ def test_compiled_chunks_match_eager():
     assert eager.stats.extra["compiled"] is False
     torch.testing.assert_close(compiled.x, eager.x, rtol=1e-13, atol=1e-13)
     assert compiled.stats.extra["compile_s"] >= 0.0
+
+
+def _counting(clock):
+    """Van der Pol (component-wise) whose eager calls advance ``clock`` by one."""
+
+    def f(t, x):
+        if not torch.compiler.is_compiling():
+            clock[0] += 1
+        return torch.stack([x[..., 1], (1 - x[..., 0] ** 2) * x[..., 1] - x[..., 0]], dim=-1)
+
+    return f
+
+
+def test_auto_compiles_once_the_eager_time_reaches_its_threshold(monkeypatch):
+    """Rent-or-buy, the rule of the sensitivities too: ``compile="auto"`` runs a model eagerly,
+    counting its eager time over all calls, and compiles once that time, with the current
+    run's predicted (from the eager time per step counted before, or from the run's first
+    steps), reaches ``AUTO_COMPILE_EAGER_SECONDS``. A fake clock advances only in eager model
+    calls, so every eager run of 10 intervals takes the same time W.
+
+    Threshold 0.5 W: a first run compiles after its first interval (W predicted), and its
+    outputs move to the component-major layout; with autograd it switches to interleaved
+    compiled chunks, same gradients. Threshold 2.5 W: two runs are eager (W + W predicted at
+    the second), the third compiles from its first step (2 W counted + W predicted)."""
+    from integrators import explicit
+
+    compiled = importlib.import_module("integrators._fast.compiled")
+    monkeypatch.setattr(explicit, "CHUNK_STEPS", 2)  # small graphs: quick compiles
+    clock = [0]
+    monkeypatch.setattr(explicit, "time", types.SimpleNamespace(perf_counter=lambda: clock[0]))
+    x0 = torch.tensor([[2.0, 0.0], [1.0, 1.0]], dtype=torch.float64)
+    t = torch.linspace(0, 1, 11, dtype=torch.float64)
+    reference = _counting(clock)
+    with torch.no_grad():
+        eager = odeint(reference, x0, t, method="midpoint", compile=False)
+    W = clock[0]
+
+    monkeypatch.setattr(compiled, "AUTO_COMPILE_EAGER_SECONDS", 0.5 * W)
+    with torch.no_grad():
+        switched = odeint(_counting(clock), x0, t, method="midpoint", compile="auto")
+    if not switched.stats.extra["compiled"]:
+        pytest.skip("torch.compile is unavailable here")
+    assert switched.stats.extra["compiled_from_step"] == 1
+    assert switched.stats.extra["layout"] == "component-major"
+    torch.testing.assert_close(switched.x, eager.x, rtol=1e-13, atol=1e-13)
+
+    p = torch.tensor(1.5, dtype=torch.float64, requires_grad=True)
+    grad_eager = torch.autograd.grad(
+        odeint(reference, x0 * p, t, method="midpoint", compile=False).x.square().sum(), p
+    )
+    sol = odeint(_counting(clock), x0 * p, t, method="midpoint", compile="auto")
+    assert sol.stats.extra["compiled"] and sol.stats.extra["compiled_from_step"] == 1
+    assert sol.stats.extra["layout"] == "interleaved"
+    torch.testing.assert_close(torch.autograd.grad(sol.x.square().sum(), p), grad_eager)
+
+    monkeypatch.setattr(compiled, "AUTO_COMPILE_EAGER_SECONDS", 2.5 * W)
+    model = _counting(clock)
+    with torch.no_grad():
+        runs = [odeint(model, x0, t, method="midpoint", compile="auto") for _ in range(3)]
+    assert [r.stats.extra["compiled_from_step"] for r in runs] == [None, None, 0]
+    for r in runs:
+        torch.testing.assert_close(r.x, eager.x, rtol=1e-13, atol=1e-13)
 
 
 def test_big_states_take_fewer_steps_per_compiled_chunk(monkeypatch):

@@ -205,7 +205,7 @@ def test_a_dae_model_stays_eager_under_auto_compile(monkeypatch):
     import importlib
 
     monkeypatch.setattr(
-        importlib.import_module("integrators.sensitivities"), "AUTO_COMPILE_EAGER_SECONDS", 0.0
+        importlib.import_module("integrators._fast.compiled"), "AUTO_COMPILE_EAGER_SECONDS", 0.0
     )
     model = GreyBoxModel(DAE, {"a": Param(1.0, min=0), "b": Param(1.0)}, nx=1, nz=1, output=[0])
     assert model.compile is False

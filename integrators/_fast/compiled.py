@@ -22,10 +22,15 @@ import weakref
 
 import torch
 
-#: ``compile="auto"`` compiles once this many steps were taken with the same model,
-#: configuration and state shape (over all calls): the one-off compile (seconds) then pays
-#: for itself.
-AUTO_COMPILE_MIN_STEPS = 50_000
+#: ``compile="auto"`` compiles a model's chunk (or kernel) for a configuration and state
+#: shape once this many seconds were spent, or are predicted to be spent, in its eager runs
+#: (over all calls). Rent-or-buy (see :func:`compiled_stepper`): with the threshold near the
+#: one-off compile time ``C`` a run sequence costs at most ``1 + C / threshold`` times the
+#: better choice made in hindsight, whatever the batch size and the cost of a step. A
+#: pendulum RK4 sensitivity kernel compiles in 14-16 s in a fresh process with an empty
+#: inductor cache and in 5-10 s with a warm one (docs/benchmarks.md, "Tuning constants").
+#: Read at every call: a test may change it.
+AUTO_COMPILE_EAGER_SECONDS = 10.0
 #: Compiled runs of models with at most this many states keep the state component-major
 #: (a (nx, *batch) tensor whose rows the cat-forwarding graph pass lets inductor read straight
 #: from the model's own expressions).
@@ -83,10 +88,10 @@ class _Entry:
 
     def __init__(self):
         # per state shape, dtype and device (each compiles a kernel of its own, so each pays
-        # the one-off compile time of "auto" by itself): steps taken, wall time of the eager
+        # the one-off compile time of "auto" by itself): wall time and steps of the eager
         # runs reported by the solver
-        self.steps_seen: dict = {}
         self.eager_s: dict = {}
+        self.eager_steps: dict = {}
         self.compiled: dict = {}  # (outputs per chunk, component-major, shape...) -> chunk
         self.reference: dict = {}  # the same key -> the eager chunk the compiled one must match
         self.failed = False
@@ -134,7 +139,7 @@ class Stepper:
     a (nx, *batch) tensor; ``compile_s``: wall time spent compiling during this run.
     """
 
-    def __init__(self, f, entry: _Entry, want, active, key, compile_s, auto_min_eager_s):
+    def __init__(self, f, entry: _Entry, want, active, key, compile_s, threshold):
         self._f, self._entry, self._want, self._active = f, entry, want, active
         self._state = key[2:]  # the state's shape, dtype and device: the "auto" account
         self._key, self._chunk, self._reference = (
@@ -145,13 +150,14 @@ class Stepper:
         self._grad_mode = torch.is_grad_enabled()
         self.n_out, self.component_major = (key[0], key[1]) if active else (1, False)
         self.compile_s = compile_s
-        self._auto_min_eager_s = auto_min_eager_s  # inf unless compile="auto"
+        self._threshold = threshold  # inf unless compile="auto"
 
-    def add_eager_seconds(self, seconds: float) -> None:
-        """Count ``seconds`` of eager stepping of this model and configuration towards
-        ``"auto"`` (see :func:`compiled_stepper`)."""
-        eager_s = self._entry.eager_s
-        eager_s[self._state] = eager_s.get(self._state, 0.0) + seconds
+    def add_eager_seconds(self, seconds: float, steps: int = 0) -> None:
+        """Count ``seconds`` (and ``steps``) of eager stepping of this model and configuration
+        towards ``"auto"`` (see :func:`compiled_stepper`)."""
+        entry, state = self._entry, self._state
+        entry.eager_s[state] = entry.eager_s.get(state, 0.0) + seconds
+        entry.eager_steps[state] = entry.eager_steps.get(state, 0) + steps
 
     def worth_compiling(self, run_eager_s: float) -> bool:
         """Whether an eager ``"auto"`` run predicted to take ``run_eager_s`` seconds in all
@@ -160,7 +166,7 @@ class Stepper:
         known, see :func:`compiled_stepper`)."""
         if self._active or self._entry.failed:
             return False
-        return self._entry.eager_s.get(self._state, 0.0) + run_eager_s >= self._auto_min_eager_s
+        return self._entry.eager_s.get(self._state, 0.0) + run_eager_s >= self._threshold
 
     @property
     def active(self) -> bool:
@@ -222,31 +228,30 @@ def compiled_stepper(
     config,
     *,
     compile,
-    n_steps: int,
     x0: torch.Tensor,
     make_chunk,
     n_out: int,
     f_at_start=None,
-    auto_min_steps: int = AUTO_COMPILE_MIN_STEPS,
-    auto_min_eager_s: float = math.inf,
+    n_steps: int = 0,
 ) -> Stepper:
     """A compiled chunk function for a run of model ``f``, or the reason there is none.
 
     Args:
         f: the model, the cache key (bound methods: their instance).
         config: a hashable description of everything else the chunk depends on.
-        compile: True, False or ``"auto"``: compile once ``auto_min_steps`` steps were taken,
-            or once ``auto_min_eager_s`` seconds were spent in eager runs (reported by the
-            solver through :meth:`Stepper.add_eager_seconds`), with this model,
-            configuration and state shape (dtype, device) over all calls; a solver that can
-            predict a run's eager time compiles as soon as the prediction reaches the
-            threshold (:meth:`Stepper.worth_compiling`). The time rule is rent-or-buy: with
-            the threshold at the one-off compile time, the total costs at most twice the
-            better of the two choices made in hindsight, whatever the batch size. Each state
-            shape compiles a kernel of its own and so keeps an account of its own: a model
-            compiled once for a shape runs compiled in every later ``"auto"`` run of that
-            shape, and a new shape starts eager.
-        n_steps: the steps of this run (counted towards ``"auto"``).
+        compile: True, False or ``"auto"``: compile once the eager runs of this model,
+            configuration and state shape (dtype, device), over all calls, took
+            :data:`AUTO_COMPILE_EAGER_SECONDS` seconds, counting this run's predicted eager
+            time (the seconds are reported by the solver through
+            :meth:`Stepper.add_eager_seconds`): a run of ``n_steps`` steps is predicted from
+            the eager seconds per step counted so far; during a run, the solver compiles
+            for the rest of it as soon as the eager time of its first steps, extrapolated,
+            reaches the threshold (:meth:`Stepper.worth_compiling`). The rule is
+            rent-or-buy: with the threshold at the one-off compile time, the total costs at
+            most twice the better of the two choices made in hindsight, whatever the batch
+            size. Each state shape compiles a kernel of its own and so keeps an account of
+            its own: a model compiled once for a shape runs compiled in every later
+            ``"auto"`` run of that shape, and a new shape starts eager.
         x0: (*batch, nx) initial state; the chunk is compiled for its shape, dtype and device.
         make_chunk: ``make_chunk(n_out, component_major)``, the chunk function to compile
             (interleaved (*batch, nx) or component-major (nx, *batch) state).
@@ -255,8 +260,7 @@ def compiled_stepper(
             cache entry to decide the layout (runs without autograd, at most
             :data:`COMPONENT_MAJOR_MAX_STATES` states); None: the chunk has one layout, the
             interleaved one.
-        auto_min_steps: the ``"auto"`` step threshold (default :data:`AUTO_COMPILE_MIN_STEPS`).
-        auto_min_eager_s: the ``"auto"`` eager-time threshold (default: none).
+        n_steps: the steps of this run, for its predicted eager time (0: no prediction).
 
     Returns:
         A :class:`Stepper`, called like the chunk; it returns None wherever the caller must run
@@ -264,10 +268,12 @@ def compiled_stepper(
     """
     entry = _cache_entry(f, config)
     state = (tuple(x0.shape), x0.dtype, x0.device)
-    entry.steps_seen[state] = steps = entry.steps_seen.get(state, 0) + n_steps
-    enough = steps >= auto_min_steps or entry.eager_s.get(state, 0.0) >= auto_min_eager_s
+    threshold = AUTO_COMPILE_EAGER_SECONDS if compile == "auto" else math.inf
     # compiled once for this state: no more eager "auto" runs
-    enough = enough or any(key[2:] == state for key in entry.compiled)
+    enough = any(key[2:] == state for key in entry.compiled)
+    if compile == "auto" and not enough and not entry.failed:
+        spent, steps = entry.eager_s.get(state, 0.0), entry.eager_steps.get(state, 0)
+        enough = spent + (n_steps * spent / steps if steps else 0.0) >= threshold
     want = compile is True or (compile == "auto" and enough)
     grad_mode = torch.is_grad_enabled()
     active = want and not entry.failed and not torch.compiler.is_compiling()
@@ -294,5 +300,4 @@ def compiled_stepper(
             options={"post_grad_custom_pre_pass": CatForwardingPass()} if component_major else {},
         )
         compile_s += time.perf_counter() - tic
-    threshold = auto_min_eager_s if compile == "auto" else math.inf
     return Stepper(f, entry, want, active, key, compile_s, threshold)

@@ -50,7 +50,7 @@ from .greybox import GreyBoxModel, Segments
 
 #: the module (``integrators.sensitivities`` names its function too): its threshold is read
 #: at call time
-_sensitivities = importlib.import_module("integrators.sensitivities")
+_compile_policy = importlib.import_module("integrators._fast.compiled")
 
 __all__ = ["CRITERIA", "fit_greybox", "simulation_quality"]
 
@@ -69,7 +69,7 @@ _MAX_SEGMENTS = 100
 #: a Levenberg-Marquardt run evaluates its residuals at least this many times (iterations
 #: and line-search trials): where the first, eager simulation of a fit took at least
 #: ``1 / (runs _FIT_EVALUATIONS)`` of
-#: :data:`integrators.sensitivities.AUTO_COMPILE_EAGER_SECONDS` (``runs``: the
+#: :data:`integrators._fast.compiled.AUTO_COMPILE_EAGER_SECONDS` (``runs``: the
 #: Levenberg-Marquardt runs still to come, e.g. one per penalty stage of multiple shooting),
 #: the fit would reach that rent-or-buy threshold anyway and compiles (``compile="auto"``)
 #: at once
@@ -421,7 +421,7 @@ def _check_start(problem: _Problem, z0: torch.Tensor, runs: int) -> None:
     with torch.no_grad():
         r = problem.residuals(z0)
     seconds = time.perf_counter() - tic
-    eager_budget = _sensitivities.AUTO_COMPILE_EAGER_SECONDS
+    eager_budget = _compile_policy.AUTO_COMPILE_EAGER_SECONDS
     if problem.model.compile == "auto" and seconds * runs * _FIT_EVALUATIONS >= eager_budget:
         problem.compile = True
     bad = ~torch.isfinite(r).all(-1)

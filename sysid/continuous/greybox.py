@@ -104,7 +104,7 @@ class GreyBoxModel:
         compile: explicit methods: True runs each sample interval of the simulations and
             sensitivities as one compiled kernel (a one-off compile of seconds, then about
             ten times less time per step), False never, ``"auto"`` (default) once the model
-            has spent :data:`integrators.sensitivities.AUTO_COMPILE_EAGER_SECONDS` seconds in
+            has spent :data:`integrators._fast.compiled.AUTO_COMPILE_EAGER_SECONDS` seconds in
             eager steps (see :func:`integrators.sensitivities`), or at once in a fit whose
             first simulation shows that it would spend that long; never for a DAE (its
             right-hand side runs a Newton solve, which the compiler cannot trace). Models the
