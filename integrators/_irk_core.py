@@ -134,8 +134,10 @@ class InputSignal:
         self.source = source
 
     def at(self, t, t_step=None):
-        """Input at time ``t``; a zero-order-hold signal on a fixed step holds ``u(t_step)``
-        over the closed step (eq. 8.34), so a stage with ``c_i = 1`` still sees ``u_k``."""
+        """Input at time ``t``; a zero-order-hold signal holds ``u(t_step)`` over the closed
+        step from ``t_step`` (eq. 8.34), so a stage with ``c_i = 1`` still sees ``u_k``: fixed
+        steps lie within a sample interval, and adaptive steps end at the sample times
+        (:attr:`integrators.inputs.BoundRHS.breakpoints`)."""
         src = self.source
         if src is None or src.kind == "none":
             return None
@@ -190,14 +192,12 @@ class IRKCore:
         caller already has them."""
         return StageTimes(self.c, tk, h, batch_ndim, stacked)
 
-    def stage_inputs(self, times, tk, fixed: bool) -> StageInputs:
-        """The stage inputs (:class:`StageInputs`) at the stage times ``times``; on a fixed
-        step (``fixed``) a zero-order-hold input holds ``u(t_k)`` (``InputSignal.at``)."""
+    def stage_inputs(self, times, tk) -> StageInputs:
+        """The stage inputs (:class:`StageInputs`) at the stage times ``times`` of the step from
+        ``tk``; a zero-order-hold input holds ``u(t_k)`` (``InputSignal.at``)."""
         if self.signal.source is None or self.signal.source.kind == "none":
             return StageInputs([None] * self.s, times.batch_ndim)
-        return StageInputs(
-            [self.signal.at(ti, tk if fixed else None) for ti in times], times.batch_ndim
-        )
+        return StageInputs([self.signal.at(ti, tk) for ti in times], times.batch_ndim)
 
     def stage_states(self, xk, h, K):
         """``X_i = x_k + h sum_j a_ij K_j``: (*batch, s, n); h is (*batch,)."""

@@ -34,12 +34,19 @@ from .errors import HighIndexWarning
 from .solution import Status
 
 
+def _endpoint_stage(core: IRKCore) -> bool:
+    """Whether the last stage sits at the step's end (``c_s = 1``, e.g. Radau IIA)."""
+    return abs(core.c[-1] - 1.0) < 1e-14
+
+
 def end_algebraic(core: IRKCore, W, z):
-    """``z_{k+1}``: the last algebraic stage when ``c_s = 1``, else its polynomial at 1."""
+    """``z_{k+1}``: the last algebraic stage when ``c_s = 1``, else its polynomial at 1 (a
+    lower order than the differential states': the output times solve for ``z`` again, see
+    :func:`integrate_fixed`)."""
     n = core.system.n
     if core.system.m == 0:
         return z
-    if abs(core.c[-1] - 1.0) < 1e-14:
+    if _endpoint_stage(core):
         return W[..., -1, n:]
     c = torch.as_tensor(core.c, dtype=W.dtype, device=W.device)
     basis = lagrange_basis(c, torch.ones((), dtype=W.dtype, device=W.device))
@@ -61,7 +68,14 @@ def integrate_fixed(
     index_tol,
     index_check_every=10,
 ):
-    """Run the fixed-step method; returns a dict of outputs, status, counters and messages."""
+    """Run the fixed-step method; returns a dict of outputs, status, counters and messages.
+
+    A DAE's algebraic states at the output times: with ``c_s = 1`` (Radau IIA, implicit
+    Euler) the last stage's, of the order of the differential states; otherwise (Gauss-
+    Legendre, implicit midpoint) the stage polynomial extrapolated to the step's end is of
+    lower order and leaves ``g(x, z) != 0``, so ``z`` is solved from the algebraic equations
+    at ``x(t_{k+1})`` there (:meth:`StageSystem.algebraic_states`, held input of the last
+    step); a sample where that Newton solve fails stops with ``NEWTON_FAILED``."""
     batch = x0.shape[:-1]
     hshape = host_shape(batch)
     status = np.zeros(hshape, dtype=np.int8)
@@ -95,7 +109,7 @@ def integrate_fixed(
             tk = starts[k, j]
             t_stop = np.where(active, t_host[k] + j * h_val, t_stop)
             times = core.stage_times(tk, h, len(batch), stacked=stage_grid[k, j])
-            inputs = core.stage_inputs(times, tk, fixed=True)
+            inputs = core.stage_inputs(times, tk)
             xd, zd = x.detach(), z.detach()
             sc_x = atol + rtol * xd.abs()
             sc_z = atol + rtol * zd.abs() if core.system.m else zd
@@ -182,6 +196,10 @@ def integrate_fixed(
             if core.system.kind != "ode":  # periodic index check (Theorem 9)
                 need_jac |= active & (n_steps % index_check_every == 0)
             prev_W = W.detach()
+        if core.system.m and not _endpoint_stage(core):
+            was_active = active.copy()
+            z = _consistent_end(core, mat, t[k + 1], x, z, xdot, tk, active, status, messages)
+            t_stop = np.where(was_active & ~active, t_host[k + 1], t_stop)  # x is valid there
         xs.append(x)
         zs.append(z)
 
@@ -203,6 +221,28 @@ def integrate_fixed(
         n_f=core.n_f_evals,
         records=records,
     )
+
+
+def _consistent_end(core: IRKCore, mat, t_end, x, z, xdot, tk, active, status, messages):
+    """``z`` solved from the algebraic equations at ``(t_end, x)`` from the guesses ``z`` (and
+    ``xdot`` for an implicit DAE), with the input held from the last step's start ``tk``. The
+    ``active`` samples whose Newton solve fails stop (``status``, ``messages``, in place) and
+    keep the guess: as of index > 1 where the index test (``mat``, Theorem 9) says so."""
+    u = core.signal.at(t_end, tk)
+    _, z_new, res = core.system.algebraic_states(t_end, x, z, u, xdot)
+    failed = active & ~to_host(res.converged, active.shape)
+    if failed.any():
+        high = mat.update_jacobian(failed, t_end, x.detach(), z.detach(), xdot.detach())
+        _flag_high_index(high & failed, status, active, messages, t_end)
+        failed &= ~high
+    for idx in np.argwhere(failed).tolist():
+        messages.append(
+            f"sample {tuple(idx)}: the algebraic equations did not converge for z at the "
+            f"output time t = {float(t_end):.6g}; its outputs from there on are NaN."
+        )
+    status[failed] = int(Status.NEWTON_FAILED)
+    active &= ~failed
+    return masked_update(active, z_new, z)
 
 
 def _ratio(h_new: float, h_old: float) -> float:

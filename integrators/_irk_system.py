@@ -24,6 +24,25 @@ import torch
 from .jacobians import batch_jacobian
 
 
+def root_derivatives(phi, v_star):
+    """The converged root ``v_star`` of ``phi(v) = 0`` with its first and second derivatives
+    with respect to everything ``phi`` uses (``x0``, module parameters, captured tensors;
+    :func:`~integrators.newton.root_with_derivatives`, exact Jacobian at the root)."""
+    from .newton import root_with_derivatives
+
+    if not torch.is_grad_enabled():
+        return v_star
+    with torch.enable_grad():
+        r = phi(v_star)
+    if not r.requires_grad:
+        return v_star
+    _, J = batch_jacobian(phi, v_star)
+    lu, piv = torch.linalg.lu_factor(J)
+    return root_with_derivatives(
+        phi, v_star, lambda b: torch.linalg.lu_solve(lu, piv, b[..., None])[..., 0], r_star=r
+    )
+
+
 class StageSystem:
     """The residual ``r`` of one problem class.
 
@@ -46,6 +65,39 @@ class StageSystem:
 
     def _call(self, fn, t, *args, u=None):
         return fn(t, *args, u) if self.has_input else fn(t, *args)
+
+    def algebraic_states(self, t, x, z, u, xdot=None):
+        """The algebraic states consistent with the differential states ``x`` at time ``t``
+        (notes eq. 5.53-5.58): the root ``z`` of ``g(t, x, z) = 0`` (semi-explicit), or
+        ``(x', z)`` of ``F(t, x', x, z) = 0`` (implicit), by damped Newton from ``z`` (and
+        ``xdot``, zeros when None); the root carries its first and second derivatives with
+        respect to ``x`` and everything the model uses (:func:`root_derivatives`).
+
+        Returns:
+            ``(xdot, z, result)``: (*batch, n) ``x'`` (``f(t, x, z)`` for the semi-explicit
+            kind), (*batch, m) ``z`` and the :class:`~integrators.newton.NewtonResult`.
+        """
+        from .newton import newton
+
+        n, xd = self.n, x.detach()
+        if self.kind == "semi":
+
+            def phi(v, x):
+                return self._call(self.fns[1], t, x, v, u=u)
+
+            guess = z.detach()
+        else:
+
+            def phi(v, x):
+                return self.residual(t, v[..., :n], x, v[..., n:], u)
+
+            start = torch.zeros_like(xd) if xdot is None else xdot.detach()
+            guess = torch.cat([start, z.detach()], dim=-1)
+        res = newton(phi, guess, xd, method="damped", max_iter=50)
+        v = root_derivatives(lambda v: phi(v, x), res.x)
+        if self.kind == "semi":
+            return self.rhs_f(t, x, v, u), v, res
+        return v[..., :n], v[..., n:], res
 
     def rhs_f(self, t, x, z, u):
         """``f(t, x[, z], u)`` for the explicit kinds (the derivative at a consistent point)."""

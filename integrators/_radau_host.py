@@ -131,11 +131,13 @@ class _HostModel:
 
     def _stage_inputs(self, t_stage: torch.Tensor) -> StageInputs:
         """The inputs at the stage times ``t_stage`` (s, *batch, 1), looked up once per step:
-        kept while the Newton iterations pass the same stage-time tensor."""
+        kept while the Newton iterations pass the same stage-time tensor. A zero-order hold
+        holds the input at the first stage time, in the step's sample interval (the steps end
+        at the sample times), like :meth:`IRKCore.stage_inputs` from the step start."""
         if self._inputs_at is not t_stage:
-            signal = self.core.signal
+            signal, held = self.core.signal, t_stage[0]
             self._inputs_at = t_stage
-            self._inputs = StageInputs([signal.at(t_i) for t_i in t_stage], len(self.batch))
+            self._inputs = StageInputs([signal.at(t_i, held) for t_i in t_stage], len(self.batch))
         return self._inputs
 
     def decide_stacking(self, tk, h, t_stage, K, X) -> None:
@@ -145,7 +147,7 @@ class _HostModel:
         core, batch = self.core, self.batch
         tk_t, h_t = self.times(tk), torch.from_numpy(h).reshape(batch)
         times = core.stage_times(tk_t, h_t[..., None], len(batch), stacked=t_stage)
-        inputs = core.stage_inputs(times, tk_t, fixed=False)
+        inputs = core.stage_inputs(times, tk_t)
         K_t, X_t = (torch.from_numpy(np.array(v)).reshape(*batch, *v.shape[-2:]) for v in (K, X))
         Z_t = K_t.new_zeros(*K_t.shape[:-1], 0)
         core.stack_stages = core.stacking_works(times, inputs, K_t, X_t, Z_t)
@@ -222,7 +224,7 @@ def _run_constants(core: IRKCore, t, atol, rtol, npdt):
     """The run's constants of both host loops: output times (T,) in ``npdt``, the end time,
     the time from which a step lands on the end, the span, the smallest step relative to
     ``max(|t|, 1)``, the dtype's smallest normal number and the tolerances as host arrays
-    (floats, or arrays broadcasting against the state (n,), as in the torch driver)."""
+    (floats, or (*batch, n | 1) tensors flattened to the kernels' (B, n | 1))."""
     t_host = t.detach().numpy().astype(npdt)
     t_end = t_host[-1]
     return (
@@ -233,7 +235,9 @@ def _run_constants(core: IRKCore, t, atol, rtol, npdt):
         16 * core.eps,
         float(np.finfo(npdt).tiny),
         *(
-            np.asarray(v.detach().cpu().numpy() if isinstance(v, torch.Tensor) else v, npdt)
+            v.detach().cpu().numpy().astype(npdt).reshape(-1, v.shape[-1])
+            if isinstance(v, torch.Tensor)
+            else npdt(v)
             for v in (atol, rtol)
         ),
     )
@@ -393,6 +397,8 @@ class OneTrajectoryKernel(NumpyKernel):
 
     def __init__(self, core, x0, z0, xdot0, t, rtol, atol, newton_tol, max_iter):
         super().__init__(core, x0, z0, xdot0, t, rtol, atol, newton_tol, max_iter)
+        # tolerances of the one sample: (n,) or (1,) arrays, like its flat state vectors
+        self.atol, self.rtol = (np.reshape(v, -1) for v in (self.atol, self.rtol))
         self.A_kron = np.kron(self.A, np.eye(core.system.n))
         self.accept_mask = np.ones(1, dtype=bool)
         self.powers = np.arange(core.s)
@@ -677,7 +683,7 @@ def _records(core, model, x0, z0, t0, accepted):
             h_t, mask = torch.from_numpy(h_rec), accept.reshape(hshape)
             tk = model.times(host[0])
             times = core.stage_times(tk, h_t[..., None], len(batch), stacked=model.times(host[2:]))
-            inputs = core.stage_inputs(times, tk, fixed=False)
+            inputs = core.stage_inputs(times, tk)
             W_t = core.ift(times, inputs, h_t, x, torch.from_numpy(W).reshape(W_t.shape), mask)
             with_grad = core.needs_grad is not False
             x_rec = x_rec + (x - x.detach())

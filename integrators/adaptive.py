@@ -18,6 +18,13 @@ Output: the steps are not shortened to hit the requested times. Each accepted st
 coefficients of its continuous extension (:mod:`integrators.dense`), and the requested times,
 as well as any time passed to ``Solution.at``, are evaluated from them with a batched
 ``searchsorted`` over each sample's accepted-step grid.
+
+Sampled inputs (:attr:`integrators.inputs.BoundRHS.breakpoints`): the input jumps (zero-order
+hold) or kinks (linear interpolation) at its sample times, where neither the Runge-Kutta
+solution nor its error estimate is smooth. Steps then end at every sample time (a step cut
+short there does not shrink the next one), the held input of a step's interval is used up to
+and including its right end (eq. 8.34), and after a jump ``K_1`` is evaluated again with the
+next sample.
 """
 
 from __future__ import annotations
@@ -37,6 +44,7 @@ from ._options import (
 from .controllers import IController, PIController, error_norm, initial_step
 from .dense import continuous_extension
 from .errors import InputValidationError
+from .inputs import BoundRHS
 from .solution import Solution, SolverStats, Status
 from .tableau import ButcherTableau, tableau
 
@@ -148,7 +156,8 @@ def solve_adaptive(
             (an input bound to the model, e.g. by :func:`integrators.inputs.bind_rhs`).
         x0: (*batch, nx) initial states (at ``t[0]``).
         t: (T,) strictly increasing output times; the states are reported there by dense
-            output, the steps are not shortened to hit them.
+            output, the steps are not shortened to hit them (unless an input is sampled on
+            them, see the module docstring).
         tab: explicit tableau with embedded weights ``b_err``; Dormand-Prince 5(4) when None.
         rtol, atol: relative and absolute tolerances of the error norm
             (:func:`integrators.controllers.error_norm`): floats, or tensors broadcastable to
@@ -207,6 +216,18 @@ def solve_adaptive(
     t0, t_end = float(t_out[0]), float(t_out[-1])
     span = t_end - t0
     dt_min = 16.0 * torch.finfo(dtype).eps * max(abs(t0), abs(t_end), span)
+    # the times where steps end: the input's breakpoints inside (t0, t_end), and t_end
+    breaks = rhs.breakpoints if isinstance(rhs, BoundRHS) else None
+    stops = t_out[[0, -1]]
+    if breaks is not None:
+        grid = breaks.detach().to(dtype=dtype, device=device)
+        stops = torch.cat([stops[:1], grid[(grid > t0) & (grid < t_end)], stops[1:]])
+    last_stop = stops.shape[0] - 1
+    held = isinstance(rhs, BoundRHS) and rhs.kind == "zoh"  # K_1 again after every jump
+
+    def held_sample(t_flat):
+        """The (B,) index of the sample a zero-order hold gives from ``t_flat`` on."""
+        return (torch.searchsorted(grid, t_flat, right=True) - 1).clamp(0, grid.shape[0] - 1)
 
     ext = continuous_extension(tab)
     s = tab.stages
@@ -217,32 +238,47 @@ def solve_adaptive(
     # one matmul gives the error estimate and the four dense-output coefficient vectors
     combine = torch.cat([e_ext[:, None], ext.tensor(dtype, device)], dim=1)  # (n_ext, 5)
     q = min(tab.order, tab.embedded_order)
-    evals_per_attempt = s if ext.extra_eval else s - 1
+    evals_per_attempt = (s if ext.extra_eval else s - 1) + held
     c_list = [float(v) for v in tab.c]
     a_rows = [A[i, :i].contiguous() for i in range(s)]
     b_vec = b.contiguous()
 
     n_calls = 0
 
-    def call(t_flat, x_flat):
+    def call(t_flat, x_flat, sample=None):
+        """``rhs`` at (B,) times and (B, nx) states; a zero-order hold gives the (B,) held
+        ``sample``."""
         nonlocal n_calls
         n_calls += 1
         x_call = x_flat.reshape(*batch_shape, nx)
-        out = rhs(t_flat.reshape(*batch_shape, 1), x_call)
+        t_call = t_flat.reshape(*batch_shape, 1)
+        if held:
+            out = rhs(t_call, x_call, interval=sample.reshape(*batch_shape, 1))
+        else:
+            out = rhs(t_call, x_call)
         if out.shape != x_call.shape:
             raise_shape_change(out, x_call, t_flat)
         return out.reshape(B, nx)
 
     x = x0.reshape(B, nx)
     t_cur = torch.full((B,), t0, dtype=dtype, device=device)
-    k1 = call(t_cur, x)
+    k_cur = torch.zeros(B, dtype=torch.int64, device=device)  # the stop before t_cur
+    sample = held_sample(t_cur) if held else None
+    k1 = call(t_cur, x, sample)
     with torch.no_grad():
         finite0 = torch.isfinite(x).all(-1) & torch.isfinite(k1).all(-1)
         x_safe = torch.where(finite0[:, None], x, 0.0)
         k1_safe = torch.where(finite0[:, None], k1, 0.0)
         if dt0 is None:
             h_next = initial_step(
-                call, t_cur, x_safe.detach(), k1_safe.detach(), q, rtol, atol, span
+                lambda tt, xx: call(tt, xx, sample),
+                t_cur,
+                x_safe.detach(),
+                k1_safe.detach(),
+                q,
+                rtol,
+                atol,
+                span,
             )
         else:
             h_next = _as_dt0(dt0, batch_shape, dtype, device).clamp_max(span)
@@ -260,7 +296,6 @@ def solve_adaptive(
     n_acc = torch.zeros(B, dtype=torch.int64, device=device)
     n_att = torch.zeros(B, dtype=torch.int64, device=device)
     records = _StepRecord()
-    t_end_vec = torch.full((B,), t_end, dtype=dtype, device=device)
     code_non_finite, code_too_small, code_max_steps = (
         torch.tensor(int(code), dtype=torch.int8, device=device)
         for code in (Status.NON_FINITE, Status.STEP_TOO_SMALL, Status.MAX_STEPS)
@@ -273,8 +308,9 @@ def solve_adaptive(
             break
         iteration += 1
         with torch.no_grad():
-            remaining = t_end_vec - t_cur
-            # a trial that would leave less than dt_min before t_end goes all the way
+            t_stop = stops[k_cur + 1]
+            remaining = t_stop - t_cur
+            # a trial that would leave less than dt_min before the next stop goes all the way
             last = h_next + dt_min >= remaining
             h = torch.where(last, remaining, h_next) * active
         hc = h[:, None]
@@ -282,12 +318,12 @@ def solve_adaptive(
         x_stage = x
         for i in range(1, s):
             x_stage = torch.addcmul(x, hc, torch.stack(stages, -1) @ a_rows[i])
-            stages.append(call(torch.add(t_cur, h, alpha=c_list[i]), x_stage))
+            stages.append(call(torch.add(t_cur, h, alpha=c_list[i]), x_stage, sample))
         if tab.is_fsal:
             x_new, f_new = x_stage, stages[-1]
         else:
             x_new = torch.addcmul(x, hc, torch.stack(stages, -1) @ b_vec)
-            f_new = call(t_cur + h, x_new)
+            f_new = call(t_cur + h, x_new, sample)
             stages.append(f_new)
         combined = torch.stack(stages, -1) @ combine  # (B, nx, 5)
         r = combined[..., 1:] * hc[..., None]  # (B, nx, 4)
@@ -303,8 +339,9 @@ def solve_adaptive(
             err_prev = torch.where(accept, norm, err_prev)
             after_reject = active & ~accept
             last_nonfinite = active & ~finite
-            t_next = torch.where(accept, torch.where(last, t_end_vec, t_cur + h), t_cur)
-            still = active & ~(accept & last)
+            stopped = accept & last
+            t_next = torch.where(accept, torch.where(last, t_stop, t_cur + h), t_cur)
+            still = active & ~(stopped & (k_cur + 1 == last_stop))
             too_small = still & (h_prop < dt_min)
             out_of_steps = still & ~too_small & (n_att >= max_steps)
             status = torch.where(
@@ -312,13 +349,18 @@ def solve_adaptive(
             )
             status = torch.where(out_of_steps, code_max_steps, status)
             active = still & ~too_small & ~out_of_steps
-            h_next = h_prop
+            # a step cut short at a stop keeps the planned size for the next one
+            h_next = torch.where(stopped, torch.maximum(h_prop, h_next), h_prop)
+            k_next = torch.where(stopped & still, k_cur + 1, k_cur)
 
         acc_col = accept[:, None]
         records.append(t_cur, h * accept, x, r)
         x = torch.where(acc_col, x_new, x)
         k1 = torch.where(acc_col, f_new, k1)
-        t_cur = t_next
+        if held:  # K_1 with the sample held from a stop on
+            sample = held_sample(t_next)
+            k1 = torch.where((k_next != k_cur)[:, None], call(t_next, x, sample), k1)
+        t_cur, k_cur = t_next, k_next
 
     records.append(t_cur, torch.zeros_like(t_cur), x, zero_r)
     failed = status != Status.SUCCESS

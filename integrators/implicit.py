@@ -126,17 +126,39 @@ class _Settings:
     options: dict
 
 
-def _entry(x0, t, method, stages, adaptive, controller, newton_options, run, min_width=1):
+def _tolerance(value, name: str, x0: torch.Tensor, algebraic: bool):
+    """A number, or a tensor broadcast to the states (*batch, nx), or with ``algebraic``
+    states beside them to one value per sample (*batch, 1)."""
+    if not isinstance(value, torch.Tensor):
+        return float(value)
+    shape = (*x0.shape[:-1], 1) if algebraic else x0.shape
+    try:
+        return value.detach().to(dtype=x0.dtype, device=x0.device).expand(shape)
+    except RuntimeError as exc:
+        raise InputValidationError(
+            f"{name} of shape {tuple(value.shape)} does not broadcast to {tuple(shape)}"
+            + (
+                ": a problem with algebraic states takes one tolerance per sample."
+                if algebraic
+                else ", the states' shape."
+            )
+        ) from exc
+
+
+def _entry(x0, t, method, stages, adaptive, controller, newton_options, run, algebraic=False):
     """The entry checks shared by :func:`solve_implicit_ode` and :func:`daeint`: the state
     (:func:`check_state`), the method, the controller, the solver options, ``run`` (``rtol``,
-    ``atol``, ``substeps``, ``max_steps``) and the output times; returns ``(x0, t, settings)``."""
-    x0 = check_state(x0, "x0", min_width=min_width)
+    ``atol``, ``substeps``, ``max_steps``) and the output times; returns ``(x0, t, settings)``.
+    ``algebraic``: the problem has algebraic states (its x0 may then be empty)."""
+    x0 = check_state(x0, "x0", min_width=0 if algebraic else 1)
     tab, adaptive = _implicit_tableau(method, stages, adaptive)
     check_controller(controller, tab.name, adaptive)
     options = _split_options(newton_options, adaptive)
     check_tolerances(run["rtol"], run["atol"], x0.dtype)
     run = dict(
         run,
+        rtol=_tolerance(run["rtol"], "rtol", x0, algebraic),
+        atol=_tolerance(run["atol"], "atol", x0, algebraic),
         substeps=check_int(run["substeps"], "substeps"),
         max_steps=check_int(run["max_steps"], "max_steps"),
     )
@@ -161,10 +183,12 @@ def _empty_solution(x0, z0, t, method_name, with_z) -> Solution:
     )
 
 
-def newton_tolerance(rtol: float, dtype, override=None) -> float:
-    """Stage-solve tolerance on ``eta ||dW||`` (Hairer-Wanner's rule, scaled norm)."""
+def newton_tolerance(rtol, dtype, override=None) -> float:
+    """Stage-solve tolerance on ``eta ||dW||`` (Hairer-Wanner's rule, scaled norm) for the
+    smallest entry of ``rtol`` (a number or a tensor)."""
     if override is not None:
         return float(override)
+    rtol = float(torch.as_tensor(rtol).min())
     eps = EPS.get(dtype, EPS[torch.float32])
     return max(10.0 * eps / rtol, min(0.03, rtol**0.5))
 
@@ -287,7 +311,8 @@ def solve_implicit_ode(
         adaptive: error-controlled steps (Radau IIA with odd ``s`` only); default True for
             Radau IIA, False otherwise.
         rtol, atol: local error tolerances (adaptive) and the Newton stopping scale
-            ``atol + rtol |x|`` (both modes).
+            ``atol + rtol |x|`` (both modes): numbers or tensors broadcasting to the states
+            (*batch, n) (per component and sample).
         substeps: fixed-step mode: steps per output interval.
         max_steps: adaptive mode: step attempts per sample before MAX_STEPS.
         controller: adaptive mode: the step-size controller (:mod:`integrators.controllers`);
@@ -406,7 +431,8 @@ def daeint(
             and every tensor the model uses, first and second order).
         t: (T,) strictly increasing output times.
         method, stages, adaptive, rtol, atol, substeps, max_steps, controller: as in
-            :func:`solve_implicit_ode`.
+            :func:`solve_implicit_ode` (tensor tolerances of a problem with algebraic states
+            give one value per sample, (*batch, 1)).
         **newton_options: as in :func:`solve_implicit_ode`; ``index_tol`` (default 1e-10) is
             the relative singular-value threshold of the rank test.
         u: input: None, a callable ``u(t)`` or samples (T, nu) / (*batch, T, nu) on ``t``.
@@ -427,8 +453,9 @@ def daeint(
             f"{type(problem).__name__}; for x' = f(t, x) use odeint."
         )
     run = dict(rtol=rtol, atol=atol, substeps=substeps, max_steps=max_steps)
+    algebraic = not isinstance(problem, ImplicitODE)
     x0, t, settings = _entry(
-        x0, t, method, stages, adaptive, controller, newton_options, run, min_width=0
+        x0, t, method, stages, adaptive, controller, newton_options, run, algebraic
     )
     tab, adaptive, options = settings.tab, settings.adaptive, settings.options
     if isinstance(problem, ImplicitODE):
@@ -486,32 +513,12 @@ def consistent_start(system: StageSystem, signal: InputSignal, t0, x0, z0, index
         ``(z0, xdot0, correction, messages)`` with ``correction`` the (*batch,) max-norm of
         the change made to ``z0``.
     """
-    from .newton import newton
-
-    n, m = system.n, system.m
+    m = system.m
     u0 = signal.at(t0)
-    x0d = x0.detach()
-    guess_xdot = torch.zeros_like(x0d)
-    _check_index(system, t0, guess_xdot, x0, z0.detach(), u0, index_tol)
-    if system.kind == "semi":
-
-        def phi(z, x):
-            return system._call(system.fns[1], t0, x, z, u=u0)
-
-        res = newton(phi, z0.detach(), x0d, method="damped", max_iter=50)
-        _raise_unconverged(res, "g(t0, x0, z) = 0 for z")
-        z_new = _root_derivatives(lambda z: phi(z, x0), res.x)
-        xdot0 = system.rhs_f(t0, x0, z_new, u0)
-    else:
-
-        def phi(v, x):
-            return system.residual(t0, v[..., :n], x, v[..., n:], u0)
-
-        guess = torch.cat([guess_xdot, z0.detach()], dim=-1)
-        res = newton(phi, guess, x0d, method="damped", max_iter=50)
-        _raise_unconverged(res, "F(t0, x0', x0, z) = 0 for (x0', z)")
-        v = _root_derivatives(lambda v: phi(v, x0), res.x)
-        xdot0, z_new = v[..., :n], v[..., n:]
+    _check_index(system, t0, torch.zeros_like(x0.detach()), x0, z0.detach(), u0, index_tol)
+    xdot0, z_new, res = system.algebraic_states(t0, x0, z0, u0)
+    semi = system.kind == "semi"
+    _raise_unconverged(res, "g(t0, x0, z) = 0 for z" if semi else "F(t0, x0', x0, z) = 0")
     _check_index(system, t0, xdot0, x0, z_new, u0, index_tol)
     correction = (z_new - z0).detach().abs().amax(-1) if m else x0.new_zeros(x0.shape[:-1])
     msgs = []
@@ -525,26 +532,6 @@ def consistent_start(system: StageSystem, signal: InputSignal, t0, x0, z0, index
             "stats.extra['z0_correction'])."
         )
     return z_new, xdot0.detach(), correction, msgs
-
-
-def _root_derivatives(phi, v_star):
-    """The converged root ``v_star`` of ``phi(v) = 0`` with its first and second derivatives
-    with respect to everything ``phi`` uses (``x0``, module parameters, captured tensors;
-    :func:`~integrators.newton.root_with_derivatives`, exact Jacobian at the root)."""
-    from .jacobians import batch_jacobian
-    from .newton import root_with_derivatives
-
-    if not torch.is_grad_enabled():
-        return v_star
-    with torch.enable_grad():
-        r = phi(v_star)
-    if not r.requires_grad:
-        return v_star
-    _, J = batch_jacobian(phi, v_star)
-    lu, piv = torch.linalg.lu_factor(J)
-    return root_with_derivatives(
-        phi, v_star, lambda b: torch.linalg.lu_solve(lu, piv, b[..., None])[..., 0], r_star=r
-    )
 
 
 def _check_index(system, t0, xdot, x, z, u, index_tol):

@@ -57,13 +57,27 @@ class BoundRHS:
         self.samples = samples
         self.t_grid = t_grid
 
-    def __call__(self, t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-        """Evaluate ``f`` at time ``t`` (0-dim or (*batch, 1)) and state ``x`` (*batch, nx)."""
+    def __call__(self, t: torch.Tensor, x: torch.Tensor, interval=None) -> torch.Tensor:
+        """Evaluate ``f`` at time ``t`` (0-dim or (*batch, 1)) and state ``x`` (*batch, nx).
+
+        ``interval``: (*batch, 1) indices ``k`` of the sample intervals ``[t_k, t_{k+1}]``
+        the evaluations lie in, for solvers whose steps end at the sample times
+        (:attr:`breakpoints`): the zero-order hold then gives ``u_k`` on the closed
+        interval, its right end included, like the fixed-step solvers."""
         if self.kind == "none":
             return self.f(t, x)
         if self.kind == "callable":
             return self.f(t, x, self.u(t))
+        if interval is not None and self.kind == "zoh":
+            return self.f(t, x, _take(self.samples, interval, False))
         return self.f(t, x, self.input_at(t))
+
+    @property
+    def breakpoints(self) -> torch.Tensor | None:
+        """The times (T,) where the input jumps (zero-order hold) or kinks (linear
+        interpolation), at which an adaptive solver's steps end; None for a smooth or
+        callable input."""
+        return self.t_grid if self.kind in INTERPOLATIONS else None
 
     def input_at(self, t: torch.Tensor) -> torch.Tensor:
         """The input at time(s) ``t`` looked up from the samples.

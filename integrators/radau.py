@@ -164,8 +164,17 @@ def adaptive_loop(
     expo = 1.0 / (s + 1)
     t_host = to_host(t).astype(hdt)
     t_end = t_host[-1].item() if ops.scalar else t_host[-1]
-    t_snap = t_end - 1e-14 * abs(float(t_end))  # a step ending this close lands on t_end
     span = float(t_host[-1] - t_host[0])
+    # steps end at the stops: the input's breakpoints inside (t0, t_end), and t_end
+    stops = t_host[[0, -1]]
+    breaks = getattr(core.signal.source, "breakpoints", None)
+    if breaks is not None:
+        grid = to_host(breaks).astype(hdt)
+        stops = np.concatenate([stops[:1], grid[(grid > stops[0]) & (grid < stops[1])], stops[1:]])
+    snaps = stops - 1e-14 * np.abs(stops)  # a step ending this close lands on the stop
+    if ops.scalar:
+        stops, snaps = stops.tolist(), snaps.tolist()
+    next_stop = ops.counts() + 1  # index of each sample's next stop
     min_step = 16 * core.eps
 
     tcur = ops.full(t_host[0])
@@ -196,7 +205,9 @@ def adaptive_loop(
 
     with kernel.step_mode():
         while any_(active):
-            h = where(active & (tcur + h >= t_end), t_end - tcur, h)
+            t_stop = stops[next_stop]
+            h_planned = h
+            h = where(active & (tcur + h >= t_stop), t_stop - tcur, h)
             tiny = active & (h <= min_step * ops.maximum(ops.abs(tcur), 1.0))
             if any_(tiny):
                 escape = tiny & not_(nonfinite_last)
@@ -268,7 +279,9 @@ def adaptive_loop(
             if any_(accept):  # accepted samples advance
                 kernel.advance(accept, tcur, h_step)
                 tcur = pick(accept, tcur + h_step, tcur)
-                tcur = where(accept & (tcur >= t_snap), t_end, tcur)
+                snap = snaps[next_stop]
+                reached = accept & (tcur >= snap)
+                tcur = where(reached, t_stop, tcur)
                 prev_h = pick(accept, h_step, prev_h)
                 have_prev |= accept
                 h_old = pick(accept, hh, h_old)
@@ -282,6 +295,9 @@ def adaptive_loop(
             rejected_last = not_(accept) & (rejected_last | reject)
             h = ops.steps(where(accept, h_acc, where(reject, h_rej, h)))
             active &= not_(accept & (tcur >= t_end))
+            if any_(accept):  # past a stop: the next one; a step cut short there keeps its plan
+                h = where(reached & active, ops.maximum(h, h_planned), h)
+                next_stop = where(reached & active, next_stop + 1, next_stop)
 
     records = kernel.records()
     records.stop = stop_times(ops.host(status, np.int8), ops.host(tcur))
@@ -358,7 +374,7 @@ class TorchKernel:
         self.times = core.stage_times(
             self.tcol, self.h_t[..., None], len(batch), stacked=on_dev[3:]
         )
-        self.inputs = core.stage_inputs(self.times, self.tcol, fixed=False)
+        self.inputs = core.stage_inputs(self.times, self.tcol)
         self.sc_x = self.atol + self.rtol * self.xd.abs()
         self.sc_z = self.atol + self.rtol * self.zd.abs() if core.system.m else self.zd
 
