@@ -48,7 +48,13 @@ def as_signal(x, name: str, dtype: torch.dtype | None = None, device=None) -> to
     if isinstance(x, torch.Tensor):
         t = x
     else:
-        arr = np.asarray(x)
+        try:
+            arr = np.asarray(x)
+        except ValueError as exc:  # sequences of different lengths
+            raise InputValidationError(
+                f"{name} could not be converted to a numeric array ({exc}); data sets of "
+                "different lengths are separate experiments: IOData.experiments([...])."
+            ) from exc
         if arr.dtype == object:
             raise InputValidationError(f"{name} could not be converted to a numeric array.")
         t = torch.as_tensor(arr)
@@ -192,6 +198,48 @@ class IOData:
         out.intersample = ref.intersample
         out.experiment_list = tuple(flat)
         return out
+
+    @classmethod
+    def cat(cls, parts: Sequence[IOData]) -> IOData:
+        """Join data sets along the first batch dimension (e.g. blocks of Monte-Carlo trials),
+        experiment by experiment, keeping ``Ts`` and ``intersample``.
+
+        Raises:
+            InputValidationError: a part that is not an IOData with a batch dimension, or
+                parts that differ in ``Ts``, ``intersample``, experiment lengths, channels,
+                dtype, device or later batch dimensions.
+        """
+        parts = list(parts)
+        if not parts:
+            raise InputValidationError("IOData.cat needs at least one data set.")
+        ref = parts[0]
+        for i, p in enumerate(parts):
+            if not isinstance(p, IOData) or len(p.batch_shape) == 0:
+                raise InputValidationError(
+                    f"IOData.cat joins along the first batch dimension: part {i} is "
+                    f"{p!r}, not an IOData with a batch dimension."
+                )
+            for attr in ("Ts", "intersample", "lengths", "nu", "ny", "dtype", "device"):
+                if getattr(p, attr) != getattr(ref, attr):
+                    raise InputValidationError(
+                        f"part {i} has {attr} = {getattr(p, attr)} but part 0 has "
+                        f"{getattr(ref, attr)}; the parts must agree."
+                    )
+            if p.batch_shape[1:] != ref.batch_shape[1:]:
+                raise InputValidationError(
+                    f"part {i} has batch shape {tuple(p.batch_shape)} but part 0 has "
+                    f"{tuple(ref.batch_shape)}; only the first batch dimension may differ."
+                )
+        experiments = [
+            cls._trusted(
+                torch.cat([p.experiment_list[e].u for p in parts]),
+                torch.cat([p.experiment_list[e].y for p in parts]),
+                ref.Ts,
+                ref.intersample,
+            )
+            for e in range(ref.n_experiments)
+        ]
+        return experiments[0] if len(experiments) == 1 else cls.experiments(experiments)
 
     @classmethod
     def _trusted(

@@ -97,6 +97,11 @@ def _sum_inputs(y: torch.Tensor) -> torch.Tensor:
     return y.squeeze(-2) if y.shape[-2] == 1 else y.sum(-2)
 
 
+#: Sample time of a model built without one (seconds); :func:`sysid.fit` gives the fitted
+#: model its data's.
+DEFAULT_TS = 1.0
+
+
 def _roots(tail: torch.Tensor) -> torch.Tensor:
     """Roots in z of ``z^n + t_1 z^(n-1) + ... + t_n`` (batched, via companion eigenvalues)."""
     n = tail.shape[-1]
@@ -128,7 +133,9 @@ class PolynomialModel(nn.Module):
         n_inputs: number of inputs ``nu``.
         batch_shape: leading batch shape of every parameter (one model per data set).
         dtype: float64 (default) or float32.
-        Ts: sample time used by :meth:`to_control` and :meth:`frequency_response`.
+        Ts: sample time used by :meth:`to_control` and :meth:`frequency_response`; a fitted
+            model takes its data's (:func:`sysid.fit` refuses a model whose ``Ts`` is set to
+            another value than the default and the data's).
 
     Parameters start at zero (``G = 0`` when nb > 0 means B = 0; A = C = D = F = 1).
     """
@@ -148,7 +155,7 @@ class PolynomialModel(nn.Module):
         batch_shape: int | Sequence[int] = (),
         dtype: torch.dtype = torch.float64,
         device=None,
-        Ts: float = 1.0,
+        Ts: float = DEFAULT_TS,
     ):
         super().__init__()
         if not isinstance(n_inputs, (int, np.integer)) or n_inputs < 1:
@@ -624,7 +631,7 @@ class PolynomialModel(nn.Module):
         return f"{orders}, nk={self.nk}, batch_shape={tuple(self.batch_shape)}, Ts={self.Ts}"
 
 
-_COMMON = dict(n_inputs=1, batch_shape=(), dtype=torch.float64, device=None, Ts=1.0)
+_COMMON = dict(n_inputs=1, batch_shape=(), dtype=torch.float64, device=None, Ts=DEFAULT_TS)
 
 _ORDER_MEANING = {
     "na": "the number of coefficients a1..a_na of A",

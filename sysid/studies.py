@@ -353,9 +353,7 @@ class Study:
                     f"{data!r}; it must return an IOData of batch shape ({n},)."
                 )
             parts.append(data)
-        if len(parts) == 1:
-            return parts[0]
-        return IOData(torch.cat([p.u for p in parts]), torch.cat([p.y for p in parts]), parts[0].Ts)
+        return parts[0] if len(parts) == 1 else IOData.cat(parts)
 
     def _compute_chunk(self, point: int, chunk: int):
         """The results rows of one chunk (all estimators), as a DataFrame."""

@@ -6,6 +6,7 @@ least_squares (Huber loss), scipy linear programs (LAD and the uniform-noise pol
 brute-force grid search.
 """
 
+import math
 import warnings
 
 import numpy as np
@@ -697,3 +698,49 @@ def test_ill_conditioned_lls_fit_keeps_qr_accuracy():
         Phi, target = _numpy_arx_rows(u[b, :, 0].numpy(), y[b, :, 0].numpy(), 2, 2, 1)
         ref, *_ = np.linalg.lstsq(Phi, target, rcond=None)
         np.testing.assert_allclose(res.theta[b].numpy(), ref, rtol=1e-10)
+
+
+def test_the_fitted_model_takes_the_sample_time_of_its_data():
+    """A model built without ``Ts`` and fitted to data sampled at 0.1 s describes that
+    sampling: its frequency response equals python-control's of the true system with
+    dt = 0.1 (to the estimate's accuracy), and ``to_control`` carries dt = 0.1. A model whose
+    ``Ts`` was set to another value than the data's is refused."""
+    import control
+
+    Ts = 0.1
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal(500)
+    y = scipy.signal.lfilter([0, 0.5], [1, -0.8], u) + 0.01 * rng.standard_normal(500)
+    data = IOData(u, y, Ts=Ts)
+    model = OE(1, 1, 1)
+    result = fit(model, data)
+    assert result.model.Ts == Ts and model.Ts == 1.0
+    omega = np.array([1.0, 10.0])  # rad/s
+    truth = control.tf([0.5], [1, -0.8], Ts)(np.exp(1j * omega * Ts))
+    ours = result.model.frequency_response(torch.tensor(omega)).numpy().ravel()
+    np.testing.assert_allclose(ours, truth, rtol=0.02)
+    assert result.model.to_control().dt == Ts
+    with pytest.raises(InputValidationError, match="Ts = 0.2 s but the data Ts = 0.1 s"):
+        fit(OE(1, 1, 1, Ts=0.2), data)
+
+
+def test_a_parameter_the_criterion_ignores_gets_inf_only_in_its_own_row():
+    """ARMAX under the simulation criterion: C does not enter the simulated output, so its
+    column of the Jacobian is zero. Its standard error is inf (with a PoorExcitationWarning),
+    while A and B keep the covariance of the same fit without C: the OE model with F = A
+    (same estimates, standard errors equal up to the residual degrees of freedom, one
+    parameter more here)."""
+    rng = np.random.default_rng(13)
+    u = rng.standard_normal(400)
+    y = scipy.signal.lfilter([0, 1, 0.5], [1, -1.5, 0.7], u) + 0.1 * rng.standard_normal(400)
+    data = IOData(u, y)
+    with pytest.warns(PoorExcitationWarning, match="does not depend on"):
+        armax = fit(ARMAX(2, 2, 1, 1), data, criterion="simulation")
+    oe = fit(OE(2, 2, 1), data)
+    order = [2, 3, 0, 1]  # OE's (b1, b2, f1, f2) as ARMAX's (a1, a2, b1, b2)
+    torch.testing.assert_close(armax.theta[:4], oe.theta[order], rtol=1e-6, atol=1e-8)
+    assert math.isinf(float(armax.standard_errors[4]))
+    n = armax.n_samples
+    dof = math.sqrt((n - 4) / (n - 5))
+    se_oe = oe.standard_errors[order]
+    torch.testing.assert_close(armax.standard_errors[:4] / dof, se_oe, rtol=1e-5, atol=0)

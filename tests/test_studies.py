@@ -209,6 +209,34 @@ def test_same_trial_same_data_for_any_block_aligned_chunk(tmp_path):
     assert table(d).equals(table(e))
 
 
+def simulate_two_experiments(point, n, generator):
+    """n data sets of two experiments (60 and 40 samples) with first-order-hold inputs."""
+    parts = []
+    for N in (60, 40):
+        u = input_signal("white", N, (n,), generator=generator)
+        y = simulate_data(FIR(3, 1), u, theta=FIR_THETA, noise_std=SIGMA, generator=generator).y
+        parts.append(IOData(u, y, Ts=0.1, intersample="foh"))
+    return IOData.experiments(parts)
+
+
+def test_chunks_of_several_blocks_keep_experiments_and_intersample(tmp_path):
+    """A chunk of several blocks joins them data set by data set (``IOData.cat``): the
+    experiments stay apart and the input's intersample behaviour is kept, so a trial's
+    estimate does not depend on how many blocks its chunk holds."""
+    kw = dict(grid={"N": [100]}, trials=4, seed=1, block=2, truth=FIR_TRUTH)
+    one = Study(simulate_two_experiments, {"fir_ls": fir_ls}, chunk=2, **kw)
+    two = Study(simulate_two_experiments, {"fir_ls": fir_ls}, chunk=4, **kw)
+    data = two.data(0, 0)
+    assert data.lengths == [60, 40] and data.intersample == "foh" and data.Ts == 0.1
+    second_block = one.data(0, 1).experiment_list
+    for joined, block in zip(data.experiment_list, second_block, strict=True):
+        assert torch.equal(joined.u[2:], block.u) and torch.equal(joined.y[2:], block.y)
+    assert table(one.run(progress=False)).equals(table(two.run(progress=False)))
+    one_experiment = simulate_white({"N": 100}, 2, torch.Generator())
+    with pytest.raises(InputValidationError, match="lengths = \\[100\\] but part 0 has"):
+        IOData.cat([data, IOData(one_experiment.u, one_experiment.y, Ts=0.1, intersample="foh")])
+
+
 @settings(
     max_examples=8, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
 )

@@ -41,6 +41,7 @@ def test_float32_kept_and_mixed_promoted():
         (torch.zeros(10, dtype=torch.float16), np.zeros(10), "float16"),
         (np.zeros((3, 10, 1)), np.zeros((2, 10, 1)), "do not broadcast"),
         (np.zeros(0), np.zeros(0), "empty"),
+        ([np.zeros(10), np.zeros(8)], [np.zeros(10), np.zeros(8)], "IOData.experiments"),
     ],
 )
 def test_validation_errors(u, y, match):

@@ -19,7 +19,7 @@ from integrators.errors import InputValidationError
 
 from ..data import IOData
 from ..errors import ConvergenceWarning, UnstableModelWarning
-from ..models import PolynomialModel
+from ..models import DEFAULT_TS, PolynomialModel
 from ._data import _batched_model, _weights
 from .least_squares import _fit_iv, _fit_lls
 from .losses import LOSSES
@@ -108,8 +108,12 @@ def fit(
             bar.
 
     Returns:
-        :class:`FitResult`; ``result.model`` is the fitted model (a copy), the input model
-        is left as it was.
+        :class:`FitResult`; ``result.model`` is the fitted model (a copy with the data's
+        ``Ts``), the input model is left as it was.
+
+    Raises:
+        InputValidationError: among others, a polynomial model whose ``Ts`` was set to
+            another value than the data's.
     """
     from ..continuous.greybox import GreyBoxModel  # the continuous package builds on this one
 
@@ -179,11 +183,18 @@ def fit(
             f"method {method!r} needs a model linear in its parameters (FIR, ARX); "
             f"{type(model).__name__} is not: use method='gauss_newton'."
         )
+    if model.Ts not in (DEFAULT_TS, data.Ts):
+        raise InputValidationError(
+            f"the model has Ts = {model.Ts} s but the data Ts = {data.Ts} s: a model fitted to "
+            "these data describes their sampling. Build the model with Ts=data.Ts (or without "
+            "Ts: the fitted model takes the data's)."
+        )
     data = model._check_data(data)  # one output, matching number of inputs
     if data.dtype != model.a.dtype:
         data = data.to(dtype=model.a.dtype)
     batch = data.batch_shape
     model = _batched_model(model, batch)  # a copy: the caller's model is never modified
+    model.Ts = data.Ts
     w = _weights(weights, data)
     names = model.parameter_names()
 

@@ -172,11 +172,19 @@ class FitResult:
 
 
 def inverse_normal_matrix(J: torch.Tensor) -> torch.Tensor:
-    """``(J'J)^{-1}`` via Cholesky of the equilibrated ``J'J``; ``inf`` where singular."""
+    """``(J'J)^{-1}`` via Cholesky of the equilibrated ``J'J``; ``inf`` where singular.
+
+    A parameter the residuals do not depend on at all (a zero column of ``J``, e.g. ARMAX's
+    C under the simulation criterion) gets ``inf`` in its row and column only: the others'
+    covariance is that of the fit without it."""
     H = J.transpose(-1, -2) @ J
-    d = torch.diagonal(H, dim1=-2, dim2=-1).clamp_min(torch.finfo(J.dtype).tiny).rsqrt()
+    diag = torch.diagonal(H, dim1=-2, dim2=-1)
+    d = diag.clamp_min(torch.finfo(J.dtype).tiny).rsqrt()
     Hs = H * d.unsqueeze(-1) * d.unsqueeze(-2)
     eye = torch.eye(H.shape[-1], dtype=J.dtype, device=J.device).expand_as(H)
+    unused = diag == 0
+    unused_entries = unused.unsqueeze(-1) | unused.unsqueeze(-2)
+    Hs = torch.where(unused_entries, eye, Hs)
     # a Jacobian with inf/NaN entries (an estimate that ran off to a degenerate model) is
     # singular; the identity stands in for it so the batched factorisations still run
     finite = torch.isfinite(Hs).flatten(-2).all(-1)
@@ -186,13 +194,15 @@ def inverse_normal_matrix(J: torch.Tensor) -> torch.Tensor:
     ev = torch.linalg.eigvalsh(torch.where((info == 0)[..., None, None], Hs, eye))
     rank_deficient = ev[..., 0] <= ev[..., -1] * torch.finfo(J.dtype).eps * J.shape[-2]
     singular = ~finite | (info != 0) | rank_deficient
-    if bool(singular.any()):
-        idx = tuple(int(i) for i in torch.nonzero(singular)[0]) if singular.dim() else ()
+    P = torch.where(unused_entries, math.inf, P)
+    flagged = singular | unused.any(-1)
+    if bool(flagged.any()):
+        idx = tuple(int(i) for i in torch.nonzero(flagged)[0]) if flagged.dim() else ()
         warnings.warn(
-            f"the Jacobian is rank deficient at batch index {idx} ({int(singular.sum())} data "
-            "sets): some parameters are not identifiable from these data (poor excitation or "
-            "pole-zero cancellation); their covariance is reported as inf. Lower the orders "
-            "or use a richer input.",
+            f"the Jacobian is rank deficient at batch index {idx} ({int(flagged.sum())} data "
+            "sets): some parameters are not identifiable from these data (poor excitation, "
+            "pole-zero cancellation, or a parameter the criterion does not depend on); their "
+            "covariance is reported as inf. Lower the orders or use a richer input.",
             PoorExcitationWarning,
             stacklevel=3,
         )
