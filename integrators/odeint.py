@@ -85,7 +85,7 @@ def odeint(
             0-dim tensor (fixed-step solvers) or a (*batch, 1) tensor (adaptive solvers).
             An ``nn.Module`` works directly; its parameters receive gradients. If ``f``
             broadcasts ``x0`` to a larger batch (e.g. a parameter of shape (B, 1)), ``x0``
-            is expanded to that batch.
+            is expanded to that batch; so it is to the batch of a sampled input ``u``.
         x0: (*batch, nx) initial states; array-likes become float64 tensors.
         t: (T,) strictly increasing output times, T >= 2 (converted to x0's dtype/device).
         method: a name from :data:`METHOD_NAMES` or a :class:`ButcherTableau`
@@ -161,12 +161,13 @@ def odeint(
     rhs = bind_rhs(f, u, t, interpolation=interpolation)
     if rhs.samples is not None:
         try:
-            torch.broadcast_shapes(rhs.samples.shape[:-2], x0.shape[:-1])
+            batch = torch.broadcast_shapes(rhs.samples.shape[:-2], x0.shape[:-1])
         except RuntimeError as exc:
             raise InputValidationError(
                 f"the batch shape {tuple(rhs.samples.shape[:-2])} of the sampled input u does not "
                 f"broadcast with the batch shape {tuple(x0.shape[:-1])} of x0."
             ) from exc
+        x0 = x0.expand(*batch, x0.shape[-1])  # one initial state per input record
     x0 = _probe_rhs(rhs, x0, t, u is not None)
     options = dict(
         substeps=substeps,
@@ -268,6 +269,12 @@ def _probe_rhs(rhs, x0, t, with_input) -> torch.Tensor:
         raise InputValidationError(
             f"calling the model as {signature} failed: {exc}. The model is called with an "
             "input u only when odeint receives u."
+        ) from exc
+    except RuntimeError as exc:
+        raise InputValidationError(
+            f"calling the model as {signature} at t0 with x0 of shape {tuple(x0.shape)} "
+            f"failed: {str(exc).splitlines()[0]}. A model with per-member (batched) "
+            "parameters needs x0 of that batch: x0.expand(B, nx)."
         ) from exc
     if not isinstance(dx, torch.Tensor):
         raise InputValidationError(f"{signature} must return a tensor, got {type(dx).__name__}.")

@@ -148,8 +148,9 @@ def differential_index(F, xdot, x, z, u=None, *, t=None, max_index=5, rtol=1e-8,
     long tensor (*batch,); raises HighIndexError where the index exceeds ``max_index``.
     """
     batch = x.shape[:-1]
-    x2, z2 = x.reshape(-1, x.shape[-1]).detach(), z.reshape(-1, z.shape[-1]).detach()
-    xd2 = xdot.reshape(-1, x.shape[-1]).detach()
+    rows = batch.numel()  # explicit: a reshape cannot infer it from a width-0 z
+    x2, z2 = x.reshape(rows, x.shape[-1]).detach(), z.reshape(rows, z.shape[-1]).detach()
+    xd2 = xdot.reshape(rows, x.shape[-1]).detach()
     if u is not None:
         u = torch.as_tensor(u, dtype=x.dtype).expand(*batch, -1).reshape(-1, u.shape[-1])
     n = x2.shape[-1] + z2.shape[-1]

@@ -186,6 +186,15 @@ def _nested(method, self, args, kwargs):
         _STATE.depth -= 1
 
 
+def _wider_batch(value: torch.Tensor, *states: torch.Tensor):
+    """The batch of the per-member quantity ``value`` (*batch,) and the ``states`` (*b, n)
+    where some state's batch is narrower (parameters or inputs batch the members beyond it),
+    else None. A gradient with respect to a state shared by several members would sum their
+    terms: the callers expand the states to that batch and evaluate again."""
+    batch = torch.broadcast_shapes(value.shape, *(x.shape[:-1] for x in states))
+    return batch if any(x.shape[:-1] != batch for x in states) else None
+
+
 def _solve(matrix: torch.Tensor, rhs: torch.Tensor, what: str, strict: bool = False):
     """Batched solve of matrix @ sol = rhs: matrix (*batch, n, n), rhs (*batch, n) (broadcast).
 
@@ -553,8 +562,12 @@ class LagrangianSystem(nn.Module):
         create = self._needs_graph(q, qdot)
         with torch.enable_grad():
             qq, qdd = self._leaf(q), self._leaf(qdot)
-            lag = self.lagrangian(qq, qdd).sum()
-            grad_l, momentum = gradients(lag, (qq, qdd), create_graph=True)
+            lag = self.lagrangian(qq, qdd)
+            batch = _wider_batch(lag, qq, qdd)
+            if batch is not None:
+                qq, qdd = (self._leaf(x.expand(*batch, n).contiguous()) for x in (q, qdot))
+                lag = self.lagrangian(qq, qdd)
+            grad_l, momentum = gradients(lag.sum(), (qq, qdd), create_graph=True)
             rows, convective = [], []
             for j in range(n):
                 d_q, d_qd = gradients(momentum[..., j].sum(), (qq, qdd), create_graph=create)
@@ -583,6 +596,11 @@ class LagrangianSystem(nn.Module):
         with torch.enable_grad():
             qq = self._leaf(q)
             p = self.positions(qq)
+            batch = _wider_batch(p[..., 0, 0], qq, qdot)
+            if batch is not None:
+                q, qdot = (x.expand(*batch, n).contiguous() for x in (q, qdot))
+                qq = self._leaf(q)
+                p = self.positions(qq)
             flat = p.reshape(*p.shape[:-2], -1)
             probe = torch.zeros_like(flat, requires_grad=True)
             jt_probe = gradients(flat, qq, probe, create_graph=True)
@@ -611,6 +629,10 @@ class LagrangianSystem(nn.Module):
         with torch.enable_grad():
             qq = self._leaf(q)
             v = self.potential_energy(qq)
+            batch = _wider_batch(v, qq)
+            if batch is not None:
+                qq = self._leaf(q.expand(*batch, q.shape[-1]).contiguous())
+                v = self.potential_energy(qq)
             g = gradients(v, qq, torch.ones_like(v), create_graph=create)
         return g if create else g.detach()
 
@@ -635,15 +657,22 @@ class LagrangianSystem(nn.Module):
         force = self.generalized_forces(q, qdot, u)
         w = self.diagonal_mass()
         if w is not None:
-            rhs = -self._grad_potential(q)
-            return self._cast(w, q).expand(q.shape), rhs if force is None else rhs + force
-        if self._uses_point_masses():
+            mass, rhs = self._cast(w, q), -self._grad_potential(q)
+        elif self._uses_point_masses():
             mass, rhs = self._terms_points(q, qdot)
             rhs = rhs - self._grad_potential(q)
         else:
             grad_l, mass, convective = self._terms_general(q, qdot)
             rhs = grad_l - convective
-        return mass, rhs if force is None else rhs + force
+        rhs = rhs if force is None else rhs + force
+        # one batch for both (the shape tells a diagonal W from a full one): inputs or
+        # parameters may batch r beyond W, or W beyond r
+        n, diagonal = self.nq, w is not None
+        batch = torch.broadcast_shapes(
+            q.shape[:-1], rhs.shape[:-1], mass.shape[:-1] if diagonal else mass.shape[:-2]
+        )
+        mass = mass.expand(*batch, n) if diagonal else mass.expand(*batch, n, n)
+        return mass, rhs.expand(*batch, n)
 
     @_local_graph
     def accelerations(self, q, qdot, u=None):
@@ -663,6 +692,11 @@ class LagrangianSystem(nn.Module):
         with torch.enable_grad():
             qq = self._leaf(q)
             c = self.constraints(qq)
+            batch = _wider_batch(c.sum(-1), qq, qdot)
+            if batch is not None:
+                q, qdot = (x.expand(*batch, x.shape[-1]).contiguous() for x in (q, qdot))
+                qq = self._leaf(q)
+                c = self.constraints(qq)
             rows, curvature = [], []
             for i in range(c.shape[-1]):
                 a_i = gradients(c[..., i].sum(), qq, create_graph=True)
@@ -743,7 +777,7 @@ class LagrangianSystem(nn.Module):
             qddot, _ = self.kkt_solve(q, qdot, u)
         else:
             qddot = self.accelerations(q, qdot, u)
-        return torch.cat([qdot, qddot], -1)
+        return torch.cat([qdot.expand_as(qddot), qddot], -1)  # inputs may batch qddot
 
     @_local_graph
     def implicit_residual(self, t, xdot, x, u=None):
@@ -764,7 +798,7 @@ class LagrangianSystem(nn.Module):
         terms = self.constraint_terms(q, v)
         rhs = rhs - (terms[1].transpose(-1, -2) @ z.unsqueeze(-1)).squeeze(-1)
         vdot = rhs / mass if mass.dim() == rhs.dim() else _solve(mass, rhs, "W(q)")
-        return torch.cat([v, vdot], -1), *terms
+        return torch.cat([v.expand_as(vdot), vdot], -1), *terms
 
     def _f_with_multipliers(self, t, x, z, u=None):
         return self._dynamics_with_multipliers(x, z, u)[0]

@@ -5,7 +5,7 @@ import torch
 
 from integrators import odeint
 from integrators.errors import ConvergenceError, HighIndexError, SingularMatrixError
-from sysid import dae
+from sysid import dae, zoo
 from sysid.linearize import linearize, simulate_lti_zoh
 from sysid.zoo import Bowl, RigidCraneCartesian
 from sysid.zoo.dae import (
@@ -59,6 +59,16 @@ def test_differential_index_of_fully_implicit_examples(example, expected):
     x, z, u = _rand(3, 2), _rand(3, 1, seed=1), _rand(3, 1, seed=2)
     index = dae.differential_index(example().residual, torch.zeros(3, 2, dtype=DT), x, z, u)
     assert index.tolist() == [expected] * 3
+
+
+@pytest.mark.parametrize("example", [zoo.AlgebraicStateDAE, zoo.SingularMassMatrixDAE])
+def test_differential_index_without_algebraic_states(example):
+    """Implicit ODEs with a singular dF/dxdot and no algebraic states (z of width 0): the
+    index of the zoo's declaration."""
+    x = _rand(3, 2)
+    z = torch.zeros(3, 0, dtype=DT)
+    index = dae.differential_index(example().residual, torch.zeros(3, 2, dtype=DT), x, z)
+    assert index.tolist() == [example.index] * 3
 
 
 @pytest.mark.parametrize(("example", "expected"), [(LinearIndex2DAE, 2), (UnitSphereDAE, 2)])

@@ -302,3 +302,60 @@ def test_singular_kkt_matrix_in_one_member_gives_nan_for_it_only():
         assert torch.isnan(qdd[1]).all() and torch.isnan(z[1]).all()
         torch.testing.assert_close(qdd[:1], ref_qdd, rtol=1e-12, atol=1e-12)
         torch.testing.assert_close(z[:1], ref_z, rtol=1e-12, atol=1e-12)
+
+
+def _cart_pole(m):
+    """A cart-pole by its kinetic energy callable (the general autograd path, full W(q)):
+    cart x, pole angle theta, pole mass ``m`` (a number or a (B, 1) tensor), horizontal force."""
+
+    def kinetic(q, qd):
+        mass = torch.as_tensor(m, dtype=DT)[..., 0] if torch.is_tensor(m) else m
+        x_dot, th, th_dot = qd[..., 0], q[..., 1], qd[..., 1]
+        return (
+            0.5 * (1.0 + mass) * x_dot**2
+            + mass * x_dot * th_dot * torch.cos(th)
+            + (0.5 * mass * th_dot**2)
+        )
+
+    def potential(q):
+        mass = torch.as_tensor(m, dtype=DT)[..., 0] if torch.is_tensor(m) else m
+        return -mass * G * torch.cos(q[..., 1])
+
+    return LagrangianSystem(
+        2,
+        nu=1,
+        kinetic_energy=kinetic,
+        potential=potential,
+        generalized_force=lambda q, qd, u: torch.cat([u, torch.zeros_like(u)], -1),
+    )
+
+
+MEMBER_PLANTS = {
+    "Crane (point masses)": (lambda m: Crane(m=m), 2),
+    "cart-pole (kinetic energy)": (_cart_pole, 2),
+    "RigidCraneCartesian (diagonal, constrained)": (lambda L: RigidCraneCartesian(L=L), 3),
+}
+
+
+@pytest.mark.parametrize("plant", MEMBER_PLANTS)
+@pytest.mark.parametrize("batched_by", ["input", "parameter"])
+def test_members_batched_by_inputs_or_parameters_from_one_state(plant, batched_by):
+    """One state (nq,) with per-member inputs (B, nu) or a per-member parameter (B, 1): the
+    dynamics of every member equal those of the member alone. (They did not: a full W(q)
+    shared by the members was taken for a diagonal one when r had the same number of
+    dimensions, and gradients of a batch of energies with respect to the one shared state
+    summed over the members.)"""
+    make, nq = MEMBER_PLANTS[plant]
+    values = torch.tensor([[0.6], [0.9], [1.3]], dtype=DT)
+    gen = torch.Generator().manual_seed(3)
+    x = 0.3 * torch.randn(2 * nq, generator=gen, dtype=DT)
+    if plant.startswith("Rigid"):  # a state on the constraint |p - (x, 0)| = L of member 0
+        x = torch.tensor([0.1, 0.3, 0.5, 0.2, 0.0, 0.0], dtype=DT)
+    u = torch.tensor([[1.0], [-2.0], [0.5]], dtype=DT)
+    if batched_by == "input":
+        batched = make(0.8).forward(0.0, x, u)
+        alone = [make(0.8).forward(0.0, x, u[i]) for i in range(3)]
+    else:
+        batched = make(values).forward(0.0, x, u[0])
+        alone = [make(float(values[i, 0])).forward(0.0, x, u[0]) for i in range(3)]
+    torch.testing.assert_close(batched, torch.stack(alone), rtol=1e-12, atol=1e-12)

@@ -461,3 +461,22 @@ def test_state_check_is_shared(entry):
         run([[1.0], [float("inf")]])
     with pytest.raises(InputValidationError, match=r"shape \(\*batch, n\).*got shape \(\)"):
         run(torch.tensor(1.0, dtype=torch.float64))
+
+
+def test_one_initial_state_per_record_of_a_sampled_input():
+    """x0 (nx,) with input records (B, T, nu): x0 is expanded to the records' batch before the
+    model sees it, so a plant that does not broadcast its state against the input (the
+    zoo's crane) gives each record's own run; a model that fails on the unbatched x0 (a
+    per-member parameter it cannot broadcast) is named with the fix."""
+    from sysid.zoo import Crane
+
+    t = torch.linspace(0, 1, 6, dtype=torch.float64)
+    u = torch.linspace(-1, 1, 12, dtype=torch.float64).reshape(2, 6, 1)
+    x0 = torch.tensor([0.1, 0.4, 0.2, -0.3], dtype=torch.float64)
+    shared = odeint(Crane(), x0, t, u=u, method="rk4", substeps=4)
+    for i in range(2):
+        alone = odeint(Crane(), x0, t, u=u[i], method="rk4", substeps=4)
+        torch.testing.assert_close(shared.x[i], alone.x, rtol=0, atol=1e-14)
+    per_member = Crane(L=torch.tensor([[0.8], [1.2]], dtype=torch.float64))
+    with pytest.raises(InputValidationError, match=r"x0.expand\(B, nx\)"):
+        odeint(per_member, x0, t, method="rk4")

@@ -33,6 +33,13 @@ def _u(u, q):
     return u.expand(*torch.broadcast_shapes(q.shape[:-1], u.shape[:-1]), u.shape[-1])
 
 
+def _force_on_first(u, q):
+    """Generalized force (u, 0, ..., 0), the input acting on the first coordinate: (*batch, nq)
+    on the batch of q and u."""
+    f = _u(u, q)
+    return torch.cat([f, torch.zeros_like(q[..., 1:]).expand(*f.shape[:-1], -1)], -1)
+
+
 def _horizontal_force(u, q):
     """Force (u, 0) on one point, shape (*batch, 1, 2)."""
     f = _u(u, q)
@@ -283,7 +290,7 @@ class RigidCraneCartesian(LagrangianSystem):
         return -m * g * q[..., 2]  # eq. (2.142)
 
     def generalized_force(self, q, qdot, u):
-        return torch.cat([_u(u, q), torch.zeros_like(q[..., 1:])], -1)
+        return _force_on_first(u, q)
 
     def constraints(self, q):
         delta = torch.stack([q[..., 1] - q[..., 0], q[..., 2]], -1)
@@ -424,7 +431,7 @@ class TwoPendulumCraneCartesian(LagrangianSystem):
         return -m * g * (q[..., 2] + q[..., 4])
 
     def generalized_force(self, q, qdot, u):
-        return torch.cat([_u(u, q), torch.zeros_like(q[..., 1:])], -1)
+        return _force_on_first(u, q)
 
     def constraints(self, q):
         x, p1, p2 = q[..., 0], q[..., 1:3], q[..., 3:5]
