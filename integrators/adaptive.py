@@ -188,7 +188,8 @@ def solve_adaptive(
 
     Raises:
         InputValidationError: a tableau without embedded weights or not explicit, bad
-            tolerances (:func:`integrators._options.check_tolerances`), ``dt0`` or
+            tolerances (:func:`integrators._options.check_tolerances`), a controller that
+            is not an IController or PIController instance, ``dt0`` or
             ``max_steps``, a state dtype other than float32/float64, output times ``t`` that
             require grad (not differentiated here), or an rhs returning the wrong shape.
     """
@@ -204,6 +205,12 @@ def solve_adaptive(
     check_tolerances(rtol, atol, x0.dtype)
     refuse_time_gradient(t, tab.name)
     controller = PIController() if controller is None else controller
+    if not isinstance(controller, IController):
+        raise InputValidationError(
+            f"the controller of an embedded explicit pair ({tab.name!r}) must be an "
+            f"IController or PIController instance (integrators.controllers), got "
+            f"{controller!r}; GustafssonController is Radau IIA's predictive rule."
+        )
 
     dtype, device = x0.dtype, x0.device
     batch_shape = tuple(x0.shape[:-1])

@@ -45,7 +45,21 @@ def error_norm(err, x_old, x_new, rtol, atol) -> torch.Tensor:
     return torch.linalg.vector_norm(err / scale, dim=-1) / math.sqrt(err.shape[-1])
 
 
+def _number(value, name: str) -> float:
+    """A finite real number (not a bool or a string) as a float."""
+    real = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+        value, (bool, np.bool_)
+    )
+    if not real or not math.isfinite(value):
+        raise InputValidationError(f"{name} must be a finite number, got {value!r}.")
+    return float(value)
+
+
 def _check_factors(safety, min_factor, max_factor) -> None:
+    safety, min_factor, max_factor = (
+        _number(v, n)
+        for v, n in ((safety, "safety"), (min_factor, "min_factor"), (max_factor, "max_factor"))
+    )
     if not 0.0 < safety <= 1.0:
         raise InputValidationError(f"safety must lie in (0, 1], got {safety}.")
     if not 0.0 < min_factor < 1.0 < max_factor:
@@ -157,10 +171,10 @@ class PIController(IController):
         max_factor: float = 10.0,
     ):
         super().__init__(safety, min_factor, max_factor)
+        beta1, beta2 = _number(beta1, "beta1"), _number(beta2, "beta2")
         if beta1 <= 0.0:
             raise InputValidationError(f"beta1 must be positive, got {beta1}.")
-        self.beta1 = float(beta1)
-        self.beta2 = float(beta2)
+        self.beta1, self.beta2 = beta1, beta2
 
     def _grow_factor(self, err, err_prev, shrink, k) -> torch.Tensor:
         prev = err_prev.clamp_min(_TINY_ERR)

@@ -31,7 +31,9 @@ class DAELayer(torch.nn.Module):
         self.fns = torch.nn.ModuleList(problem.modules())
         self.return_solution = return_solution
         self.daeint_kwargs = daeint_kwargs
-        self.register_buffer("t", None if t is None else torch.as_tensor(t))
+        if t is not None and not isinstance(t, torch.Tensor):  # a list: exact float64 times
+            t = torch.as_tensor(t, dtype=torch.float64)
+        self.register_buffer("t", t)
 
     def forward(self, x0, z0=None, t=None, u=None):
         """Simulate from ``x0`` (*batch, n) (and algebraic guess ``z0`` (*batch, m))."""

@@ -28,7 +28,9 @@ class ODELayer(torch.nn.Module):
         self.method = method
         self.return_solution = return_solution
         self.odeint_kwargs = odeint_kwargs
-        self.register_buffer("t", None if t is None else torch.as_tensor(t))
+        if t is not None and not isinstance(t, torch.Tensor):  # a list: exact float64 times
+            t = torch.as_tensor(t, dtype=torch.float64)
+        self.register_buffer("t", t)
 
     def forward(self, x0, t=None, u=None):
         """Simulate from ``x0`` (*batch, nx) over ``t`` (or the default grid) with input ``u``.

@@ -909,8 +909,16 @@ def minimize(
                     t = torch.where(pending, t / 2, t)
                 no_decrease = active & ~accepted
                 if adaptive:
-                    # no decrease found where none can be resolved: the minimum is reached
+                    # no decrease found where none can be resolved: the minimum is reached,
+                    # where the undamped step's predicted decrease is at the rounding level too
+                    # (heavy damping, e.g. grown by inadmissible trials, hides a slope)
                     flat = no_decrease & flat_step
+                    if bool(flat.any()):
+                        undamped, _, solved = _damped_step(H, grad, torch.zeros_like(lam), scale)
+                        resolved = -(grad * undamped).sum(-1) > (
+                            10 * eps * rounding_terms * loss_value.abs()
+                        )
+                        flat &= ~(solved & resolved)
                     status.masked_fill_(flat, NewtonStatus.CONVERGED)
                     active &= ~flat
                     no_decrease &= ~flat
@@ -931,6 +939,14 @@ def minimize(
                     small = dtheta.norm(dim=-1) <= xtol * (xtol + theta.norm(dim=-1))
                     small |= (loss_value - trial_loss) <= ftol * loss_value
                     small &= move
+                    # a step small only because heavy damping shortened it (lam >= 1) is no
+                    # sign of a minimum: the undamped step must be small too
+                    damped = small & (lam >= 1)
+                    if bool(damped.any()):
+                        undamped, _, solved = _damped_step(H, grad, torch.zeros_like(lam), scale)
+                        still_x = undamped.norm(dim=-1) <= xtol * (xtol + theta.norm(dim=-1))
+                        still_f = -0.5 * (grad * undamped).sum(-1) <= ftol * loss_value
+                        small &= ~(damped & solved & ~still_x & ~still_f)
                 else:
                     small = dtheta.abs().amax(-1) <= xtol * (1 + theta.abs().amax(-1))
                 new = _loss_derivatives(fun, theta + dtheta, frozen, method, jacobian, loss)

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from integrators import IController, InputValidationError, PIController, odeint
-from integrators.controllers import error_norm, initial_step
+from integrators.controllers import GustafssonController, error_norm, initial_step
 
 pytestmark = pytest.mark.usefixtures("float64_default")
 
@@ -169,3 +169,24 @@ def test_controller_arguments_are_validated():
         IController(min_factor=2.0)
     with pytest.raises(InputValidationError):
         PIController(beta1=-1.0)
+    # non-finite or non-numeric gains ran 100 000 rejected steps to NaN (beta nan) or gave a
+    # raw TypeError ("0.7")
+    for bad in (
+        {"beta1": math.nan},
+        {"beta2": math.nan},
+        {"beta2": -math.inf},
+        {"beta1": "0.7"},
+        {"max_factor": math.inf},
+    ):
+        with pytest.raises(InputValidationError, match="must be a finite number"):
+            PIController(**bad)
+
+
+@pytest.mark.parametrize("bad", ["pi", 3.0, IController, GustafssonController()])
+def test_an_embedded_pair_takes_i_or_pi_controller_objects_only(bad):
+    """A string, a number, the class instead of an instance, or Radau's predictive rule given
+    to dopri5 is refused by name (it failed with AttributeError inside the step loop)."""
+    t = torch.linspace(0, 1, 3, dtype=torch.float64)
+    x0 = torch.ones(1, dtype=torch.float64)
+    with pytest.raises(InputValidationError, match="controller"):
+        odeint(lambda t, x: -x, x0, t, method="dopri5", controller=bad)

@@ -444,3 +444,26 @@ def test_algebraic_states_at_the_output_times_keep_the_order_of_x(method, centra
     (grad,) = torch.autograd.grad(run(k, 10).z[-1, 0], k)
     fd = central_difference(lambda: run(k, 10).z[-1, 0], k)
     assert abs(float(grad - fd)) < 1e-6 * abs(float(fd))
+
+
+def test_layers_keep_output_times_given_as_a_list_exact():
+    """ODELayer and DAELayer with t a Python list: the times stay the list's float64 values
+    (they were stored in torch's default float32, 0.1 -> 0.10000000149, shifting the outputs
+    by 1e-8 relative), so the layers give odeint's / daeint's results on the same list."""
+    from integrators import ODELayer, odeint
+
+    times = [0.0, 0.1, 0.7]
+    x0 = torch.tensor([1.0])
+    with torch.no_grad():
+        ode = ODELayer(lambda t, x: -x, t=times, method="dopri5", rtol=1e-12, atol=1e-12)(x0)
+    assert ode.t.tolist() == times
+    torch.testing.assert_close(ode.x[:, 0], torch.exp(-torch.tensor(times)), rtol=1e-12, atol=0)
+    ref = odeint(lambda t, x: -x, x0, times, method="dopri5", rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(ode.x, ref.x, rtol=0, atol=0)
+    prob = SemiExplicitDAE(lambda t, x, z: -x + z, lambda t, x, z: x - 2 * z + 1)
+    layer = DAELayer(prob, t=times, adaptive=False, substeps=8)
+    with torch.no_grad():
+        sol = layer(torch.tensor([1.0]), torch.zeros(1))
+    assert sol.t.tolist() == times
+    ref = daeint(prob, torch.tensor([1.0]), torch.zeros(1), times, adaptive=False, substeps=8)
+    torch.testing.assert_close(sol.x, ref.x, rtol=0, atol=0)

@@ -532,3 +532,29 @@ def test_levenberg_marquardt_stops_where_only_rounding_noise_is_left():
     assert torch.allclose(res.theta, exact, atol=1e-6)
     assert int(res.iterations.max()) <= 3
     assert res.n_fun_evals <= 40
+
+
+def test_levenberg_marquardt_reports_no_minimum_where_damping_stalls_at_a_boundary():
+    """An exponential fit whose admissible region (decay rate < 1) excludes the unconstrained
+    minimum: trials past the boundary grow the damping until the accepted steps are tiny.
+    Such a member stopped as CONVERGED at a point with gradient (-1.24, 0, -0.48) (loss 0.302,
+    the best admissible 0.080); a tiny damped step is no sign of a minimum, so a member is
+    reported converged only where the gradient vanishes."""
+    t = torch.linspace(0, 4, 40, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(0)
+
+    def model(th):
+        return th[..., 0:1] * torch.exp(-th[..., 1:2] * t) + th[..., 2:3]
+
+    truth = torch.tensor([[2.0, 1.3, 0.5], [1.0, 0.4, -0.2], [3.0, 2.0, 0.1]], dtype=torch.float64)
+    y = model(truth) + 0.05 * torch.randn(3, 40, generator=gen, dtype=torch.float64)
+    start = torch.tensor([[0.5, 0.5, 0.0]] * 3, dtype=torch.float64)
+    res = minimize(
+        lambda th: model(th) - y,
+        start,
+        method="levenberg_marquardt",
+        admissible=lambda th: th[..., 1] < 1.0,
+    )
+    assert not bool(res.converged[0]) and not bool(res.converged[2])
+    assert bool(res.converged[1])  # its minimum (rate 0.4) is admissible
+    assert float(res.grad[1].abs().max()) < 1e-6
