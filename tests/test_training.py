@@ -361,6 +361,24 @@ def test_checkpoint_resume_equals_uninterrupted_run(tmp_path):
         _small_run(checkpoint=path, **{**common, "batch_size": 4})
 
 
+def test_a_completed_checkpoint_trains_on_to_a_larger_total(tmp_path):
+    """epochs is the total also when resuming: a checkpoint of a training completed after 2
+    epochs, run again with epochs=4, trains epochs 3 and 4 (it returned the 2-epoch model as
+    "completed") and equals the uninterrupted 4-epoch run; under a schedule planned for 2
+    epochs it is refused by name."""
+    full = _small_run(epochs=4, x0="estimate")
+    path = tmp_path / "train.ckpt"
+    _small_run(epochs=2, x0="estimate", checkpoint=path)
+    extended = _small_run(epochs=4, x0="estimate", checkpoint=path)
+    assert extended.status == "completed" and extended.train_loss.shape[0] == 4
+    for p, q in zip(full.model.parameters(), extended.model.parameters(), strict=True):
+        assert torch.equal(p, q)
+    scheduled = tmp_path / "scheduled.ckpt"
+    _small_run(epochs=2, x0="estimate", schedule="cosine", checkpoint=scheduled)
+    with pytest.raises(InputValidationError, match="schedule planned"):
+        _small_run(epochs=4, x0="estimate", schedule="cosine", checkpoint=scheduled)
+
+
 def test_non_finite_guard_restores_best_model():
     # RK4 at h a = 50 * 0.1 (or -5.1) diverges over 200 steps: the first Adam step (about lr
     # = 50) makes every later loss overflow

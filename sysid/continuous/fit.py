@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from integrators.block_jacobian import BlockJacobian
-from integrators.errors import InputValidationError
+from integrators.errors import ConvergenceError, InputValidationError
 from integrators.newton import NewtonStatus, minimize
 
 from .._progress import progress_bar
@@ -289,11 +289,21 @@ class _Problem:
         return torch.cat(residuals, -1), J
 
     def residuals(self, z: torch.Tensor) -> torch.Tensor:
-        """``r`` (*batch, M) alone (the same simulation without its derivatives)."""
+        """``r`` (*batch, M) alone (the same simulation without its derivatives). A trial
+        point (after a first evaluation) where an implicit method's stage equations do not
+        converge (a far step of a stiff parameter) gets infinite residuals, which the line
+        search rejects like a non-finite simulation, for every data set of the batch."""
         self.stats = []
-        return torch.cat(
-            [self._experiment(z, e, part, False) for e, part in enumerate(self.parts)], -1
-        )
+        try:
+            r = torch.cat(
+                [self._experiment(z, e, part, False) for e, part in enumerate(self.parts)], -1
+            )
+        except ConvergenceError:
+            if getattr(self, "_rows", None) is None:
+                raise
+            return z.new_full((*z.shape[:-1], self._rows), math.inf)
+        self._rows = r.shape[-1]
+        return r
 
     def _experiment(self, z, e, part, derivatives):
         model, nx, ny = self.model, self.model.nx, self.ny

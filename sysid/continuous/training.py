@@ -422,7 +422,8 @@ def train(
         horizon: window length ``T`` in sample intervals, or a curriculum ``[(epoch, T),
             ...]`` (from each listed epoch on, that ``T``; the first at epoch 0).
         batch_size: windows per minibatch (``"adam"``).
-        epochs: number of epochs (the total, also when resuming).
+        epochs: number of epochs (the total, also when resuming; a checkpoint of a completed
+            training trains on to a larger total, without a ``schedule``).
         steps_per_epoch: minibatches per epoch; default ``ceil(B * Ntot / (batch_size *
             T))``, about one pass over the samples.
         lr: learning rate. schedule: None, ``"cosine"`` (cosine annealing to 0 over
@@ -541,6 +542,15 @@ def train(
             scheduler.load_state_dict(saved["scheduler"])
         generator.set_state(saved["generator"])
         state = saved["state"]
+        if state["status"] == "completed" and state["epoch"] < epochs:
+            # a finished training asked for more epochs: train on to the new total
+            if scheduler is not None:
+                raise InputValidationError(
+                    f"checkpoint {os.fspath(checkpoint)!r} holds a training completed after "
+                    f"{state['epoch']} epochs under a schedule planned for them; epochs="
+                    f"{epochs} cannot extend that schedule: use another path to start afresh."
+                )
+            state["status"] = None
 
     bar = progress_bar(epochs, "epochs", progress, unit="epoch")
     bar.update(state["epoch"])
