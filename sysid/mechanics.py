@@ -795,9 +795,10 @@ class LagrangianSystem(nn.Module):
         constraint terms (c, a, cdot, curvature) of :meth:`constraint_terms` it used."""
         q, v = self._split_state(x, "index3_dae/index1_dae f")
         mass, rhs = self.lagrange_terms(q, v, u)
+        diagonal = mass.dim() == rhs.dim()  # (z may batch rhs further)
         terms = self.constraint_terms(q, v)
         rhs = rhs - (terms[1].transpose(-1, -2) @ z.unsqueeze(-1)).squeeze(-1)
-        vdot = rhs / mass if mass.dim() == rhs.dim() else _solve(mass, rhs, "W(q)")
+        vdot = rhs / mass if diagonal else _solve(mass, rhs, "W(q)")
         return torch.cat([v.expand_as(vdot), vdot], -1), *terms
 
     def _f_with_multipliers(self, t, x, z, u=None):
