@@ -500,3 +500,23 @@ def test_a_trial_point_whose_stage_equations_fail_is_rejected_not_fatal(monkeypa
     result = fit(GreyBoxModel(decay, start, nx=1, x0=torch.zeros(1)), data)
     assert len(trials) > 2 and bool(result.converged.all())
     torch.testing.assert_close(result.theta, reference.theta, rtol=1e-8, atol=1e-10)
+
+
+def test_a_singular_fit_names_the_parameters_of_its_flat_direction():
+    """dx/dt = -(a1 + a2) x + b u: only a1 + a2 is identifiable, the covariance is inf and
+    the warning named a pair from inf/inf correlations (('b', 'a1') here). It now names the
+    parameters of the scaled Jacobian's flattest direction: a1 and a2, not b."""
+
+    def plant(t, x, u, p):
+        return (-(p["a1"] + p["a2"]) * x[..., 0] + p["b"] * u[..., 0]).unsqueeze(-1)
+
+    u = input_signal("prbs", 60, hold=3, generator=torch.Generator().manual_seed(2))
+    true = GreyBoxModel(plant, {"a1": 0.7, "a2": 0.8, "b": 1.0}, nx=1, x0=torch.zeros(1))
+    data = IOData(u, true.simulate(IOData(u, torch.zeros_like(u), Ts=0.1)), Ts=0.1)
+    model = GreyBoxModel(plant, {"b": 0.5, "a1": 1.0, "a2": 1.0}, nx=1, x0=torch.zeros(1))
+    with pytest.warns(Warning) as caught:
+        fit(model, data)
+    named = [
+        str(w.message) for w in caught if "enter the data only in a combination" in str(w.message)
+    ]
+    assert named and "'a1', 'a2'" in named[0] and "'b'" not in named[0]

@@ -645,7 +645,7 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
             ConvergenceWarning,
             stacklevel=3,
         )
-    _warn_unidentifiable(cov, names)
+    _warn_unidentifiable(cov, J_phys[..., keep], names)
     stats = problem.stats
     fitted = model.with_values(params, x0_est if isinstance(x0_est, torch.Tensor) else None)
     starts = [problem.nodes(z, e)[..., 0, :] for e in range(len(problem.parts))]
@@ -719,11 +719,28 @@ def simulation_quality(
     return quality
 
 
-def _warn_unidentifiable(cov: torch.Tensor, names: list[str]) -> None:
+def _warn_unidentifiable(cov: torch.Tensor, J: torch.Tensor, names: list[str]) -> None:
     """PoorExcitationWarning naming the most correlated pair of estimates when it is
-    (nearly) perfectly correlated in some data set."""
+    (nearly) perfectly correlated in some data set; where the covariance is singular (inf),
+    the estimates of the direction in which the scaled Jacobian ``J`` (*batch, M, p) of
+    their columns is flattest (its smallest right singular vector)."""
     p = cov.shape[-1]
     if p < 2:
+        return
+    singular = ~torch.isfinite(torch.diagonal(cov, dim1=-2, dim2=-1)).all(-1)
+    if bool(singular.any()):
+        member = J[singular][0]  # the first singular data set, (M, p)
+        scaled = member / member.norm(dim=-2, keepdim=True).clamp_min(torch.finfo(J.dtype).tiny)
+        v = torch.linalg.svd(scaled, full_matrices=False).Vh[-1].abs()
+        involved = [names[k] for k in torch.nonzero(v > 0.1 * v.max()).flatten().tolist()]
+        warnings.warn(
+            f"the estimates of {', '.join(map(repr, involved))} enter the data only in a "
+            "combination (the normal matrix is singular along it): the data cannot tell them "
+            "apart. Fix all but one of them (Param(..., free=False)), or use an input that "
+            "excites the plant more richly.",
+            PoorExcitationWarning,
+            stacklevel=4,
+        )
         return
     sd = torch.diagonal(cov, dim1=-2, dim2=-1).clamp_min(torch.finfo(cov.dtype).tiny).sqrt()
     corr = cov / (sd.unsqueeze(-1) * sd.unsqueeze(-2))
