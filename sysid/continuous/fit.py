@@ -729,7 +729,10 @@ def _warn_unidentifiable(cov: torch.Tensor, J: torch.Tensor, names: list[str]) -
         return
     singular = ~torch.isfinite(torch.diagonal(cov, dim1=-2, dim2=-1)).all(-1)
     if bool(singular.any()):
-        member = J[singular][0]  # the first singular data set, (M, p)
+        nameable = singular & torch.isfinite(J).flatten(-2).all(-1)
+        if not bool(nameable.any()):  # a non-finite Jacobian: covariance() warned already
+            return
+        member = J[nameable][0]  # the first singular data set with a finite J, (M, p)
         scaled = member / member.norm(dim=-2, keepdim=True).clamp_min(torch.finfo(J.dtype).tiny)
         v = torch.linalg.svd(scaled, full_matrices=False).Vh[-1].abs()
         involved = [names[k] for k in torch.nonzero(v > 0.1 * v.max()).flatten().tolist()]
