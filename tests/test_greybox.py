@@ -288,6 +288,10 @@ def test_one_step_criterion_gives_start_values_from_measured_states():
     model = GreyBoxModel(oscillator, bounded(m=2.0, xi=1.0, K=2.0), nx=2, output=[0, 1], substeps=2)
     res = fit(model, data, criterion="one_step")
     assert torch.allclose(res.theta, torch.tensor([1.0, 0.5, 4.0]).double(), rtol=0.02)
+    # every step starts from the measured state: x0="estimate" gives the first one
+    estimated = fit(model, data, criterion="one_step", x0="estimate")
+    torch.testing.assert_close(estimated.x0, data.y[..., 0, :], rtol=0, atol=0)
+    torch.testing.assert_close(estimated.model.x0, data.y[..., 0, :], rtol=0, atol=0)
     with pytest.raises(InputValidationError, match="every state measured"):
         fit(
             GreyBoxModel(oscillator, bounded(m=1, xi=1, K=2), nx=2, output=[0]),
@@ -467,6 +471,41 @@ def test_per_experiment_parameters_and_initial_states():
     assert bool(((res.theta - expected).abs() <= 4 * res.standard_errors).all())
     rms = (res.model.simulate(data, x0=res.x0) - data.y).pow(2).mean().sqrt()
     assert float(rms) < 2e-3
+    # the fitted model holds the estimated initial state of each experiment
+    torch.testing.assert_close(res.model.simulate(data), res.model.simulate(data, x0=res.x0))
+
+
+def test_known_initial_states_one_per_experiment():
+    """Two noise-free experiments from different known initial states: given as a list (one
+    tensor per experiment), the fit recovers the true parameters exactly and its model
+    reproduces both records; a list of numbers is one state, not one per experiment; a list
+    of the wrong length is refused."""
+    g = torch.Generator().manual_seed(8)
+    starts = [torch.tensor([0.5, 0.0]), torch.tensor([-0.4, 0.2])]
+    parts = []
+    for x0 in starts:
+        u = input_signal("prbs", 120, (), hold=3, generator=g)
+        truth = GreyBoxModel(oscillator, dict(TRUE), nx=2, output=[0], substeps=2, x0=x0)
+        parts.append(IOData(u, truth.simulate(IOData(u, u, Ts=0.1)), Ts=0.1))
+    data = IOData.experiments(parts)
+    model = GreyBoxModel(oscillator, bounded(m=1.3, xi=0.8, K=3.0), nx=2, output=[0], substeps=2)
+    res = fit(model, data, x0=starts)
+    torch.testing.assert_close(res.theta, torch.tensor([1.0, 0.5, 4.0]).double(), atol=1e-7, rtol=0)
+    assert torch.equal(res.model.x0[1], starts[1].double())
+    assert float((res.model.simulate(data) - data.y).abs().max()) < 1e-7
+    # the same known states declared on the model
+    declared = GreyBoxModel(
+        oscillator, bounded(m=1.3, xi=0.8, K=3.0), nx=2, output=[0], substeps=2, x0=starts
+    )
+    torch.testing.assert_close(fit(declared, data).theta, res.theta, rtol=1e-10, atol=0)
+    one = parts[0]
+    torch.testing.assert_close(
+        res.model.simulate(one, x0=[0.5, 0.0]), res.model.simulate(one, x0=starts[0])
+    )
+    with pytest.raises(InputValidationError, match="one per experiment"):
+        fit(model, data, x0=starts[:1])
+    with pytest.raises(InputValidationError, match="one per experiment"):
+        res.model.simulate(one)
 
 
 def test_a_trial_point_whose_stage_equations_fail_is_rejected_not_fatal(monkeypatch):

@@ -46,7 +46,7 @@ from ..data import IOData
 from ..errors import ConvergenceWarning, PoorExcitationWarning
 from ..estimation.losses import LOSSES, GaussianLoss, make_loss
 from ..estimation.results import STATIONARY_TOL, FitResult, covariance, remaining_step
-from .greybox import GreyBoxModel, Segments
+from .greybox import GreyBoxModel, Segments, initial_states
 
 #: the module (``integrators.sensitivities`` names its function too): its threshold is read
 #: at call time
@@ -88,6 +88,7 @@ class _Problem:
 
     def __init__(self, model: GreyBoxModel, data: IOData, criterion, x0, segment_length, method):
         self.model, self.data, self.criterion, self.method = model, data, criterion, method
+        self.x0 = x0  # the fit's x0 option: None (the model's), "zero", "estimate" or tensors
         self.ny = data.ny
         self.batch = data.batch_shape
         self.dtype, self.device = data.dtype, data.device
@@ -116,6 +117,7 @@ class _Problem:
         self.node_columns: list[list[int] | None] = []
         self.segments: list[Segments] = []
         self.known_x0: list[torch.Tensor | None] = []
+        given_x0 = initial_states(model.x0 if x0 is None else x0, nx, E)
         self.nodes_measured: list[torch.Tensor | None] = []
         idx_out = model.output_indices(self.ny)
         self.idx_out = idx_out
@@ -166,7 +168,7 @@ class _Problem:
             if criterion == "one_step":
                 self.x0_columns.append(None)
                 self.known_x0.append(None)
-            elif x0 == "estimate":
+            elif isinstance(x0, str) and x0 == "estimate":
                 self.x0_columns.append(list(range(col, col + nx)))
                 suffix = f"[{e}]" if E > 1 else ""
                 names = model.state_names or tuple(str(i) for i in range(nx))
@@ -179,7 +181,7 @@ class _Problem:
                 self.known_x0.append(None)
             else:
                 self.x0_columns.append(None)
-                self.known_x0.append(self._known_x0(x0, e))
+                self.known_x0.append(self._known_x0(given_x0[e]))
             # further nodes of multiple shooting
             if criterion == "multiple_shooting" and seg.starts.shape[0] > 1:
                 S = seg.starts.shape[0]
@@ -202,19 +204,12 @@ class _Problem:
         self.compile = None
 
     # ----------------------------------------------------------------------- start values
-    def _known_x0(self, x0, e) -> torch.Tensor:
-        value = self.model.x0 if x0 is None else x0
-        if value is None or (isinstance(value, str) and value == "zero"):
+    def _known_x0(self, value) -> torch.Tensor:
+        """A known initial state (checked by :func:`initial_states`) in the data's dtype;
+        None or "zero": zeros."""
+        if value is None or isinstance(value, str):
             return torch.zeros(self.model.nx, dtype=self.dtype, device=self.device)
-        if isinstance(value, str):
-            raise InputValidationError(f"x0 must be 'zero', 'estimate' or a tensor, got {value!r}.")
-        t = torch.as_tensor(value, dtype=self.dtype, device=self.device)
-        if t.dim() < 1 or t.shape[-1] != self.model.nx:
-            raise InputValidationError(
-                f"x0 must have shape (nx,) or (*batch, nx) with nx = {self.model.nx}, got "
-                f"{tuple(t.shape)}."
-            )
-        return t
+        return value.to(device=self.device, dtype=self.dtype)
 
     def _node_guess(self, part: IOData, at: torch.Tensor) -> torch.Tensor:
         """Start values of node states at samples ``at``: the measured states where the
@@ -491,7 +486,8 @@ def fit_greybox(
         x0 = model.x0
     if not isinstance(data, IOData):
         raise InputValidationError(f"data must be IOData, got {type(data).__name__}.")
-    if not model.free_names and x0 != "estimate":
+    estimate_x0 = isinstance(x0, str) and x0 == "estimate"
+    if not model.free_names and not estimate_x0:
         raise InputValidationError("the model has no free parameter and x0 is not estimated.")
     problem = _Problem(model, data, criterion, x0, segment_length, None)
     z0 = problem.initial_z()
@@ -608,10 +604,12 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
             )
         else:
             params[n] = p.values if p.values.numel() > 1 else p.values[0]
+    starts = [problem.nodes(z, e)[..., 0, :] for e in range(len(problem.parts))]
     x0_est = None
     if problem.x0_columns[0] is not None:
         x0_est = [phys[..., cols] for cols in problem.x0_columns]
-        x0_est = x0_est[0] if len(x0_est) == 1 else x0_est
+    elif isinstance(problem.x0, str) and problem.x0 == "estimate":
+        x0_est = starts  # one-step criterion: every step, the first too, starts measured
     messages = []
     for idx in [
         tuple(i) for i in torch.nonzero(~converged.reshape(converged.shape or (1,))).tolist()
@@ -647,8 +645,9 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
         )
     _warn_unidentifiable(cov, J_phys[..., keep], names)
     stats = problem.stats
-    fitted = model.with_values(params, x0_est if isinstance(x0_est, torch.Tensor) else None)
-    starts = [problem.nodes(z, e)[..., 0, :] for e in range(len(problem.parts))]
+    if x0_est is not None and len(x0_est) == 1:
+        x0_est = x0_est[0]
+    fitted = model.with_values(params, x0_est if x0_est is not None else problem.x0)
     quality = simulation_quality(fitted, problem.data, params, starts)
     result = FitResult(
         theta=theta,

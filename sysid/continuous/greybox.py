@@ -49,7 +49,7 @@ from ..data import IOData
 from .intersample import input_between_samples, stage_fractions
 from .params import Param
 
-__all__ = ["GreyBoxModel"]
+__all__ = ["GreyBoxModel", "initial_states"]
 
 _IMPLICIT = ("gauss_legendre", "radau_iia", "implicit_euler", "implicit_midpoint")
 
@@ -91,7 +91,8 @@ class GreyBoxModel:
         output: None (the first ``ny`` states, ``ny`` from the data), a sequence of state
             indices or state names, or a function ``h(x, u, p) -> (*batch, ny)``.
         x0: initial state: None / ``"zero"`` (zeros), ``"estimate"`` (one free initial state
-            per experiment), or a tensor (nx,) / (*batch, nx) (known).
+            per experiment), a tensor (nx,) / (*batch, nx) (known, every experiment), or a
+            list of such tensors, one per experiment (a list of numbers is one state).
         method: a fixed-step method name or tableau ("rk4" by default; "radau_iia" or
             "gauss_legendre" for stiff plants and DAEs), or "auto" (Radau IIA where
             ``rho(df/dx) Ts / substeps`` exceeds the explicit stability limit at the start,
@@ -481,8 +482,8 @@ class GreyBoxModel:
                 number of outputs ``ny``; ``y`` is not used).
             params: name -> value overriding the model's values: a float or a (*batch,)
                 tensor; for a per-experiment parameter the experiment is the last dimension.
-            x0: initial state (nx,) / (*batch, nx), or a list with one per experiment;
-                default the model's (zeros when ``"zero"`` or ``"estimate"``).
+            x0: initial state (nx,) / (*batch, nx), or a list of such tensors, one per
+                experiment; default the model's (zeros when ``"zero"`` or ``"estimate"``).
 
         Returns:
             (*batch, N, ny) simulated outputs (experiments concatenated along time, like
@@ -500,7 +501,7 @@ class GreyBoxModel:
                     f"simulate: unknown parameter(s) {sorted(unknown)}; the model has {self.names}."
                 )
             values.update(params)
-        start = x0 if x0 is not None else self.x0
+        starts = initial_states(x0 if x0 is not None else self.x0, self.nx, data.n_experiments)
         parts = []
         for e, part in enumerate(data.experiment_list):
             P = torch.stack(
@@ -509,7 +510,7 @@ class GreyBoxModel:
                 ),
                 -1,
             )
-            x_e = start[e] if isinstance(start, (list, tuple)) else start
+            x_e = starts[e]
             if x_e is None or isinstance(x_e, str):
                 x_e = torch.zeros(self.nx)
             x_e = torch.as_tensor(x_e, dtype=part.dtype, device=part.device)
@@ -535,7 +536,8 @@ class GreyBoxModel:
 
     def with_values(self, values: dict, x0=None) -> GreyBoxModel:
         """A copy whose parameters take ``values`` (name -> float or (*batch,) tensor) and, if
-        given, whose known initial state is ``x0``."""
+        given, whose known initial state is ``x0`` (a tensor, or a list with one per
+        experiment)."""
         out = copy.copy(self)
         out.params = dict(self.params)
         for n, v in values.items():
@@ -544,7 +546,10 @@ class GreyBoxModel:
             new.values = torch.as_tensor(v, dtype=torch.float64).detach()
             out.params[n] = new
         if x0 is not None:
-            out.x0 = torch.as_tensor(x0).detach()
+            x0 = _check_x0(x0, self.nx)
+            if isinstance(x0, list):
+                x0 = [v.detach() for v in x0]
+            out.x0 = x0.detach() if isinstance(x0, torch.Tensor) else x0
         return out
 
 
@@ -623,6 +628,16 @@ def _infer_nx(f, state_names):
     return None
 
 
+def _per_experiment(x0) -> bool:
+    """Whether ``x0`` is a list or tuple of initial states, one per experiment (tensors or
+    arrays; a list of numbers is one state)."""
+    return (
+        isinstance(x0, (list, tuple))
+        and len(x0) > 0
+        and all(isinstance(v, (torch.Tensor, np.ndarray)) for v in x0)
+    )
+
+
 def _check_x0(x0, nx):
     if x0 is None or (isinstance(x0, str) and x0 in ("zero", "estimate")):
         return x0
@@ -630,9 +645,40 @@ def _check_x0(x0, nx):
         raise InputValidationError(
             f"x0 must be 'zero', 'estimate' or a tensor of shape (nx,) / (*batch, nx), got {x0!r}."
         )
+    if _per_experiment(x0):
+        return [_check_x0(v, nx) for v in x0]
     t = torch.as_tensor(x0, dtype=torch.float64)
     if t.dim() < 1 or t.shape[-1] != nx or not bool(torch.isfinite(t).all()):
         raise InputValidationError(
             f"x0 must be finite with shape (nx,) or (*batch, nx), nx = {nx}; got {tuple(t.shape)}."
         )
     return t
+
+
+def initial_states(x0, nx: int, n_experiments: int) -> list:
+    """The initial state of every experiment from a model's or a call's ``x0``.
+
+    Args:
+        x0: None, ``"zero"`` or ``"estimate"`` (returned as they are, for every experiment), a
+            tensor (nx,) / (*batch, nx) shared by the experiments, or a list or tuple of such
+            tensors, one per experiment.
+        nx: number of states.
+        n_experiments: number of experiments of the data.
+
+    Returns:
+        A list of ``n_experiments`` entries: None, a string, or a float64 tensor (*batch, nx).
+
+    Raises:
+        InputValidationError: a bad shape, a non-finite value, or a list whose length is not
+            the number of experiments.
+    """
+    checked = _check_x0(x0, nx)
+    if not isinstance(checked, list):
+        return [checked] * n_experiments
+    if len(checked) != n_experiments:
+        raise InputValidationError(
+            f"x0 is a list of {len(checked)} initial states, one per experiment, but the data "
+            f"has {n_experiments} experiment(s); give one per experiment, or one tensor "
+            "(nx,) / (*batch, nx) for all of them."
+        )
+    return checked

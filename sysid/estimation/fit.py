@@ -89,7 +89,10 @@ def fit(
         max_iter, xtol, ftol: iteration limit and step/relative-decrease tolerances.
         iv_iterations: instrument refinements of ``"iv"`` (and of the automatic start).
         x0: grey-box models: the initial state, ``"zero"``, ``"estimate"`` (one per
-            experiment) or a tensor (nx,) / (*batch, nx); default the model's ``x0``.
+            experiment), a tensor (nx,) / (*batch, nx) for every experiment or a list of
+            such tensors, one per experiment; default the model's ``x0``. With the
+            one-step criterion every step starts from the measured state, so ``"estimate"``
+            gives the measured first states.
         segment_length: grey-box multiple shooting: sample intervals per segment (default
             10, longer where a record would have more than 100 segments). Short segments
             widen the basin of attraction; each adds ``nx`` node states to the fit.

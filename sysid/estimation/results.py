@@ -61,7 +61,11 @@ class FitResult:
         residuals: final residuals (prediction errors or regression residuals),
             ``(*batch, n_samples)``.
         model: the fitted model: a copy of the input model (batched like the data) with the
-            estimate as its parameters; the input model is never modified.
+            estimate as its parameters; the input model is never modified. A grey-box
+            model's ``x0`` is the initial state the fit used: the estimates for
+            ``x0="estimate"`` (the measured first states for the one-step criterion), a list
+            with one per experiment where the data has several, so that
+            ``result.model.simulate(data)`` reproduces the fitted simulation.
         info: extra per-method statistics (condition numbers, damping, largest pole
             modulus, ...).
         stable: per data set, ``(*batch,)`` bool: every pole of the estimated model (roots
