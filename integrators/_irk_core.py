@@ -68,20 +68,25 @@ class StageInputs(list):
     """The inputs ``u(t_k + c_i h)`` of one step's stages (a list, None entries without an
     input); ``stacked`` holds them as one (s, 1.., *batch', nu) tensor, singleton batch
     dimensions inserted so that it broadcasts like the stacked stage states (s, *batch, n),
-    or None without an input. Built on first use."""
+    or None without an input. Built on first use in each autograd mode: the copy built in
+    the Newton iterations (no graph) would cut the gradients to the inputs from the
+    implicit-function-theorem residual."""
 
     def __init__(self, inputs: list, batch_ndim: int):
         super().__init__(inputs)
         self.batch_ndim = batch_ndim
-        self._stacked = None
+        self._stacked = {}  # torch.is_grad_enabled() -> stacked inputs
 
     @property
     def stacked(self) -> torch.Tensor | None:
-        if self._stacked is None and self[0] is not None:
+        if self[0] is None:
+            return None
+        grad = torch.is_grad_enabled()
+        if grad not in self._stacked:
             u = torch.stack(torch.broadcast_tensors(*self))  # (s, *batch', nu)
             missing = max(self.batch_ndim - (u.dim() - 2), 0)
-            self._stacked = u.reshape(u.shape[0], *(1,) * missing, *u.shape[1:])
-        return self._stacked
+            self._stacked[grad] = u.reshape(u.shape[0], *(1,) * missing, *u.shape[1:])
+        return self._stacked[grad]
 
 
 def stacked_call_agrees(by_stage: Callable, stacked: Callable, *values: torch.Tensor) -> bool:
