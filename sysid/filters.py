@@ -14,15 +14,18 @@ Conventions (``q^-1`` is the backward shift, ``q^-1 x_k = x_{k-1}``):
 
 All batch shapes broadcast. Everything is pure torch, so it runs on any device.
 
-Method. ``y = (1/A) (B x + zi)``, computed exactly by blocks of length ``L`` (64 by default,
-smaller for large batches of filters): inside a block the response to the block's input is a
-product with the ``L x L`` lower-triangular Toeplitz matrix of the impulse response ``h`` of
-``1/A`` (the FIR part ``B`` folded in: each block also sees its ``m - 1`` preceding inputs),
-and the response to the block's initial state (the last ``n`` outputs of the previous block)
-is an ``L x n`` matrix times that state. The ``n``-dimensional block states obey a linear
+Method. ``y = (1/A) (B x + zi)``, computed by blocks of length ``L`` (64 by default, smaller
+for large batches of filters): inside a block the response to the block's input is a product
+with the ``L x L`` lower-triangular Toeplitz matrix of the impulse response ``h`` of ``1/A``
+(the FIR part ``B`` folded in: each block also sees its ``m - 1`` preceding inputs), and the
+response to the block's initial state (the last ``n`` outputs of the previous block) is an
+``L x n`` matrix times that state. The ``n``-dimensional block states obey a linear
 recurrence ``s_{j+1} = M s_j + c_j`` that is solved by a prefix scan with doubling
 (``log2(N/L)`` batched matmuls). ``O(N L)`` matmul-friendly work, no Python loop over samples
-or blocks; ``h`` is one triangular solve with the banded Toeplitz matrix of ``A``.
+or blocks; ``h`` is one triangular solve with the banded Toeplitz matrix of ``A``. Where a
+bound of the doubling's rounding errors is not small (poles clustered near the unit circle)
+steps of iterative refinement follow, and where it is large the plain recursion replaces the
+block method (see :func:`_allpole_apply`).
 
 Gradients (adjoint method, one custom autograd node :class:`_IIR`; ``T`` is the
 lower-triangular Toeplitz operator of ``1/A`` and ``g`` the upstream gradient):
@@ -62,6 +65,12 @@ __all__ = ["allpole", "cpu_backend", "fir_filter", "iir_filter", "poly_mul"]
 # The Toeplitz blocks of a batch of denominators use at most this many entries in all.
 _TOEPLITZ_BUDGET = 1 << 22
 _MAX_BLOCK = 64
+#: bounds of the rounding errors of the doubling scan (relative to the block states, see
+#: :func:`_allpole_plan`): used as it is up to the first, refined up to the second, above it
+#: the plain recursion
+_EXACT_DOUBLING, _REFINED_DOUBLING = 1e-12, 1e-4
+#: steps of iterative refinement after a doubling scan with a moderate error bound
+_REFINEMENTS = 2
 _BACKENDS = ("auto", "torch")
 _cpu_backend = "auto"
 
@@ -175,20 +184,18 @@ def _fir_band_index(L: int, m: int, device: torch.device) -> torch.Tensor:
 
 
 def _block_length(n: int, N: int, n_filters: int) -> int:
+    """Samples per block: at most :data:`_MAX_BLOCK`, fewer for large batches of filters,
+    and more than ``n`` (slot ``L`` of the padded coefficients must be a zero, see
+    :func:`_band_indices`)."""
     L = int(math.sqrt(_TOEPLITZ_BUDGET / max(n_filters, 1)))
-    return max(n, min(N, _MAX_BLOCK, max(L, 16)))
+    return max(n + 1, min(N, _MAX_BLOCK, max(L, 16)))
 
 
-def _allpole_plan(a: torch.Tensor, N: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Matrices of the block method for ``1/A`` on ``N`` samples (depend on ``a`` only).
-
-    Returns ``Tt`` (``(*ba, L, L)``, the transposed Toeplitz matrix of the impulse response),
-    ``Qt`` (``(*ba, n, L)``, transposed response to a block's initial state) and ``Mt``
-    (``(K, *ba, n, n)``, transposed state-transition powers ``M^(2^k)`` for the scan).
-    """
+def _block_matrices(a: torch.Tensor, L: int):
+    """``T`` (``(*ba, L, L)``, the Toeplitz matrix of the impulse response of ``1/A``), ``Q``
+    (``(*ba, L, n)``, the response to a block's initial state), the block transition ``M``
+    (``(*ba, n, n)``) and a bound of the rounding error of ``M``'s entries (``(*ba,)``)."""
     n = a.shape[-1]
-    L = _block_length(n, N, _batch_numel(a.shape[:-1]))
-    n_blocks = -(-N // L)
     band, lower, past = _band_indices(L, n, a.device)
     coeffs = F.pad(F.pad(a, (1, 0), value=1.0), (0, L - n))  # [1, a, 0...], length L + 1
     A = coeffs[..., band].reshape(*a.shape[:-1], L, L)
@@ -199,19 +206,88 @@ def _allpole_plan(a: torch.Tensor, N: int) -> tuple[torch.Tensor, torch.Tensor, 
     Q = T[..., :, :n] @ V  # (*ba, L, n): response to the past outputs
     # block states s_j = (y_{jL-1}, ..., y_{jL-n}) obey s_{j+1} = M s_j + c_j
     M = Q[..., L - n :, :].flip(-2)
-    powers = [M.transpose(-1, -2)]
+    eps = torch.finfo(a.dtype).eps
+    error = n * eps * (T[..., L - n :, :n].abs() @ V.abs()).amax((-2, -1))
+    return T, Q, M, error
+
+
+def _allpole_plan(a: torch.Tensor, N: int):
+    """What :func:`_allpole_apply` needs for ``1/A`` on ``N`` samples (depends on ``a`` only).
+
+    Returns ``Tt`` (``(*ba, L, L)``, the transposed Toeplitz matrix of the impulse response),
+    ``Qt`` (``(*ba, n, L)``, transposed response to a block's initial state), ``Mt``
+    (``(K, *ba, n, n)``, transposed state-transition powers ``M^(2^k)`` for the scan by
+    doubling) and ``refinements`` (0-dim: steps of iterative refinement after the block
+    method). Where the doubling's rounding errors may be large (the first-order bound
+    ``e_{k+1} = 2 |P_k| e_k + n eps |P_k|^2`` of the errors of the powers ``P_k``, from the
+    error of ``M``, exceeds :data:`_REFINED_DOUBLING`), or cannot be read (``a`` under a
+    ``torch.func`` transform), ``Tt``, ``Qt`` and ``Mt`` are empty: the plain recursion.
+    """
+    n = a.shape[-1]
+    L = _block_length(n, N, _batch_numel(a.shape[:-1]))
+    n_blocks = -(-N // L)
+    T, Q, M, error = _block_matrices(a, L)
+    powers, total = [M.transpose(-1, -2)], error
     while 2 ** len(powers) < n_blocks - 1:
+        norm = powers[-1].abs().sum(-1).amax(-1)
+        error = 2 * norm * error + n * a.new_tensor(torch.finfo(a.dtype).eps) * norm**2
+        total = total + error
         powers.append(powers[-1] @ powers[-1])
-    return T.transpose(-1, -2), Q.transpose(-1, -2), torch.stack(powers)
+    bound = math.inf
+    if not torch._C._functorch.is_functorch_wrapped_tensor(a):
+        bound = float(total.nan_to_num(math.inf).max()) if total.numel() else 0.0
+    if bound > _REFINED_DOUBLING:
+        empty = a.new_zeros(0, 0)
+        return empty, empty, a.new_zeros(0, 0, 0), torch.zeros((), dtype=torch.int64)
+    refinements = 0 if bound <= _EXACT_DOUBLING else _REFINEMENTS
+    steps = torch.tensor(refinements, dtype=torch.int64)
+    return T.transpose(-1, -2), Q.transpose(-1, -2), torch.stack(powers), steps
 
 
-def _allpole_apply(plan, w: torch.Tensor, b: torch.Tensor | None = None) -> torch.Tensor:
-    """``y = (1/A) w`` from rest with the matrices of :func:`_allpole_plan`.
+def _allpole_apply(a: torch.Tensor, plan, w: torch.Tensor, b: torch.Tensor | None = None):
+    """``y = (1/A) w`` from rest with what :func:`_allpole_plan` chose.
 
     With ``b``: ``y = (B/A) w``, the FIR part folded into the block matmul (each block sees its
     ``m - 1`` preceding samples), which saves ``m`` passes over the signal.
+
+    Accuracy. Where poles cluster near the unit circle the block transition ``M`` has large
+    entries in the basis of past outputs, and squaring it for the doubling scan moves the
+    eigenvalues of its powers outside the unit circle (``(1 - 0.99 q^-1)^4``: outputs wrong
+    by a factor 6; ``(1 - 0.95 q^-1)^6``: by 1e26). A moderate bound of these errors is
+    removed by steps of iterative refinement (solving again for the residual ``B w - A y``,
+    computed by the recursion's own FIR form); beyond it the plan is the plain recursion,
+    one sample after the other, as accurate as ``scipy.signal.lfilter``.
     """
-    Tt, Qt, Mt = plan
+    if plan[0].numel() == 0:
+        return _recursion(a, w if b is None else fir_filter(b, w))
+    y = _block_solve(plan, w, b)
+    if int(plan[3]) == 0:
+        return y
+    target = w if b is None else fir_filter(b, w)
+    monic = F.pad(a, (1, 0), value=1.0)
+    for _ in range(int(plan[3])):
+        y = y + _block_solve(plan, target - fir_filter(monic, y))
+    return y
+
+
+def _recursion(a: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """``y_k = w_k - sum_i a_i y_{k-i}`` from rest, one sample after the other (a loop over
+    the samples, vectorised over the batch): the fallback of :func:`_allpole_apply`."""
+    n, N = a.shape[-1], w.shape[-1]
+    batch = _broadcast(a.shape[:-1], w.shape[:-1])
+    # a zero of a's batch makes y batched like a also under vmap (in-place updates below)
+    y = (w + torch.zeros_like(a[..., :1])).expand(*batch, N).clone()
+    reversed_a = a.flip(-1)  # a_n .. a_1
+    for k in range(1, N):
+        lo = max(0, k - n)
+        y[..., k] -= (y[..., lo:k] * reversed_a[..., n - (k - lo) :]).sum(-1)
+    return y
+
+
+def _block_solve(plan, w: torch.Tensor, b: torch.Tensor | None = None) -> torch.Tensor:
+    """One block-method evaluation of ``(B/A) w`` (``(1/A) w`` without ``b``), see
+    :func:`_allpole_apply`."""
+    Tt, Qt, Mt, _ = plan
     n, L = Qt.shape[-2], Qt.shape[-1]
     N = w.shape[-1]
     n_blocks = -(-N // L)
@@ -226,7 +302,7 @@ def _allpole_apply(plan, w: torch.Tensor, b: torch.Tensor | None = None) -> torc
         K = G.reshape(*b.shape[:-1], L + m - 1, L) @ Tt  # (*, L + m - 1, L)
         ext = F.pad(w, (m - 1, n_blocks * L - N)).unfold(-1, L + m - 1, L)
         P = (ext @ K).expand(*batch, n_blocks, L).contiguous()
-    # inclusive prefix scan by doubling: r_j = sum_{i<=j} M^(j-i) c_j = s_{j+1}
+    # inclusive prefix scan by doubling: r_j = sum_{i<=j} M^(j-i) c_i = s_{j+1}
     r = P[..., L - n :].flip(-1)  # c_j, a new tensor
     for k in range(Mt.shape[0]):  # log2(n_blocks) steps
         d = 2**k
@@ -243,7 +319,7 @@ def _allpole_forward(a: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     n, N = a.shape[-1], w.shape[-1]
     if n == 0 or N == 0:
         return w.clone()
-    return _allpole_apply(_allpole_plan(a, N), w)
+    return _allpole_apply(a, _allpole_plan(a, N), w)
 
 
 def _lagged_dots(g: torch.Tensor, x: torch.Tensor, lags) -> torch.Tensor:
@@ -380,7 +456,8 @@ def _scipy_lfilter(b, a, x: torch.Tensor, zi=None, reverse: bool = False) -> tor
 
 
 def _empty_plan(like: torch.Tensor):
-    return like.new_zeros(0, 0), like.new_zeros(0, 0), like.new_zeros(0, 0, 0)
+    empty = like.new_zeros(0, 0)
+    return empty, empty, like.new_zeros(0, 0, 0), torch.zeros((), dtype=torch.int64)
 
 
 class _IIR(torch.autograd.Function):
@@ -402,8 +479,8 @@ class _IIR(torch.autograd.Function):
             return _allpole_forward(a, w), *_empty_plan(w)
         plan = _allpole_plan(a, N)
         if zi.shape[-1] == 0:
-            return _allpole_apply(plan, x, b), *plan
-        return _allpole_apply(plan, _add_initial_state(fir_filter(b, x), zi)), *plan
+            return _allpole_apply(a, plan, x, b), *plan
+        return _allpole_apply(a, plan, _add_initial_state(fir_filter(b, x), zi)), *plan
 
     @staticmethod
     def setup_context(ctx, inputs, output):
@@ -413,8 +490,7 @@ class _IIR(torch.autograd.Function):
         ctx.save_for_backward(b, a, x, y, *plan)
         ctx.save_for_forward(b, a, x, y)
         ctx.zi_shape = zi.shape
-        # an empty plan with a non-trivial filter means that forward used scipy
-        ctx.scipy = plan[0].numel() == 0 and min(b.shape[-1], a.shape[-1], x.shape[-1]) > 0
+        ctx.scipy = _scipy_eligible(b, a, x, zi)  # forward's choice
         ctx.set_materialize_grads(True)
 
     @staticmethod
@@ -427,7 +503,7 @@ class _IIR(torch.autograd.Function):
         elif ctx.scipy:
             gw = _scipy_lfilter(None, a, grad_y, reverse=True)
         else:
-            gw = _allpole_apply(plan, grad_y.flip(-1)).flip(-1)
+            gw = _allpole_apply(a, plan, grad_y.flip(-1)).flip(-1)
         grad_b = grad_a = grad_x = grad_zi = None
         if need_b:
             grad_b = _lagged_dots(gw, x, range(b.shape[-1])).sum_to_size(b.shape)
@@ -452,7 +528,7 @@ class _IIR(torch.autograd.Function):
             rhs = _add_initial_state(rhs, dzi)
         if da is not None:
             rhs = rhs - _lagged_filter(da, y)
-        return allpole(a, rhs), None, None, None
+        return allpole(a, rhs), None, None, None, None
 
 
 def iir_filter(
