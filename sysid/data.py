@@ -282,6 +282,25 @@ class IOData:
         """Number of samples of each experiment."""
         return [p.N for p in self.experiment_list]
 
+    def samples_after(self, skip: int) -> torch.Tensor:
+        """Indices (along the sample axis of ``u`` and ``y``) of the samples that remain when
+        the first ``skip`` samples of every experiment are left out (``int64``).
+
+        Raises:
+            InputValidationError: ``skip`` is not an integer in ``[0, N_e - 2]`` for every
+                experiment (at least two samples of each must remain).
+        """
+        shortest = min(self.lengths)
+        if isinstance(skip, bool) or int(skip) != skip or not 0 <= skip <= shortest - 2:
+            raise InputValidationError(
+                f"skip = {skip!r} leaves fewer than 2 samples of an experiment with N = "
+                f"{shortest}; use 0 <= skip <= {shortest - 2}."
+            )
+        ends = np.cumsum(self.lengths)
+        starts = ends - np.asarray(self.lengths)
+        keep = [torch.arange(int(a) + int(skip), int(b)) for a, b in zip(starts, ends, strict=True)]
+        return torch.cat(keep).to(self.device)
+
     @property
     def dtype(self) -> torch.dtype:
         return self.u.dtype

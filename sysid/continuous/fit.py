@@ -701,17 +701,8 @@ def simulation_quality(
     """
     from ..validation import _quality
 
+    keep = data.samples_after(skip)
     yhat = model.simulate(data, params, x0)
-    parts, begin = [], 0
-    for part in data.experiment_list:
-        if isinstance(skip, bool) or int(skip) != skip or not 0 <= skip <= part.N - 2:
-            raise InputValidationError(
-                f"skip = {skip!r} leaves fewer than 2 samples of an experiment with N = "
-                f"{part.N}; use 0 <= skip <= {part.N - 2}."
-            )
-        parts.append((begin + int(skip), begin + part.N))
-        begin += part.N
-    keep = torch.cat([torch.arange(a, b) for a, b in parts]).to(yhat.device)
     y = data.y.index_select(-2, keep)
     quality = _quality(y, yhat.to(y).index_select(-2, keep), 0, "validate", check=False)
     quality.skip = skip

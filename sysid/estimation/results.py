@@ -117,9 +117,12 @@ class FitResult:
 
             start = torch.zeros(self.model.nx, dtype=torch.float64) if x0 is None else x0
             return simulation_quality(self.model, data, None, start, skip)
+        keep = data.samples_after(skip)
         with torch.no_grad():
             yhat = self.model.predict(data, horizon=math.inf)
-        return fit_quality(data.y, yhat, skip)
+        quality = fit_quality(data.y.index_select(-2, keep), yhat.index_select(-2, keep))
+        quality.skip = skip
+        return quality
 
     @property
     def batch_shape(self) -> torch.Size:
