@@ -107,17 +107,23 @@ def zoh_discretize(a, b, dt):
     augmented matrix [[A, B], [0, 0]] dt.
     """
     a, b = torch.as_tensor(a), torch.as_tensor(b)
-    if a.shape[-1] != a.shape[-2] or b.shape[-2] != a.shape[-1]:
+    if a.dim() < 2 or b.dim() < 2 or a.shape[-1] != a.shape[-2] or b.shape[-2] != a.shape[-1]:
         raise InputValidationError(
             f"zoh_discretize: A must be (*, n, n) and B (*, n, m), got {tuple(a.shape)}, "
-            f"{tuple(b.shape)}"
+            f"{tuple(b.shape)} (a single input column is B[:, None])."
         )
     n, m = b.shape[-2], b.shape[-1]
-    batch = torch.broadcast_shapes(a.shape[:-2], b.shape[:-2])
+    dt = torch.as_tensor(dt, dtype=a.dtype, device=a.device)
+    try:
+        batch = torch.broadcast_shapes(a.shape[:-2], b.shape[:-2], dt.shape)
+    except RuntimeError as exc:
+        raise InputValidationError(
+            f"zoh_discretize: the batch shapes of A {tuple(a.shape[:-2])}, B "
+            f"{tuple(b.shape[:-2])} and dt {tuple(dt.shape)} do not broadcast."
+        ) from exc
     a, b = a.expand(*batch, n, n), b.expand(*batch, n, m)
     top = torch.cat([a, b], -1)
     aug = torch.cat([top, a.new_zeros(*batch, m, n + m)], -2)
-    dt = torch.as_tensor(dt, dtype=a.dtype, device=a.device)
     phi = torch.linalg.matrix_exp(aug * dt[..., None, None])
     return phi[..., :n, :n], phi[..., :n, n:]
 
@@ -130,6 +136,12 @@ def simulate_lti_zoh(a, b, x0, u, dt, c=None, d=None):
     """
     ad, bd = zoh_discretize(a, b, dt)
     u = torch.as_tensor(u, dtype=ad.dtype)
+    x0 = torch.as_tensor(x0, dtype=ad.dtype)
+    if u.dim() < 2 or u.shape[-1] != bd.shape[-1] or x0.shape[-1:] != ad.shape[-1:]:
+        raise InputValidationError(
+            f"simulate_lti_zoh: u must be (*batch, T, m) with m = {bd.shape[-1]} and x0 "
+            f"(*batch, n) with n = {ad.shape[-1]}, got {tuple(u.shape)} and {tuple(x0.shape)}."
+        )
     xs = [x0]
     for k in range(u.shape[-2]):
         xs.append((ad @ xs[-1].unsqueeze(-1) + bd @ u[..., k, :].unsqueeze(-1)).squeeze(-1))

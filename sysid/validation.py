@@ -29,8 +29,11 @@ the noise variance):
   ``tau = -m..m``, with the band ``+/- z_{1-alpha/2} / sqrt(N)`` valid for white residuals;
   the Ljung–Box statistic ``Q = N (N + 2) sum_{tau=1}^{m} rho_e(tau)^2 / (N - tau)``, which is
   ``chi^2(m - n_params)`` for white residuals, and the independence statistic
-  ``S = N sum_{tau=0}^{m} rho_eu(tau)^2``, ``chi^2(m + 1)`` per input when the residuals are
-  white and independent of past inputs.
+  ``S = N rho' Rbar_u^-1 rho`` of ``rho = (rho_eu(0), .., rho_eu(m))`` with ``Rbar_u`` the
+  ``(m + 1) x (m + 1)`` Toeplitz matrix of the input's autocorrelation (Ljung, System
+  Identification, 1999, eq. 16.66; ``S = N sum rho_eu(tau)^2`` for a white input),
+  ``chi^2(m + 1)`` per input when the residuals are white and independent of past inputs
+  (``chi^2`` of the rank of ``Rbar_u`` where the input excites fewer directions).
 """
 
 from __future__ import annotations
@@ -319,7 +322,8 @@ class ResidualTestResult:
         cross_lags: ``-max_lag..max_lag`` (None without input).
         cross_correlation: ``rho_eu(tau)``, ``(*batch, nu, 2 max_lag + 1)`` or None.
         independence_statistic: ``S`` per input, ``(*batch, nu)`` or None.
-        independence_pvalue: ``P[chi^2(max_lag + 1) >= S]``, ``(*batch, nu)`` or None.
+        independence_pvalue: ``P[chi^2(max_lag + 1) >= S]`` (degrees of freedom: the rank
+            of the input's autocorrelation matrix), ``(*batch, nu)`` or None.
         independent: all inputs pass, ``(*batch,)`` bool or None.
         alpha: significance level used.
     """
@@ -345,6 +349,10 @@ class ResidualTestResult:
         if self.independent is None:
             return self.white
         return self.white & self.independent
+
+
+#: relative singular-value threshold of the rank of an input's autocorrelation matrix
+_RANK_RTOL = 1e-10
 
 
 def residual_test(
@@ -383,8 +391,14 @@ def residual_test(
             f"residual_test: expected one output channel, got {e.shape[-1]}."
         )
     N = e.shape[-2]
-    if not 1 <= max_lag < N:
-        raise InputValidationError(f"residual_test: need 1 <= max_lag < N = {N}, got {max_lag}.")
+    if isinstance(max_lag, bool) or int(max_lag) != max_lag or not 1 <= max_lag < N:
+        raise InputValidationError(
+            f"residual_test: max_lag must be an integer with 1 <= max_lag < N = {N}, got "
+            f"{max_lag!r}."
+        )
+    max_lag = int(max_lag)
+    if not 0 < alpha < 1:
+        raise InputValidationError(f"residual_test: alpha must be in (0, 1), got {alpha!r}.")
     if not 0 <= n_params < max_lag:
         raise InputValidationError(
             f"residual_test: need 0 <= n_params < max_lag, got {n_params} and {max_lag}."
@@ -421,6 +435,13 @@ def residual_test(
         raise InputValidationError(
             f"residual_test: u has {uu.shape[-2]} samples but the residuals have {N}."
         )
+    try:
+        torch.broadcast_shapes(uu.shape[:-2], e.shape[:-2])
+    except RuntimeError as exc:
+        raise InputValidationError(
+            f"residual_test: the batch shapes of the residuals {tuple(e.shape[:-2])} and of u "
+            f"{tuple(uu.shape[:-2])} do not broadcast."
+        ) from exc
     uu = uu.transpose(-1, -2)  # (*batch, nu, N)
     uu = uu - uu.mean(dim=-1, keepdim=True)
     su = torch.linalg.vector_norm(uu, dim=-1)
@@ -431,9 +452,17 @@ def residual_test(
     pos = _correlate(xs, uu, max_lag) / scale  # e_{k+tau} u_k, tau >= 0
     neg = _correlate(uu, xs, max_lag) / scale  # e_{k-tau} u_k
     cross = torch.cat([neg[..., 1:].flip(-1), pos], dim=-1)
-    S = N * (pos**2).sum(-1)
+    # S = N rho' Rbar_u^-1 rho with the Toeplitz autocorrelation matrix of each input (its
+    # pseudo-inverse and rank where the input excites fewer than max_lag + 1 directions)
+    rho_u = _correlate(uu, uu, max_lag) / (su**2).unsqueeze(-1)  # (*batch, nu, m + 1)
+    lag = torch.arange(max_lag + 1, device=x.device)
+    Ru = rho_u[..., (lag[:, None] - lag).abs()]  # (*batch, nu, m + 1, m + 1)
+    S = N * (
+        pos * (torch.linalg.pinv(Ru, hermitian=True, rtol=_RANK_RTOL) @ pos.unsqueeze(-1))[..., 0]
+    ).sum(-1)
+    rank = torch.linalg.matrix_rank(Ru, hermitian=True, rtol=_RANK_RTOL)
     ipval = torch.as_tensor(
-        scipy.stats.chi2.sf(S.detach().cpu().numpy(), max_lag + 1),
+        scipy.stats.chi2.sf(S.detach().cpu().numpy(), rank.cpu().numpy()),
         dtype=x.dtype,
         device=x.device,
     )

@@ -3,6 +3,7 @@
 import inspect
 
 import pytest
+import torch
 
 import integrators
 import integrators.errors
@@ -71,3 +72,27 @@ def test_integrators_does_not_know_the_sysid_warnings():
     for cls in SYSID:
         assert not hasattr(integrators, cls.__name__)
         assert not hasattr(integrators.errors, cls.__name__)
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda: sysid.residual_test(torch.randn(50, dtype=torch.float64), max_lag=5.5),
+        lambda: sysid.residual_test(torch.randn(50, dtype=torch.float64), alpha=1.5),
+        lambda: sysid.residual_test(torch.randn(2, 50, 1), torch.randn(3, 50, 1)),
+        lambda: sysid.zoh_discretize(torch.eye(2), torch.ones(2), 0.1),
+        lambda: sysid.zoh_discretize(
+            torch.eye(2).expand(3, 2, 2), torch.ones(3, 2, 1), torch.ones(4)
+        ),
+        lambda: sysid.simulate_lti_zoh(
+            torch.eye(1), torch.ones(1, 1), torch.zeros(1), torch.ones(5), 0.1
+        ),
+    ],
+    ids=["max_lag float", "alpha > 1", "batch mismatch", "1-D B", "dt batch", "1-D u"],
+)
+def test_validation_and_discretisation_arguments_are_named_errors(call):
+    """A non-integer lag, a level outside (0, 1) (a negative band before), batches that do
+    not broadcast and vectors where matrices are expected raise InputValidationError, not a
+    torch error from inside."""
+    with pytest.raises(sysid.InputValidationError):
+        call()

@@ -201,3 +201,29 @@ def test_fit_result_validate_leaves_out_the_start_of_every_experiment():
     np.testing.assert_allclose(float(quality.rmse), np.sqrt(np.mean((ys - yhat) ** 2)), rtol=1e-10)
     with pytest.raises(InputValidationError, match="skip"):
         res.validate(data, skip=299)
+
+
+def test_independence_test_holds_its_level_with_a_coloured_input():
+    """White residuals independent of an AR(1) input (pole 0.95): the independence test must
+    reject about alpha of the data sets. Without the input's autocorrelation matrix in the
+    statistic (Ljung 1999, eq. 16.66) it rejected 15 % at alpha = 1 %; the statistic of one
+    data set equals N rho' R_u^-1 rho computed with scipy's Toeplitz matrix."""
+    import scipy.linalg
+    import scipy.signal
+
+    rng = np.random.default_rng(0)
+    trials, N, m, alpha = 1000, 500, 20, 0.05
+    e = rng.standard_normal((trials, N, 1))
+    u = scipy.signal.lfilter([1.0], [1.0, -0.95], rng.standard_normal((trials, N + 200)))
+    u = u[:, 200:, None]
+    result = residual_test(torch.tensor(e), torch.tensor(u), max_lag=m, alpha=alpha)
+    rejected = float((~result.independent).double().mean())
+    assert 0.025 <= rejected <= 0.08, rejected  # binomial sd 0.007 around 0.05
+    uc = u[0, :, 0] - u[0, :, 0].mean()
+    autocorrelation = np.array([uc[k:] @ uc[: N - k] for k in range(m + 1)]) / (uc @ uc)
+    rho = result.cross_correlation[0, 0, m:].numpy()
+    S = N * rho @ np.linalg.solve(scipy.linalg.toeplitz(autocorrelation), rho)
+    np.testing.assert_allclose(float(result.independence_statistic[0, 0]), S, rtol=1e-10)
+    np.testing.assert_allclose(
+        float(result.independence_pvalue[0, 0]), scipy.stats.chi2.sf(S, m + 1), rtol=1e-10
+    )
