@@ -319,7 +319,8 @@ def solve_adaptive(
             remaining = t_stop - t_cur
             # a trial that would leave less than dt_min before the next stop goes all the way
             last = h_next + dt_min >= remaining
-            h = torch.where(last, remaining, h_next) * active
+            # a step ends at a float time, and the state moves by exactly its length
+            h = torch.where(last, remaining, (t_cur + h_next) - t_cur) * active
         hc = h[:, None]
         stages = [k1]
         x_stage = x

@@ -234,8 +234,10 @@ def adaptive_loop(
                 stop(over, Status.MAX_STEPS, why)
             if not any_(active):
                 break
-            h_step = h
-            kernel.begin_step(tcur, h)
+            # the step ends at a float time and moves the state by exactly its length; the
+            # planned h_try decides the reuse of the factorisation and the next step size
+            h_try, h_step = h, (tcur + h) - tcur
+            kernel.begin_step(tcur, h_step)
             jac_mask = active & need_jac
             if any_(jac_mask):
                 high = kernel.jacobian(jac_mask)
@@ -271,7 +273,7 @@ def adaptive_loop(
             reject = ok & not_(accept)
             n_rej += reject
 
-            hh = ops.float64(h_step)
+            hh = ops.float64(h_try)
             err_c, h_acc, h_rej, slow = controller.radau_step_sizes(
                 hh, err, finite, err_old, h_old, first, iters, theta, max_iter, expo
             )
@@ -382,12 +384,8 @@ class TorchKernel:
         return self.mat.update_jacobian(mask, self.tcol, self.xd, self.zd, self.xdot.detach())
 
     def factorize(self, mask, h, h_fact):
-        if np.count_nonzero(mask) == mask.size:
-            h_lu = self.h_t
-        else:
-            h_lu = np.where(mask, h, np.where(h_fact > 0, h_fact, h))
-            h_lu = to_device(h_lu, self.x0, self.dtype, self.batch)
-        return self.mat.update_factors(mask, h_lu)
+        h_lu = np.where(mask, h, np.where(h_fact > 0, h_fact, h))
+        return self.mat.update_factors(mask, to_device(h_lu, self.x0, self.dtype, self.batch))
 
     def newton(self, live, have_prev, ratio):
         s = self.core.s
