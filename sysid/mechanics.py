@@ -525,6 +525,10 @@ class LagrangianSystem(nn.Module):
             with torch.enable_grad():
                 qq = self._leaf(q.expand(*batch, q.shape[-1]))
                 points = self.force_points(qq)
+                wider = _wider_batch(points[..., 0, 0], qq)  # parameters batch the points
+                if wider is not None:
+                    qq = self._leaf(q.expand(*wider, q.shape[-1]).contiguous())
+                    points = self.force_points(qq)
                 q_force = gradients(
                     points, qq, forces.expand_as(points), create_graph=create
                 )  # per-sample J^T F: the points of different samples are independent

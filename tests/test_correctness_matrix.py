@@ -280,6 +280,29 @@ def test_parameter_gradient_matches_central_differences(name, driver, monkeypatc
     assert abs(grad - fd) <= drv.grad_rtol * max(1.0, abs(fd)), (grad, fd)
 
 
+@pytest.mark.parametrize("shape", [(), (3,)], ids=lambda s: f"batch{s}")
+@pytest.mark.parametrize(
+    "driver", [d.name for d in DRIVERS if "rtol" in d.options and d.options.get("rtol") == RTOL]
+)
+def test_adaptive_driver_is_accurate_far_from_time_zero(driver, shape):
+    """An autonomous linear ODE started at t0 = 1e8: the solution cannot depend on t0, and
+    each adaptive driver must stay as close to the matrix exponential as at t0 = 0. Steps
+    advanced the time by the rounded ``t + h`` but the state by ``h`` (radau 1.1e-6, dopri5
+    8e-8 at rtol 1e-8, against 1e-9 at t0 = 0)."""
+    A = torch.tensor([[0.0, 1.0], [-4.0, -0.5]], dtype=DT)
+    x0 = torch.tensor([1.0, 0.0], dtype=DT).expand(*shape, 2)
+    errors = []
+    for t0 in (0.0, 1e8):
+        t = t0 + torch.linspace(0.0, 2.0, 21, dtype=DT)
+        # at the float times of the grid (1e8 + 0.1 is 1e8 + 0.1 +- 7e-9)
+        exact = torch.stack([torch.linalg.matrix_exp(A * float(ti - t[0])) for ti in t])
+        exact = (exact @ x0[..., None, :, None])[..., 0]
+        sol = odeint(lambda t, x: x @ A.T, x0, t, **DRIVER[driver].options)
+        assert (sol.status == Status.SUCCESS).all(), sol.messages
+        errors.append(float((sol.x - exact).abs().max()))
+    assert errors[1] <= 5 * errors[0] + 1e-10, errors
+
+
 #: input-driven plants whose input gradients are checked on every driver: a non-stiff and a
 #: stiff one (the gradient path depends on the driver, not on the plant)
 INPUT_GRADIENT_PLANTS = ("SpringMassDamper", "SingularlyPerturbedLinear")
@@ -447,6 +470,30 @@ def test_dae_parameter_gradient_matches_central_differences(name):
     fd = (values[0] - values[1]) / (2 * h)
     g = float((grad * direction).sum())
     assert abs(g - fd) <= drv.grad_rtol * max(1.0, abs(fd)), (g, fd)
+
+
+@pytest.mark.parametrize("name", list(SCENARIOS))
+def test_per_member_parameters_broadcast_against_a_shared_state(name):
+    """Every scalar parameter of every plant given per member, (3, 1), with one state (nx,)
+    shared by the batch: the right-hand side is that of three plants with one value each.
+    The cranes stacked a cart position of the state's batch with a bob position of the
+    length's batch and raised."""
+    sc = SCENARIOS[name]
+    x = torch.tensor(sc.x0, dtype=DT)
+    t = torch.tensor(0.1, dtype=DT)
+    args = (t, x, sc.u(t)) if sc.u is not None else (t, x)
+    scalars = [n for n, p in sc.build().to(DT).named_parameters() if p.numel() == 1]
+    for param in scalars:
+        batched = sc.build().to(DT)
+        value = float(batched.get_parameter(param))
+        members = value * torch.tensor([1.0, 1.1, 0.9], dtype=DT)
+        batched.get_parameter(param).data = members[:, None]
+        expected = []
+        for v in members:
+            one = sc.build().to(DT)
+            one.get_parameter(param).data = v.reshape(one.get_parameter(param).shape)
+            expected.append(one(*args))
+        torch.testing.assert_close(batched(*args), torch.stack(expected), rtol=1e-12, atol=1e-12)
 
 
 def test_every_zoo_plant_has_a_scenario():

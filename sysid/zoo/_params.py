@@ -52,6 +52,20 @@ def stack_last(*params: torch.Tensor) -> torch.Tensor:
     return torch.cat(torch.broadcast_tensors(*columns), -1)
 
 
+def stack_components(*components: torch.Tensor) -> torch.Tensor:
+    """Components ``(*batch_i,)`` of a right-hand side stacked on a last axis after
+    broadcasting them to one batch: a per-member parameter ``(*batch, 1)`` batches the
+    components it enters beyond a state shared by the members."""
+    return torch.stack(torch.broadcast_tensors(*components), -1)
+
+
+def cat_columns(*columns: torch.Tensor) -> torch.Tensor:
+    """Columns ``(*batch_i, k_i)`` joined on the last axis after broadcasting their batches
+    (see :func:`stack_components`)."""
+    batch = torch.broadcast_shapes(*(c.shape[:-1] for c in columns))
+    return torch.cat([c.expand(*batch, c.shape[-1]) for c in columns], -1)
+
+
 def check_state(x: torch.Tensor, n: int, plant: str) -> None:
     """Raise InputValidationError unless ``x`` has shape ``(*batch, n)``."""
     if not isinstance(x, torch.Tensor) or x.dim() < 1 or x.shape[-1] != n:

@@ -11,7 +11,7 @@ algebraic ones z; the first line of each class docstring gives the same order.
 import torch
 from torch import nn
 
-from ._params import as_parameter, input_or_zero, like
+from ._params import as_parameter, cat_columns, input_or_zero, like
 
 
 def _u(u, x):
@@ -158,7 +158,7 @@ class TwoMassSystem(nn.Module):
         x1, x2, v1, v2 = (s[..., i : i + 1] for i in range(4))
         a1 = (k * (x2 - x1) - k * x1 - rho * v1 + _u(u, s)) / m1
         a2 = (k * (x1 - x2) - rho * v2) / m2
-        return torch.cat([v1, v2, a1, a2], -1)
+        return cat_columns(v1, v2, a1, a2)
 
     def ode_543(self, t, s, u=None):
         """Eq. (5.43) in s = (x1, x2, x2dot)."""
@@ -172,7 +172,7 @@ class TwoMassSystem(nn.Module):
         """Differential part of eq. (5.44b): x = (x2, x2dot), z = x1."""
         m2, k, rho = (like(p, x) for p in (self.m2, self.K, self.rho))
         x2, v2 = x[..., 0:1], x[..., 1:2]
-        return torch.cat([v2, (k * (z - x2) - rho * v2) / m2], -1)
+        return cat_columns(v2, (k * (z - x2) - rho * v2) / m2)
 
     def g_544(self, t, x, z, u=None):
         """Algebraic part eq. (5.44a) (typo fixed): 0 = (x2 - x1) - x1 + u / K."""
@@ -195,7 +195,7 @@ class SingularlyPerturbedLinear(nn.Module):
     def forward(self, t, x, u=None):
         eps, a = like(self.eps, x), like(self.a, x)
         x1, x2 = x[..., 0:1], x[..., 1:2]
-        return torch.cat([-x1 + x2, (x1 - a * x2 + _u(u, x)) / eps], -1)
+        return cat_columns(-x1 + x2, (x1 - a * x2 + _u(u, x)) / eps)
 
     def f(self, t, x, z, u=None):
         """DAE limit (5.37a) with x = x1, z = x2."""

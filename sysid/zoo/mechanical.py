@@ -143,7 +143,7 @@ class Crane(_CartCrane):
         x, th, length = q[..., 0], q[..., 1], like_component(self.L, q)
         cart = torch.stack([x, torch.zeros_like(x)], -1)
         bob = torch.stack([x + length * torch.sin(th), -length * torch.cos(th)], -1)
-        return torch.stack([cart, bob], -2)
+        return torch.stack(torch.broadcast_tensors(cart, bob), -2)  # L may be per member
 
     def closed_form_mass_matrix(self, q):
         M, m, L = like(self.M, q), like(self.m, q), like(self.L, q)
@@ -351,7 +351,7 @@ class TwoPendulumCranePolar(_CartCrane):
         p0 = torch.stack([x, torch.zeros_like(x)], -1)
         p1 = p0 + length * torch.stack([torch.sin(t1), -torch.cos(t1)], -1)
         p2 = p1 + length * torch.stack([torch.sin(t2), -torch.cos(t2)], -1)
-        return torch.stack([p0, p1, p2], -2)
+        return torch.stack(torch.broadcast_tensors(p0, p1, p2), -2)  # L may be per member
 
     def closed_form_mass_matrix(self, q):
         m, L = like(self.m, q), like(self.L, q)

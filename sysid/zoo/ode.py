@@ -14,7 +14,14 @@ from torch import nn
 
 from integrators.errors import InputValidationError
 
-from ._params import as_parameter, check_state, input_or_zero, like, like_component
+from ._params import (
+    as_parameter,
+    check_state,
+    input_or_zero,
+    like,
+    like_component,
+    stack_components,
+)
 
 
 def _time_grid(t, x0: torch.Tensor) -> torch.Tensor:
@@ -57,7 +64,7 @@ class VanDerPol(nn.Module):
         x1_dot = mu * (1 - x2 * x2) * x1 - x2
         if u is not None:
             x1_dot = x1_dot + input_or_zero(u, x, 1)[..., 0]
-        return torch.stack([x1_dot, x1], dim=-1)
+        return stack_components(x1_dot, x1)
 
 
 class StiffVanDerPol(nn.Module):
@@ -80,7 +87,7 @@ class StiffVanDerPol(nn.Module):
         check_state(x, 2, "StiffVanDerPol")
         eps = like_component(self.eps, x)
         y1, y2 = x.unbind(-1)
-        return torch.stack([y2, ((1 - y1 * y1) * y2 - y1) / eps], dim=-1)
+        return stack_components(y2, ((1 - y1 * y1) * y2 - y1) / eps)
 
 
 class Lorenz(nn.Module):
@@ -103,7 +110,7 @@ class Lorenz(nn.Module):
         check_state(x, 3, "Lorenz")
         sigma, rho, beta = (like_component(p, x) for p in (self.sigma, self.rho, self.beta))
         x1, x2, x3 = x.unbind(-1)
-        return torch.stack([sigma * (x2 - x1), x1 * (rho - x3) - x2, x1 * x2 - beta * x3], dim=-1)
+        return stack_components(sigma * (x2 - x1), x1 * (rho - x3) - x2, x1 * x2 - beta * x3)
 
 
 class StiffLinear(nn.Module):
