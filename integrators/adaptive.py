@@ -245,7 +245,7 @@ def solve_adaptive(
     # one matmul gives the error estimate and the four dense-output coefficient vectors
     combine = torch.cat([e_ext[:, None], ext.tensor(dtype, device)], dim=1)  # (n_ext, 5)
     q = min(tab.order, tab.embedded_order)
-    evals_per_attempt = (s if ext.extra_eval else s - 1) + held
+    evals_per_attempt = s if ext.extra_eval else s - 1
     c_list = [float(v) for v in tab.c]
     a_rows = [A[i, :i].contiguous() for i in range(s)]
     b_vec = b.contiguous()
@@ -302,6 +302,7 @@ def solve_adaptive(
     last_nonfinite = torch.zeros(B, dtype=torch.bool, device=device)
     n_acc = torch.zeros(B, dtype=torch.int64, device=device)
     n_att = torch.zeros(B, dtype=torch.int64, device=device)
+    n_restarts = torch.zeros(B, dtype=torch.int64, device=device)  # K_1 after an input jump
     records = _StepRecord()
     code_non_finite, code_too_small, code_max_steps = (
         torch.tensor(int(code), dtype=torch.int8, device=device)
@@ -365,9 +366,12 @@ def solve_adaptive(
         records.append(t_cur, h * accept, x, r)
         x = torch.where(acc_col, x_new, x)
         k1 = torch.where(acc_col, f_new, k1)
-        if held:  # K_1 with the sample held from a stop on
+        if held:  # K_1 with the sample held from a stop on, where a member reached one
             sample = held_sample(t_next)
-            k1 = torch.where((k_next != k_cur)[:, None], call(t_next, x, sample), k1)
+            crossed = k_next != k_cur
+            if bool(crossed.any()):
+                k1 = torch.where(crossed[:, None], call(t_next, x, sample), k1)
+                n_restarts += crossed
         t_cur, k_cur = t_next, k_next
 
     records.append(t_cur, torch.zeros_like(t_cur), x, zero_r)
@@ -376,7 +380,7 @@ def solve_adaptive(
     x_out = interpolant(t_out)
 
     messages = _messages(status, t_cur, ~finite0, max_steps, batch_shape)
-    n_f = init_evals + evals_per_attempt * n_att
+    n_f = init_evals + evals_per_attempt * n_att + n_restarts
     stats = SolverStats(
         n_f_evals=n_f.reshape(batch_shape),
         n_steps=n_acc.reshape(batch_shape),

@@ -146,6 +146,11 @@ def test_adaptive_steps_end_at_the_samples_of_an_input(driver, interpolation, ba
         error = np.abs(sol.x.numpy().reshape(exact.shape) - exact).max()
         assert error <= 5 * tol, (tol, error)
         assert int(sol.stats.n_steps.min()) >= len(t) - 1
+        if driver == "dopri5" and interpolation == "zoh":
+            # f(t0), the initial-step probe, 6 per attempt (FSAL), and K_1 again only at
+            # each of the len(t) - 2 inner samples, where the held input jumps
+            attempts = sol.stats.n_steps + sol.stats.n_rejected
+            assert torch.equal(sol.stats.n_f_evals, 2 + 6 * attempts + len(t) - 2)
 
 
 def test_callable_input_matches_closed_form():
