@@ -30,6 +30,12 @@ class ConvergenceWarning(RKIdentWarning):
     errors); the per-data-set flags say which."""
 
 
+class ParameterAtBoundWarning(RKIdentWarning):
+    """A bounded parameter's estimate ended at its bound: the criterion decreases beyond it,
+    so the model or the bound is wrong for these data, and its standard error (and those of
+    the parameters it correlates with) do not describe the uncertainty of a minimum."""
+
+
 class StudyDeclarationError(InputValidationError):
     """A Monte-Carlo study folder holds results of a different declaration (grid, trials,
     seed, chunk, block, estimators or version) than the study asked to run in it."""
@@ -48,6 +54,7 @@ __all__ = [
     "HighIndexWarning",
     "InputValidationError",
     "IntegrationError",
+    "ParameterAtBoundWarning",
     "PoorExcitationWarning",
     "RKIdentError",
     "RKIdentWarning",

@@ -559,3 +559,56 @@ def test_a_singular_fit_names_the_parameters_of_its_flat_direction():
         str(w.message) for w in caught if "enter the data only in a combination" in str(w.message)
     ]
     assert named and "'a1', 'a2'" in named[0] and "'b'" not in named[0]
+
+
+def test_an_estimate_ending_at_its_bound_is_flagged():
+    """Two data sets of x' = -a x + u1 + b u2, one with b = +0.3 and one with b = -0.3, fitted
+    with b >= 0: the second estimate of b ends at its bound, where the criterion increases
+    inside. It was reported as a converged estimate like any other; now info["at_bound"]
+    flags it, a ParameterAtBoundWarning and the messages name it, and the interior fit is not
+    flagged."""
+    from sysid import ParameterAtBoundWarning
+
+    def decay(t, x, u, p):
+        return (-p["a"] * x[..., 0] + u[..., 0] + p["b"] * u[..., 1]).unsqueeze(-1)
+
+    g = torch.Generator().manual_seed(0)
+    u = torch.randn(2, 200, 2, generator=g, dtype=torch.float64)
+    truth = GreyBoxModel(decay, {"a": 1.5, "b": 0.0}, nx=1)
+    y = truth.simulate(IOData(u, u[..., :1], Ts=0.1), params={"b": torch.tensor([0.3, -0.3])})
+    data = IOData(u, y + 0.01 * torch.randn(y.shape, generator=g, dtype=y.dtype), Ts=0.1)
+    model = GreyBoxModel(decay, {"a": Param(1.0, min=0.0), "b": Param(0.5, min=0.0)}, nx=1)
+    with pytest.warns(ParameterAtBoundWarning, match="'b' ended at a bound"):
+        res = fit(model, data)
+    assert res.info["at_bound"].tolist() == [[False, False], [False, True]]
+    assert float(res.theta[1, 1]) < 1e-8 and abs(float(res.theta[0, 1]) - 0.3) < 0.01
+    assert res.converged.tolist() == [True, True]
+    assert [m.startswith("batch index (1,)") for m in res.messages] == [True]
+
+
+def test_an_estimate_stalled_at_a_bound_is_not_converged():
+    """A damped pendulum (true damping 0.3) with the damping bounded to (0, 0.31) from 0.305:
+    a Levenberg-Marquardt step saturates the logistic coordinate, where it is flat, and the
+    iteration stops at the bound 0.31 although the criterion is lower inside (scipy's bounded
+    least squares: 0.3005, no active bound). It was reported converged; now it is not, and
+    the message names the parameter."""
+
+    def pendulum(t, x, u, p):
+        acc = -p["k"] * torch.sin(x[..., 0]) - p["d"] * x[..., 1] + u[..., 0]
+        return torch.stack([x[..., 1], acc], -1)
+
+    rng = np.random.default_rng(0)
+    u = torch.tensor(np.repeat(rng.choice([-1.0, 1.0], 41), 5)[:200])[:, None]
+    truth = GreyBoxModel(pendulum, {"k": 9.81, "d": 0.3}, nx=2, output=[0], substeps=2)
+    y = truth.simulate(IOData(u, u, Ts=0.1))
+    data = IOData(u, y + 0.02 * torch.tensor(rng.standard_normal(y.shape)), Ts=0.1)
+    bounded = {"k": 8.0, "d": Param(0.305, min=0.0, max=0.31)}
+    model = GreyBoxModel(pendulum, bounded, nx=2, output=[0], substeps=2, compile=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = fit(model, data)
+    if bool(res.info["at_bound"][1]):  # stalled at 0.31
+        assert not bool(res.converged)
+        assert "'d' stalled at a bound" in res.messages[0]
+    else:  # reached the interior optimum
+        assert bool(res.converged) and abs(float(res.theta[1]) - 0.3) < 0.01

@@ -43,7 +43,7 @@ from integrators.newton import NewtonStatus, minimize
 
 from .._progress import progress_bar
 from ..data import IOData
-from ..errors import ConvergenceWarning, PoorExcitationWarning
+from ..errors import ConvergenceWarning, ParameterAtBoundWarning, PoorExcitationWarning
 from ..estimation.losses import LOSSES, GaussianLoss, make_loss
 from ..estimation.results import STATIONARY_TOL, FitResult, covariance, remaining_step
 from .greybox import GreyBoxModel, Segments, initial_states
@@ -78,6 +78,8 @@ _FIT_EVALUATIONS = 20
 #: |correlation| of two estimates above which the pair is reported as not separately
 #: identifiable from the data
 _IDENTIFIABILITY_CORRELATION = 0.999
+#: an estimate closer to a bound than this fraction of its start's distance is at the bound
+_AT_BOUND = 1e-6
 
 
 class _Problem:
@@ -567,12 +569,26 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
     failed = lm.status == NewtonStatus.LINE_SEARCH_FAILED
     # columns of J in physical units: divide each parameter column by dp/dz
     factor_cols, phys = torch.ones_like(z), z.clone()
+    at_bound, z_inside = torch.zeros_like(z, dtype=torch.bool), z.clone()
     for e in range(len(problem.parts)):
         P, dP_dz = problem.physical(z, e)
         for j, c in enumerate(problem.param_columns[e]):
             if c is not None:
                 factor_cols[..., c] = dP_dz[..., j, c]
                 phys[..., c] = P[..., j]
+                name = problem.model.names[j]
+                p = problem.model.params[name]
+                start = p.start(len(problem.parts))[e if p.per_experiment else 0]
+                at_bound[..., c], inside = _at_bound(P[..., j], start, p)
+                scale = problem.scales[(name, e if p.per_experiment else 0)].to(z)
+                z_inside[..., c] = p.to_unconstrained(inside, scale)
+    # a member at a bound whose criterion decreases inside it stalled there: not a minimum
+    stalled = torch.zeros_like(lm.status, dtype=torch.bool)
+    if bool(at_bound.any()):
+        with torch.no_grad():
+            r_inside = problem.residuals(torch.where(at_bound, z_inside, z))
+        lower = the_loss.rho(r_inside).sum(-1) < the_loss.rho(r).sum(-1)
+        stalled = at_bound.any(-1) & lower
     J_phys = J / factor_cols.unsqueeze(-2)
     keep = problem.reported
     cov_all, sigma2, factor = covariance(J_phys, r, the_loss)
@@ -582,8 +598,9 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
     d, zstat = remaining_step(J, r, the_loss, factor)
     tiny = d.norm(dim=-1) <= math.sqrt(torch.finfo(d.dtype).eps) * (1 + z.norm(dim=-1))
     interrupted = lm.status == NewtonStatus.INTERRUPTED
-    converged = ((zstat <= STATIONARY_TOL) | tiny) & ~interrupted
+    converged = ((zstat <= STATIONARY_TOL) | tiny) & ~interrupted & ~stalled
     names = [problem.column_names[c] for c in keep]
+    at_bound = at_bound[..., keep]
     model = problem.model
     params = {}
     for n in model.names:
@@ -623,6 +640,12 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
             )
         elif bool(failed[key]):
             why = "the line search found no decrease"
+        elif bool(stalled[key]):
+            stuck = [names[k] for k in torch.nonzero(at_bound[key]).flatten().tolist()]
+            why = (
+                f"{', '.join(map(repr, stuck))} stalled at a bound although the criterion "
+                "decreases inside it (the bounded coordinate is flat there)"
+            )
         else:
             why = "the iteration limit was reached or it stopped away from a stationary point"
         messages.append(
@@ -632,7 +655,8 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
             + (
                 "Run the fit again from it (Param values from result.params) to finish."
                 if bool(interrupted[key])
-                else "Start closer, raise max_iter, or use criterion='multiple_shooting'."
+                else "Start closer (or further from the bounds), raise max_iter, or use "
+                "criterion='multiple_shooting'."
             )
         )
     if messages:
@@ -643,6 +667,7 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
             ConvergenceWarning,
             stacklevel=3,
         )
+    messages += _bound_messages(at_bound & ~stalled[..., None], names)
     _warn_unidentifiable(cov, J_phys[..., keep], names)
     stats = problem.stats
     if x0_est is not None and len(x0_est) == 1:
@@ -679,6 +704,7 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
             "step_in_standard_errors": zstat,
             "line_search_failed": failed,
             "interrupted": interrupted,
+            "at_bound": at_bound,
         },
         stable=None,
         messages=messages,
@@ -707,6 +733,44 @@ def simulation_quality(
     quality = _quality(y, yhat.to(y).index_select(-2, keep), 0, "validate", check=False)
     quality.skip = skip
     return quality
+
+
+def _at_bound(value: torch.Tensor, start: torch.Tensor, param):
+    """Whether the estimate ``value`` (*batch,) of a bounded parameter ended at a bound: closer
+    to it than :data:`_AT_BOUND` times the start's distance to it (the bounded coordinates
+    only approach a bound as the unconstrained one goes to infinity); and a value inside,
+    a tenth of that distance away from the bound it is at (``value`` elsewhere)."""
+    out, inside = torch.zeros_like(value, dtype=torch.bool), value.clone()
+    for bound in (param.min, param.max):
+        if bound is not None:
+            near = (value - bound).abs() <= _AT_BOUND * abs(float(start) - bound)
+            inside = torch.where(near, bound + 0.1 * (float(start) - bound), inside)
+            out |= near
+    return out, inside
+
+
+def _bound_messages(at_bound: torch.Tensor, names: list[str]) -> list[str]:
+    """One message per data set with an estimate at its bound (``at_bound`` (*batch, p)),
+    also issued as a :class:`ParameterAtBoundWarning`."""
+    messages = []
+    flat = at_bound.reshape(-1, len(names))
+    for idx in torch.nonzero(flat.any(-1)).flatten().tolist():
+        key = tuple(int(i) for i in np.unravel_index(idx, at_bound.shape[:-1]))
+        pinned = [names[k] for k in torch.nonzero(flat[idx]).flatten().tolist()]
+        messages.append(
+            f"batch index {key}: {', '.join(map(repr, pinned))} ended at a bound: the "
+            "criterion increases inside it, so its minimum lies beyond the bound (a wrong "
+            "model structure, sign or bound for these data) and the standard errors do not "
+            "describe a minimum. Check the model, or widen the bound."
+        )
+    if messages:
+        warnings.warn(
+            f"fit: estimates at their bounds in {len(messages)} of {flat.shape[0]} data "
+            "sets:\n  " + "\n  ".join(messages[:5]) + "\n(result.info['at_bound'] flags them.)",
+            ParameterAtBoundWarning,
+            stacklevel=4,
+        )
+    return messages
 
 
 def _warn_unidentifiable(cov: torch.Tensor, J: torch.Tensor, names: list[str]) -> None:
