@@ -612,3 +612,24 @@ def test_an_estimate_stalled_at_a_bound_is_not_converged():
         assert "'d' stalled at a bound" in res.messages[0]
     else:  # reached the interior optimum
         assert bool(res.converged) and abs(float(res.theta[1]) - 0.3) < 0.01
+
+
+def test_per_experiment_parameter_of_a_batch_with_one_experiment():
+    """Two noise-free data sets of x' = -a x + 2 u + c with different offsets c, one
+    experiment each, c per experiment: the fitted model must reproduce both data sets. With
+    one experiment the estimate lost its experiment axis and the simulation read the batch
+    axis as the experiment (fit -239 % for the second data set)."""
+
+    def offset(t, x, u, p):
+        return (-p["a"] * x[..., 0] + 2.0 * u[..., 0] + p["c"]).unsqueeze(-1)
+
+    u = torch.randn(2, 50, 1, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    truth = GreyBoxModel(offset, {"a": 1.5, "c": 0.0}, nx=1)
+    y = truth.simulate(IOData(u, u, Ts=0.1), params={"c": torch.tensor([0.5, -1.0])})
+    data = IOData(u, y, Ts=0.1)
+    model = GreyBoxModel(offset, {"a": 1.0, "c": Param(0.0, per_experiment=True)}, nx=1)
+    res = fit(model, data)
+    torch.testing.assert_close(res.theta, torch.tensor([[1.5, 0.5], [1.5, -1.0]]).double())
+    assert res.params["c"].shape == (2, 1)
+    torch.testing.assert_close(res.model.simulate(data), data.y, rtol=0, atol=1e-10)
+    assert bool((res.quality.fit_percent > 99.99).all())

@@ -607,17 +607,13 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
         p = model.params[n]
         if p.free and not p.per_experiment:
             params[n] = theta[..., names.index(n)]
-        elif p.free:
-            params[n] = (
-                torch.stack(
-                    [
-                        phys[..., problem.param_columns[e][model.names.index(n)]]
-                        for e in range(len(problem.parts))
-                    ],
-                    -1,
-                )
-                if len(problem.parts) > 1
-                else theta[..., names.index(n)]
+        elif p.free:  # the experiment is the last dimension, also of a single experiment
+            params[n] = torch.stack(
+                [
+                    phys[..., problem.param_columns[e][model.names.index(n)]]
+                    for e in range(len(problem.parts))
+                ],
+                -1,
             )
         else:
             params[n] = p.values if p.values.numel() > 1 else p.values[0]
