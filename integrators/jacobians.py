@@ -152,7 +152,14 @@ def batch_jacobian(
 def _batch_shaped(y: torch.Tensor, batch: torch.Size) -> torch.Tensor:
     """``y`` (*batch, m), broadcast from fewer batch dimensions; a larger batch (the map mixes
     in a batch of its own, e.g. batched parameters) is refused: the members would not be
-    independent."""
+    independent. An output of x's batch shape itself (one value per member, the trailing
+    ``m`` axis missing) is refused rather than read as one unbatched output of ``m`` values."""
+    if y.dim() == 0 or (len(batch) > 0 and y.shape == batch):
+        raise InputValidationError(
+            f"batch_jacobian: fn returned shape {tuple(y.shape)} for x of batch shape "
+            f"{tuple(batch)}; it must return (*batch, m): keep a trailing axis for a single "
+            "output (r.unsqueeze(-1))."
+        )
     try:
         return y.expand(*batch, y.shape[-1])
     except RuntimeError:

@@ -447,15 +447,8 @@ def newton(
             _, J = batch_jacobian(phi, z, *frozen)
             counts["phi"] += 1
             return J
-        if isinstance(jacobian, torch.Tensor):
-            return jacobian.detach().to(dtype=x.dtype, device=dev).expand(*batch, *x.shape[-1:] * 2)
-        J = jacobian(z, *frozen)
-        if not isinstance(J, torch.Tensor) or J.shape[-2:] != (x.shape[-1],) * 2:
-            raise InputValidationError(
-                f"newton: jacobian must return (*batch, {x.shape[-1]}, {x.shape[-1]}), got "
-                f"{tuple(J.shape) if isinstance(J, torch.Tensor) else type(J).__name__}."
-            )
-        return J.detach().expand(*batch, *J.shape[-2:])
+        J = jacobian if isinstance(jacobian, torch.Tensor) else jacobian(z, *frozen)
+        return _matrix_of_batch(J, batch, x.shape[-1], "jacobian", x.dtype, dev)
 
     def factorise(z):
         counts["lu"] += 1
@@ -476,7 +469,7 @@ def newton(
         if frozen_matrix:
             if factorization is not None:
                 LU, pivots = (f.detach() for f in factorization)
-                LU = LU.to(dtype=x.dtype).expand(*batch, *LU.shape[-2:])
+                LU = _matrix_of_batch(LU, batch, x.shape[-1], "factorization", x.dtype, dev)
                 pivots = pivots.expand(*batch, pivots.shape[-1])
             else:
                 LU, pivots, ok = factorise(x)
@@ -567,6 +560,21 @@ def newton(
 
 # ---------------------------------------------------------------------------- minimize
 MINIMIZE_METHODS = ("newton", "gauss_newton", "levenberg_marquardt")
+
+
+def _matrix_of_batch(M, batch, n: int, what: str, dtype, device) -> torch.Tensor:
+    """``M`` (*b, n, n) detached and expanded to (*batch, n, n), or InputValidationError
+    naming ``what`` when it is not a tensor of that shape."""
+    if not isinstance(M, torch.Tensor) or M.dim() < 2 or M.shape[-2:] != (n, n):
+        got = tuple(M.shape) if isinstance(M, torch.Tensor) else type(M).__name__
+        raise InputValidationError(f"newton: {what} must be (*batch, {n}, {n}), got {got}.")
+    try:
+        return M.detach().to(dtype=dtype, device=device).expand(*batch, n, n)
+    except RuntimeError:
+        raise InputValidationError(
+            f"newton: {what} of batch shape {tuple(M.shape[:-2])} does not broadcast to the "
+            f"batch {tuple(batch)} of x0."
+        ) from None
 
 
 def _loss_derivatives(fun, theta, args, method, jacobian=None, loss=None):

@@ -602,7 +602,16 @@ def sensitivities(
     inputs = _InputParameters(u, tab, substeps, differentiated=bool(input_sensitivities))
     g = _model(f, u is not None, p is not None)
     nx, n_p = x0.shape[-1], (0 if p is None else p.shape[-1])
-    batch = torch.broadcast_shapes(x0.shape[:-1], () if p is None else p.shape[:-1], inputs.batch)
+    try:
+        batch = torch.broadcast_shapes(
+            x0.shape[:-1], () if p is None else p.shape[:-1], inputs.batch
+        )
+    except RuntimeError:
+        raise InputValidationError(
+            f"sensitivities: the batch shapes of x0 {tuple(x0.shape[:-1])}, p "
+            f"{None if p is None else tuple(p.shape[:-1])} and u {tuple(inputs.batch)} do not "
+            "broadcast."
+        ) from None
     x = x0.expand(*batch, nx).clone()
     eye = torch.eye(nx, dtype=x.dtype, device=x.device)
     T, nw = t.shape[0], (inputs.size if inputs.parameterised else 0)

@@ -96,3 +96,40 @@ def test_validation_and_discretisation_arguments_are_named_errors(call):
     torch error from inside."""
     with pytest.raises(sysid.InputValidationError):
         call()
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda: integrators.newton(
+            lambda x: x**2 - 2, torch.ones(3, 2, dtype=torch.float64), jacobian=torch.eye(3)
+        ),
+        lambda: integrators.newton(
+            lambda x: x**2 - 2,
+            torch.ones(3, 2, dtype=torch.float64),
+            jacobian=lambda x: torch.eye(2, dtype=torch.float64).expand(4, 2, 2),
+        ),
+        lambda: integrators.newton(
+            lambda x: x**2 - 2,
+            torch.ones(3, 2, dtype=torch.float64),
+            method="simplified",
+            factorization=torch.linalg.lu_factor(torch.eye(3, dtype=torch.float64)),
+        ),
+        lambda: integrators.minimize(
+            lambda th: (th**2).sum(-1), torch.ones(3, 2, dtype=torch.float64), method="gauss_newton"
+        ),
+        lambda: integrators.sensitivities(
+            lambda t, x, p: -p * x,
+            torch.ones(3, 1, dtype=torch.float64),
+            torch.linspace(0, 1, 5, dtype=torch.float64),
+            p=torch.ones(2, 1, dtype=torch.float64),
+        ),
+    ],
+    ids=["jacobian size", "jacobian batch", "factorization size", "residual w/o m", "p batch"],
+)
+def test_solver_arguments_of_the_wrong_shape_are_named_errors(call):
+    """A Jacobian or factorisation of the wrong size or batch, a residual without its trailing
+    axis (it was read as one residual shared by all problems: each problem's loss summed
+    the others'), and batches that do not broadcast raise InputValidationError."""
+    with pytest.raises(integrators.InputValidationError):
+        call()

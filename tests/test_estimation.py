@@ -499,11 +499,6 @@ def test_init_and_weights_with_a_foreign_batch_shape_are_named():
         fit(ARX(2, 2, 1), data, weights=torch.ones(5, 100))
 
 
-def _lower_median(x):
-    """The lower middle value (the median of torch's convention), by sorting in numpy."""
-    return np.sort(x)[(len(x) - 1) // 2]
-
-
 @pytest.mark.parametrize("alpha", [0.2, None])
 def test_huber_mle_matches_scipy_least_squares_huber(alpha):
     """loss="huber": the minimiser of Huber's loss with threshold c = alpha, or by default
@@ -527,7 +522,7 @@ def test_huber_mle_matches_scipy_least_squares_huber(alpha):
         c = alpha
         if alpha is None:
             r0 = y - A @ np.linalg.lstsq(A, y, rcond=None)[0]
-            c = 1.345 * 1.4826 * _lower_median(np.abs(r0 - _lower_median(r0)))
+            c = 1.345 * 1.4826 * np.median(np.abs(r0 - np.median(r0)))
         ref = scipy.optimize.least_squares(
             lambda q, A=A, y=y: y - A @ q,
             np.zeros(A.shape[1]),
@@ -744,3 +739,16 @@ def test_a_parameter_the_criterion_ignores_gets_inf_only_in_its_own_row():
     dof = math.sqrt((n - 4) / (n - 5))
     se_oe = oe.standard_errors[order]
     torch.testing.assert_close(armax.standard_errors[:4] / dof, se_oe, rtol=1e-5, atol=0)
+
+
+def test_robust_scale_is_the_normalised_median_absolute_deviation():
+    """``1.4826 MAD`` with numpy's median (the mean of the two middle values of an even
+    count; torch.median gave the lower one: 1.4826 instead of 2.2239 for [0, 1, 3, 10]),
+    batched along the leading axes."""
+    from sysid.estimation.losses import robust_scale
+
+    r = np.random.default_rng(0).standard_normal((3, 10))
+    r[0, :4] = [0.0, 1.0, 3.0, 10.0]
+    expected = 1.4826 * np.median(np.abs(r - np.median(r, -1, keepdims=True)), -1)
+    np.testing.assert_allclose(robust_scale(torch.tensor(r)).numpy(), expected, rtol=1e-15)
+    assert float(robust_scale(torch.tensor([0.0, 1.0, 3.0, 10.0]))) == pytest.approx(2.2239)

@@ -153,9 +153,11 @@ class HuberLoss:
 
 
 def robust_scale(r: torch.Tensor) -> torch.Tensor:
-    """``1.4826 * median(|r - median r|)`` along the last dim (the std for Gaussian data)."""
-    med = r.median(dim=-1, keepdim=True).values
-    return 1.4826 * (r - med).abs().median(dim=-1).values
+    """``1.4826 * median(|r - median r|)`` along the last dim (the std for Gaussian data); the
+    median of an even count is the mean of the two middle values (``torch.median`` gives the
+    lower one)."""
+    med = torch.quantile(r, 0.5, dim=-1, keepdim=True)
+    return 1.4826 * torch.quantile((r - med).abs(), 0.5, dim=-1)
 
 
 def make_loss(name: str, residuals: torch.Tensor, alpha=None):
