@@ -466,8 +466,9 @@ def test_state_check_is_shared(entry):
 def test_one_initial_state_per_record_of_a_sampled_input():
     """x0 (nx,) with input records (B, T, nu): x0 is expanded to the records' batch before the
     model sees it, so a plant that does not broadcast its state against the input (the
-    zoo's crane) gives each record's own run; a model that fails on the unbatched x0 (a
-    per-member parameter it cannot broadcast) is named with the fix."""
+    zoo's crane) gives each record's own run; a per-member parameter of the crane broadcasts
+    against one state; a model that fails on the unbatched x0 (a per-member parameter it
+    cannot broadcast) is named with the fix."""
     from sysid.zoo import Crane
 
     t = torch.linspace(0, 1, 6, dtype=torch.float64)
@@ -477,6 +478,16 @@ def test_one_initial_state_per_record_of_a_sampled_input():
     for i in range(2):
         alone = odeint(Crane(), x0, t, u=u[i], method="rk4", substeps=4)
         torch.testing.assert_close(shared.x[i], alone.x, rtol=0, atol=1e-14)
-    per_member = Crane(L=torch.tensor([[0.8], [1.2]], dtype=torch.float64))
+    # the crane broadcasts a per-member length against the shared state: one run per member
+    lengths = torch.tensor([[0.8], [1.2]], dtype=torch.float64)
+    both = odeint(Crane(L=lengths), x0, t, method="rk4").x
+    for i in range(2):
+        alone = odeint(Crane(L=float(lengths[i, 0])), x0, t, method="rk4").x
+        torch.testing.assert_close(both[i], alone, rtol=0, atol=1e-14)
+    stiffness = torch.tensor([1.0, 4.0], dtype=torch.float64)
+
+    def per_member(t, x):  # stacks a () component with a (2,) one for an unbatched state
+        return torch.stack([x[..., 1], -stiffness * x[..., 0]], -1)
+
     with pytest.raises(InputValidationError, match=r"x0.expand\(B, nx\)"):
-        odeint(per_member, x0, t, method="rk4")
+        odeint(per_member, x0[:2], t, method="rk4")
