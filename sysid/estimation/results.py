@@ -53,8 +53,11 @@ class FitResult:
         converged: per data set, ``(*batch,)`` bool: for the iterative methods, whether the
             estimate is a stationary point of the criterion to within
             :data:`STATIONARY_TOL` standard errors (``info["step_in_standard_errors"]``),
-            whatever stopped the iteration; always True for the direct solves (``"lls"``,
-            ``"iv"``).
+            whatever stopped the iteration (for grey-box models, not where a bounded
+            parameter stalled at its bound while the criterion decreases inside: a member
+            whose estimate rests at a bound with the criterion increasing inside is converged
+            and flagged by ``info["at_bound"]``, ``(*batch, p)``); always True for the direct
+            solves (``"lls"``, ``"iv"``).
         method, loss: as requested.
         parameter_names: names of the entries of ``theta``.
         n_samples: number of residuals in the criterion.
