@@ -94,6 +94,15 @@ def _check_finite(x: torch.Tensor, name: str, experiment: int | None) -> None:
         )
 
 
+def _indexed_dims(index) -> int:
+    """How many dimensions one entry of an index consumes (a boolean mask: its own)."""
+    if index is None or index is Ellipsis:
+        return 0
+    if isinstance(index, (torch.Tensor, np.ndarray)) and index.dtype in (torch.bool, np.bool_):
+        return index.ndim
+    return 1
+
+
 class IOData:
     """Sampled input/output data: one experiment, several experiments, or a batch.
 
@@ -150,7 +159,12 @@ class IOData:
                 f"batch shapes of u {tuple(u.shape[:-2])} and y {tuple(y.shape[:-2])} do not "
                 "broadcast."
             ) from err
-        Ts = float(Ts)
+        try:
+            Ts = float(Ts)
+        except (TypeError, ValueError):
+            raise InputValidationError(
+                f"sample time Ts must be a positive number, got {Ts!r}."
+            ) from None
         if not np.isfinite(Ts) or Ts <= 0:
             raise InputValidationError(f"sample time Ts must be finite and > 0, got {Ts}.")
         _check_finite(u, "u", _experiment)
@@ -291,10 +305,11 @@ class IOData:
                 experiment (at least two samples of each must remain).
         """
         shortest = min(self.lengths)
-        if isinstance(skip, bool) or int(skip) != skip or not 0 <= skip <= shortest - 2:
+        integral = isinstance(skip, (int, float, np.integer, np.floating)) and float(skip) % 1 == 0
+        if isinstance(skip, bool) or not integral or not 0 <= skip <= shortest - 2:
             raise InputValidationError(
-                f"skip = {skip!r} leaves fewer than 2 samples of an experiment with N = "
-                f"{shortest}; use 0 <= skip <= {shortest - 2}."
+                f"skip must be an integer with 0 <= skip <= {shortest - 2} (at least 2 samples "
+                f"of the shortest experiment, N = {shortest}, remain), got {skip!r}."
             )
         ends = np.cumsum(self.lengths)
         starts = ends - np.asarray(self.lengths)
@@ -335,7 +350,21 @@ class IOData:
             raise InputValidationError("this IOData has no batch dimension to index.")
         if not isinstance(index, tuple):
             index = (index,)
-        return self._map(lambda u, y: (u[index], y[index]))
+        consumed = sum(_indexed_dims(i) for i in index)
+        if consumed > len(self.batch_shape):
+            raise InputValidationError(
+                f"IOData[{index!r}] indexes {consumed} dimensions, but the data have "
+                f"{len(self.batch_shape)} batch dimension(s) {tuple(self.batch_shape)}; samples "
+                "and channels are not indexed this way (use split() for a part of the record)."
+            )
+        # the samples and channels stay whole, also behind an Ellipsis
+        full = (*index, slice(None), slice(None))
+        if not any(i is Ellipsis for i in index):
+            full = (*index, Ellipsis, slice(None), slice(None))
+        try:
+            return self._map(lambda u, y: (u[full], y[full]))
+        except (IndexError, ValueError, RuntimeError) as exc:
+            raise InputValidationError(f"IOData[{index!r}]: {exc}") from exc
 
     def detrend(self, kind: str = "mean") -> IOData:
         """Remove the mean (``"mean"``) or a least-squares straight line (``"linear"``).

@@ -107,3 +107,21 @@ def test_split_by_fraction_and_index():
         two.split(3)
     with pytest.raises(InputValidationError, match="empty part"):
         IOData(u, y).split(10)
+
+
+def test_indexing_selects_data_sets_only():
+    """``data[...]`` selects batch members; an index reaching the samples or channels (it
+    cut the record to 10 samples, or read the batch axis as time) and a negative step are
+    named errors, and Ts, a sample time that is not a number, too."""
+    d = IOData(torch.zeros(50, 2), torch.arange(150.0).reshape(3, 50, 1))
+    assert d[1].N == 50 and d[1].batch_shape == () and float(d[1].y[0, 0]) == 50.0
+    assert d[..., 1:].batch_shape == (2,) and d[..., 1:].nu == 2
+    assert d[torch.tensor([True, False, True])].batch_shape == (2,)
+    for index in [(0, slice(None, 10)), (Ellipsis, 0, 0), (slice(None, None, -1),)]:
+        with pytest.raises(InputValidationError):
+            d[index]
+    for Ts in ("abc", None, np.array([0.1, 0.2])):
+        with pytest.raises(InputValidationError, match="sample time"):
+            IOData(torch.zeros(5, 1), torch.zeros(5, 1), Ts=Ts)
+    with pytest.raises(InputValidationError, match="skip must be an integer"):
+        d.samples_after("a")
