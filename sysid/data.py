@@ -326,7 +326,17 @@ class IOData:
 
     @property
     def t(self) -> torch.Tensor:
-        """Sample times ``k * Ts`` of a single experiment, shape ``(N,)``."""
+        """Sample times ``k * Ts`` of a single experiment, shape ``(N,)``.
+
+        Raises:
+            InputValidationError: the data hold several experiments (each starts at 0: use
+                ``data.experiment_list[e].t``).
+        """
+        if self.n_experiments > 1:
+            raise InputValidationError(
+                f"IOData.t is the time grid of one experiment; these data hold "
+                f"{self.n_experiments} (each starts at t = 0): use data.experiment_list[e].t."
+            )
         return torch.arange(self.N, dtype=self.dtype, device=self.device) * self.Ts
 
     def __repr__(self) -> str:

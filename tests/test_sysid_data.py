@@ -125,3 +125,17 @@ def test_indexing_selects_data_sets_only():
             IOData(torch.zeros(5, 1), torch.zeros(5, 1), Ts=Ts)
     with pytest.raises(InputValidationError, match="skip must be an integer"):
         d.samples_after("a")
+
+
+def test_time_grid_is_one_experiments():
+    """``t`` of data with several experiments was one grid running on over the joined
+    samples ([0, 1, 2, 3, 4] for lengths 3 and 2, where each experiment starts at 0): it is
+    refused, and each experiment gives its own."""
+    parts = [
+        IOData(torch.zeros(3, 1), torch.zeros(3, 1)),
+        IOData(torch.zeros(2, 1), torch.zeros(2, 1)),
+    ]
+    data = IOData.experiments(parts)
+    with pytest.raises(InputValidationError, match="experiment_list"):
+        _ = data.t
+    assert [p.t.tolist() for p in data.experiment_list] == [[0.0, 1.0, 2.0], [0.0, 1.0]]
