@@ -452,15 +452,17 @@ def residual_test(
     pos = _correlate(xs, uu, max_lag) / scale  # e_{k+tau} u_k, tau >= 0
     neg = _correlate(uu, xs, max_lag) / scale  # e_{k-tau} u_k
     cross = torch.cat([neg[..., 1:].flip(-1), pos], dim=-1)
-    # S = N rho' Rbar_u^-1 rho with the Toeplitz autocorrelation matrix of each input (its
-    # pseudo-inverse and rank where the input excites fewer than max_lag + 1 directions)
+    # S = N rho' Rbar_u^-1 rho with the Toeplitz autocorrelation matrix of each input, from
+    # one eigendecomposition: its pseudo-inverse and rank where the input excites fewer than
+    # max_lag + 1 directions
     rho_u = _correlate(uu, uu, max_lag) / (su**2).unsqueeze(-1)  # (*batch, nu, m + 1)
     lag = torch.arange(max_lag + 1, device=x.device)
     Ru = rho_u[..., (lag[:, None] - lag).abs()]  # (*batch, nu, m + 1, m + 1)
-    S = N * (
-        pos * (torch.linalg.pinv(Ru, hermitian=True, rtol=_RANK_RTOL) @ pos.unsqueeze(-1))[..., 0]
-    ).sum(-1)
-    rank = torch.linalg.matrix_rank(Ru, hermitian=True, rtol=_RANK_RTOL)
+    values, vectors = torch.linalg.eigh(Ru)
+    kept = values > _RANK_RTOL * values.amax(-1, keepdim=True)
+    along = (vectors.transpose(-1, -2) @ pos.unsqueeze(-1))[..., 0]  # rho in the eigenbasis
+    S = N * torch.where(kept, along**2 / torch.where(kept, values, 1.0), 0.0).sum(-1)
+    rank = kept.sum(-1)
     ipval = torch.as_tensor(
         scipy.stats.chi2.sf(S.detach().cpu().numpy(), rank.cpu().numpy()),
         dtype=x.dtype,
