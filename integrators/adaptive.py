@@ -369,7 +369,9 @@ def solve_adaptive(
         if held:  # K_1 with the sample held from a stop on, where a member reached one
             sample = held_sample(t_next)
             crossed = k_next != k_cur
-            if bool(crossed.any()):
+            # skipped where no member crossed: a free check on the host; on a device it
+            # would synchronise every attempt, which the loop avoids (see check_every)
+            if x.device.type != "cpu" or bool(crossed.any()):
                 k1 = torch.where(crossed[:, None], call(t_next, x, sample), k1)
                 n_restarts += crossed
         t_cur, k_cur = t_next, k_next
