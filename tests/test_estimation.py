@@ -25,6 +25,7 @@ from sysid.data import IOData
 from sysid.errors import PoorExcitationWarning
 from sysid.estimation import fit, uniform_noise_mle_set
 from sysid.estimation.prediction_error import _OutputError
+from sysid.estimation.results import inverse_normal_matrix_and_rank
 from sysid.filters import iir_filter
 from sysid.models import ARMAX, ARX, BJ, FIR, OE
 from sysid.montecarlo import input_signal, simulate_data, summarize_estimates
@@ -580,15 +581,14 @@ def test_covariance_of_a_degenerate_member_is_inf_not_a_crash():
     model) gets an inf covariance and a PoorExcitationWarning; the others keep their exact
     (J'J)^-1."""
     from sysid.errors import PoorExcitationWarning
-    from sysid.estimation.results import inverse_normal_matrix
 
     g = torch.Generator().manual_seed(0)
     J = torch.randn(3, 50, 2, generator=g, dtype=torch.float64)
     J[1, 4, 0] = float("inf")
     J[2, 7, 1] = float("nan")
     with pytest.warns(PoorExcitationWarning, match="batch index \\(1,\\)"):
-        P = inverse_normal_matrix(J)
-    assert bool(torch.isinf(P[1:]).all())
+        P, rank = inverse_normal_matrix_and_rank(J)
+    assert bool(torch.isinf(P[1:]).all()) and rank.tolist() == [2, 2, 2]
     exact = torch.linalg.inv(J[0].T @ J[0])
     assert torch.allclose(P[0], exact, rtol=1e-12)
 
@@ -723,8 +723,8 @@ def test_a_parameter_the_criterion_ignores_gets_inf_only_in_its_own_row():
     """ARMAX under the simulation criterion: C does not enter the simulated output, so its
     column of the Jacobian is zero. Its standard error is inf (with a PoorExcitationWarning),
     while A and B keep the covariance of the same fit without C: the OE model with F = A
-    (same estimates, standard errors equal up to the residual degrees of freedom, one
-    parameter more here)."""
+    (same estimates and standard errors: the residual degrees of freedom count the
+    parameters the residuals depend on, the rank of J)."""
     rng = np.random.default_rng(13)
     u = rng.standard_normal(400)
     y = scipy.signal.lfilter([0, 1, 0.5], [1, -1.5, 0.7], u) + 0.1 * rng.standard_normal(400)
@@ -735,10 +735,37 @@ def test_a_parameter_the_criterion_ignores_gets_inf_only_in_its_own_row():
     order = [2, 3, 0, 1]  # OE's (b1, b2, f1, f2) as ARMAX's (a1, a2, b1, b2)
     torch.testing.assert_close(armax.theta[:4], oe.theta[order], rtol=1e-6, atol=1e-8)
     assert math.isinf(float(armax.standard_errors[4]))
-    n = armax.n_samples
-    dof = math.sqrt((n - 4) / (n - 5))
-    se_oe = oe.standard_errors[order]
-    torch.testing.assert_close(armax.standard_errors[:4] / dof, se_oe, rtol=1e-5, atol=0)
+    torch.testing.assert_close(
+        armax.standard_errors[:4], oe.standard_errors[order], rtol=1e-5, atol=0
+    )
+    torch.testing.assert_close(armax.sigma2, oe.sigma2, rtol=1e-9, atol=0)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), rows=st.integers(6, 40))
+def test_a_singular_normal_matrix_keeps_the_covariance_of_estimable_parameters(seed, rows):
+    """J (rows, 5) whose null space is spanned by directions with zero components 0 and 1:
+    only parameters 0 and 1 are estimable (their unit vectors lie in J's row space). Their
+    block equals the Moore-Penrose inverse of J'J (numpy), shared by every generalised inverse;
+    the other rows and columns are inf, and the rank is 3. A single-parameter null direction
+    (a zero column) counts the same way."""
+    rng = np.random.default_rng(seed)
+    null = np.zeros((5, 2))
+    null[2:, :] = rng.standard_normal((3, 2))
+    q, _ = np.linalg.qr(null)
+    J = rng.standard_normal((rows, 5)) @ (np.eye(5) - q @ q.T) * rng.uniform(0.1, 10, 5)
+    with pytest.warns(PoorExcitationWarning, match="not identifiable"):
+        P, rank = inverse_normal_matrix_and_rank(torch.from_numpy(J))
+    expected = np.linalg.pinv(J.T @ J, hermitian=True)
+    np.testing.assert_allclose(P[:2, :2].numpy(), expected[:2, :2], rtol=1e-6)
+    assert bool(torch.isinf(P[2:, :]).all()) and bool(torch.isinf(P[:, 2:]).all())
+    assert int(rank) == 3
+    J[:, 1] = 0.0  # a parameter the residuals do not depend on: one more null direction
+    with pytest.warns(PoorExcitationWarning, match="not identifiable"):
+        P, rank = inverse_normal_matrix_and_rank(torch.from_numpy(J))
+    expected = np.linalg.pinv(J.T @ J, hermitian=True)
+    np.testing.assert_allclose(float(P[0, 0]), expected[0, 0], rtol=1e-6)
+    assert int(torch.isinf(P).sum()) == 24 and int(rank) == 2
 
 
 def test_robust_scale_is_the_normalised_median_absolute_deviation():

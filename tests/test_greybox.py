@@ -561,6 +561,34 @@ def test_a_singular_fit_names_the_parameters_of_its_flat_direction():
     assert named and "'a1', 'a2'" in named[0] and "'b'" not in named[0]
 
 
+def test_an_identifiable_parameter_beside_an_unidentifiable_pair_keeps_its_standard_error():
+    """dx/dt = -(a1 + a2) x + b u with noise: a1 and a2 get inf, while b (estimable: the
+    data determine it whatever the split of a1 + a2) gets the standard error, estimate and
+    noise variance of the fit of the same plant written with one a = a1 + a2."""
+
+    def split(t, x, u, p):
+        return (-(p["a1"] + p["a2"]) * x[..., 0] + p["b"] * u[..., 0]).unsqueeze(-1)
+
+    def joined(t, x, u, p):
+        return (-p["a"] * x[..., 0] + p["b"] * u[..., 0]).unsqueeze(-1)
+
+    gen = torch.Generator().manual_seed(2)
+    u = input_signal("prbs", 200, hold=3, generator=gen)
+    true = GreyBoxModel(joined, {"a": 1.5, "b": 1.0}, nx=1, x0=torch.zeros(1))
+    y = true.simulate(IOData(u, torch.zeros_like(u), Ts=0.1))
+    data = IOData(u, y + 0.05 * torch.randn(y.shape, generator=gen, dtype=y.dtype), Ts=0.1)
+    with pytest.warns(Warning, match="enter the data only in a combination"):
+        res = fit(
+            GreyBoxModel(split, {"b": 0.5, "a1": 1.0, "a2": 1.0}, nx=1, x0=torch.zeros(1)), data
+        )
+    one = fit(GreyBoxModel(joined, {"b": 0.5, "a": 2.0}, nx=1, x0=torch.zeros(1)), data)
+    assert bool(torch.isinf(res.standard_errors[1:]).all())
+    torch.testing.assert_close(res.theta[0], one.theta[0], rtol=1e-6, atol=0)
+    torch.testing.assert_close(res.theta[1] + res.theta[2], one.theta[1], rtol=1e-6, atol=0)
+    torch.testing.assert_close(res.standard_errors[0], one.standard_errors[0], rtol=1e-4, atol=0)
+    torch.testing.assert_close(res.sigma2, one.sigma2, rtol=1e-8, atol=0)
+
+
 def test_an_estimate_ending_at_its_bound_is_flagged():
     """Two data sets of x' = -a x + u1 + b u2, one with b = +0.3 and one with b = -0.3, fitted
     with b >= 0: the second estimate of b ends at its bound, where the criterion increases

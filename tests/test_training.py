@@ -247,6 +247,50 @@ def test_a_physical_parameter_the_network_imitates_gets_an_infinite_standard_err
     assert math.isinf(float(result.standard_errors[0]))
 
 
+class DecayAndGain(nn.Module):
+    """x' = -a x + b u + w x (a linear layer without bias): a is not identifiable beside the
+    network, b is; ``with_a=False`` leaves the decay to the network alone."""
+
+    def __init__(self, with_a: bool):
+        super().__init__()
+        self.with_a = with_a
+        self.nx, self.nu, self.ny, self.method, self.substeps = 1, 1, 1, "rk4", 1
+        self.log_a = nn.Parameter(torch.tensor(0.0, dtype=torch.float64))
+        self.log_b = nn.Parameter(torch.tensor(-0.5, dtype=torch.float64))
+        self.res = nn.Linear(1, 1, bias=False).double()
+        nn.init.constant_(self.res.weight, -0.5)
+
+    def forward(self, t, x, u):
+        decay = self.log_a.exp() * x if self.with_a else 0.0
+        return -decay + self.log_b.exp() * u + self.res(x)
+
+    def output(self, x, u):
+        return x
+
+    def physical_parameters(self):
+        if self.with_a:
+            return {"a": self.log_a, "b": self.log_b}
+        return {"b": self.log_b}
+
+    def to_physical(self, name, raw):
+        return raw.exp()
+
+
+def test_an_identifiable_physical_parameter_beside_an_imitated_one_keeps_its_standard_error():
+    """b keeps the standard error and noise variance of the model without a (the network
+    carries the whole decay there), while a gets inf; the delta-method transform to physical
+    units made b's entry NaN (0 * inf) beside an inf one."""
+    data = first_order(100, seed=4, noise=0.01)
+    options = dict(method="lbfgs", horizon=99, epochs=8, x0="zero", seed=0)
+    with pytest.warns(sysid.PoorExcitationWarning, match="not identifiable"):
+        both = sysid.fit(DecayAndGain(with_a=True), data, **options)
+    alone = sysid.fit(DecayAndGain(with_a=False), data, **options)
+    assert both.parameter_names == ["a", "b"] and math.isinf(float(both.standard_errors[0]))
+    torch.testing.assert_close(both.theta[1], alone.theta[0], rtol=1e-3, atol=0)
+    torch.testing.assert_close(both.standard_errors[1], alone.standard_errors[0], rtol=1e-2, atol=0)
+    torch.testing.assert_close(both.sigma2, alone.sigma2, rtol=1e-3, atol=0)
+
+
 def _reverse_mode_jacobian(model, data, columns, x0=None):
     """Free-run residuals (M,) from ``x0`` (zero) and their Jacobian (M, q [+ nx]) with
     respect to ``columns`` (and ``x0`` when given) by reverse-mode autograd through the

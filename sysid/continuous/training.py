@@ -58,7 +58,7 @@ from integrators.methods import resolve_method
 
 from .._progress import progress_bar
 from ..data import IOData
-from ..estimation.results import FitResult, inverse_normal_matrix
+from ..estimation.results import FitResult, inverse_normal_matrix_and_rank
 from ..validation import fit_quality
 from .intersample import input_between_samples, stage_fractions
 
@@ -952,8 +952,9 @@ def _physical_statistics(net: _Trainable, records: _Records):
     r, R = _free_run_jacobian(net, records, columns + weights, p)
     M = r.numel()
     J_physical, rank = _project_out(R[:, -p:], R[:, :-p], M)
-    sigma2 = (r * r).sum() / max(M - p - rank, 1)
-    cov_raw = sigma2 * inverse_normal_matrix(J_physical)
+    P, rank_physical = inverse_normal_matrix_and_rank(J_physical)
+    sigma2 = (r * r).sum() / max(M - int(rank_physical) - rank, 1)
+    cov_raw = sigma2 * P
     blocks = [  # d physical / d raw, one block per named parameter (delta method)
         torch.autograd.functional.jacobian(
             lambda z, n=name, s=prm.shape: model.to_physical(n, z.reshape(s)).reshape(-1),
@@ -962,7 +963,12 @@ def _physical_statistics(net: _Trainable, records: _Records):
         for name, prm in raw.items()
     ]
     G = torch.block_diag(*blocks)
-    return names, torch.cat(values), G @ cov_raw @ G.T, sigma2, r
+    # inf rows/columns (parameters the data do not determine) stay inf and only there
+    unknown = ~torch.isfinite(torch.diagonal(cov_raw))
+    cov = G @ torch.where(torch.isfinite(cov_raw), cov_raw, 0.0) @ G.T
+    affected = (G.abs() @ unknown.to(G.dtype)) > 0
+    cov = torch.where(affected.unsqueeze(-1) | affected.unsqueeze(-2), math.inf, cov)
+    return names, torch.cat(values), cov, sigma2, r
 
 
 def _result(net: _Trainable, records: _Records, data: IOData, method: str, state):

@@ -24,7 +24,7 @@ __all__ = [
     "STATIONARY_TOL",
     "FitResult",
     "covariance",
-    "inverse_normal_matrix",
+    "inverse_normal_matrix_and_rank",
     "remaining_step",
 ]
 
@@ -46,7 +46,8 @@ class FitResult:
         theta: estimate, ``(*batch, p)`` (ordered as ``parameter_names``).
         covariance: asymptotic covariance of ``theta``, ``(*batch, p, p)``.
         standard_errors: ``sqrt(diag(covariance))``, ``(*batch, p)``.
-        sigma2: noise variance estimate ``sum r^2 / (N - p)``, ``(*batch,)``.
+        sigma2: noise variance estimate ``sum r^2 / (N - p)``, ``(*batch,)`` (iterative fits:
+            ``N - rank J``, which is ``p`` unless some parameters are not identifiable).
         loss_history: criterion value per iteration, ``(n_iter + 1, *batch)`` (the value
             ``sum rho(r_k)``, e.g. ``1/2 ||r||^2`` for the Gaussian loss).
         iterations: iterations used per data set, ``(*batch,)`` int64.
@@ -181,12 +182,19 @@ class FitResult:
         )
 
 
-def inverse_normal_matrix(J: torch.Tensor) -> torch.Tensor:
-    """``(J'J)^{-1}`` via Cholesky of the equilibrated ``J'J``; ``inf`` where singular.
+def inverse_normal_matrix_and_rank(J: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(J'J)^{-1}`` via Cholesky of the equilibrated ``J'J``; ``inf`` where not estimable.
 
     A parameter the residuals do not depend on at all (a zero column of ``J``, e.g. ARMAX's
     C under the simulation criterion) gets ``inf`` in its row and column only: the others'
-    covariance is that of the fit without it."""
+    covariance is that of the fit without it. Where ``J'J`` is singular (only a combination of
+    some parameters reaches the residuals, e.g. ``a1 + a2``), the parameters with a component
+    along its null space get ``inf`` rows and columns; the others are estimable (their unit
+    vector lies in the row space of ``J``) and keep the finite entries of the pseudo-inverse,
+    which every generalised inverse shares for them.
+
+    Returns the matrix (*batch, p, p) and the rank of ``J`` (*batch,) that decides it (``p``
+    where ``J`` is not finite)."""
     H = J.transpose(-1, -2) @ J
     diag = torch.diagonal(H, dim1=-2, dim2=-1)
     d = diag.clamp_min(torch.finfo(J.dtype).tiny).rsqrt()
@@ -200,12 +208,24 @@ def inverse_normal_matrix(J: torch.Tensor) -> torch.Tensor:
     finite = torch.isfinite(Hs).flatten(-2).all(-1)
     Hs = torch.where(finite[..., None, None], Hs, eye)
     L, info = torch.linalg.cholesky_ex(Hs)
-    P = torch.cholesky_solve(eye, L) * d.unsqueeze(-1) * d.unsqueeze(-2)
-    ev = torch.linalg.eigvalsh(torch.where((info == 0)[..., None, None], Hs, eye))
-    rank_deficient = ev[..., 0] <= ev[..., -1] * torch.finfo(J.dtype).eps * J.shape[-2]
-    singular = ~finite | (info != 0) | rank_deficient
+    P = torch.cholesky_solve(eye, L)
+    ev, V = torch.linalg.eigh(Hs)
+    null = ev <= ev[..., -1:] * torch.finfo(J.dtype).eps * J.shape[-2]  # (*batch, p)
+    rank_deficient = null.any(-1) | (info != 0)
+    if bool(rank_deficient.any()):
+        kept = torch.where(null, torch.zeros_like(ev), 1.0 / torch.where(null, 1.0, ev))
+        pinv = (V * kept.unsqueeze(-2)) @ V.transpose(-1, -2)
+        # a parameter is estimable where its unit vector has no component along the null space
+        along_null = (V * V * null.unsqueeze(-2)).sum(-1)  # (*batch, p)
+        not_estimable = along_null > torch.finfo(J.dtype).eps ** 0.5
+        pinv = torch.where(
+            not_estimable.unsqueeze(-1) | not_estimable.unsqueeze(-2), math.inf, pinv
+        )
+        P = torch.where(rank_deficient[..., None, None], pinv, P)
+    P = P * d.unsqueeze(-1) * d.unsqueeze(-2)
     P = torch.where(unused_entries, math.inf, P)
-    flagged = singular | unused.any(-1)
+    P = torch.where(finite[..., None, None], P, torch.full_like(P, math.inf))
+    flagged = ~finite | rank_deficient | unused.any(-1)
     if bool(flagged.any()):
         idx = tuple(int(i) for i in torch.nonzero(flagged)[0]) if flagged.dim() else ()
         warnings.warn(
@@ -216,25 +236,26 @@ def inverse_normal_matrix(J: torch.Tensor) -> torch.Tensor:
             PoorExcitationWarning,
             stacklevel=3,
         )
-        P = torch.where(singular[..., None, None], torch.full_like(P, math.inf), P)
-    return P
+    rank = J.shape[-1] - null.sum(-1) - unused.sum(-1)
+    return P, torch.where(finite, rank, J.shape[-1])
 
 
 def covariance(
     J: torch.Tensor, r: torch.Tensor, loss
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Asymptotic covariance ``factor (J'J)^{-1}`` of an M-estimate, the residual variance
-    ``sum r^2/(M - p)`` and ``factor`` (all ``(*batch, ...)``).
+    ``sum r^2/(M - rank J)`` and ``factor`` (all ``(*batch, ...)``).
 
     ``loss`` is one of :mod:`sysid.estimation.losses`. Gaussian: ``sigma^2 (J'J)^{-1}``. Fair
     and Huber: Huber's sandwich ``E[psi^2] / E[psi']^2 (J'J)^{-1}`` with sample moments
-    (``M - p`` in the mean of ``psi^2``). Laplace: the least-absolute-
+    (``M - rank J`` in the mean of ``psi^2``). Laplace: the least-absolute-
     deviations law ``(J'J)^{-1} / (4 f(0)^2)`` with the residual density at 0 from a Gaussian
     kernel estimate (Silverman bandwidth).
     """
-    M, p = J.shape[-2], J.shape[-1]
-    sigma2 = (r * r).sum(-1) / (M - p)
-    P = inverse_normal_matrix(J)
+    M = J.shape[-2]
+    P, rank = inverse_normal_matrix_and_rank(J)
+    dof = (M - rank).to(J.dtype)
+    sigma2 = (r * r).sum(-1) / dof
     if loss.name == "gaussian":
         factor = sigma2
     elif loss.name in ("fair", "huber"):
@@ -243,7 +264,7 @@ def covariance(
             dpsi = loss.curvature(r).mean(-1)
         else:
             dpsi = loss.psi_derivative(r).mean(-1)
-        factor = (psi * psi).sum(-1) / (M - p) / dpsi**2
+        factor = (psi * psi).sum(-1) / dof / dpsi**2
     else:
         std = r.std(dim=-1)
         iqr = (r.quantile(0.75, dim=-1) - r.quantile(0.25, dim=-1)) / 1.349
