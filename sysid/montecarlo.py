@@ -38,10 +38,16 @@ NOISE_KINDS = ("gaussian", "student_t", "laplace", "uniform", "contaminated")
 
 
 def _generator(generator, seed, device) -> torch.Generator:
+    """``generator``; else a new one seeded with ``seed``; else with fresh entropy from the
+    operating system (a fixed default would give every call the same draws: noise equal to
+    an input drawn the same way, Monte-Carlo trials that repeat one trial)."""
     if generator is not None:
         return generator
     g = torch.Generator(device=device if device is not None else "cpu")
-    g.manual_seed(0 if seed is None else int(seed))
+    if seed is None:
+        g.seed()
+    else:
+        g.manual_seed(int(seed))
     return g
 
 
@@ -70,7 +76,8 @@ def input_signal(
         N: number of samples.
         batch_shape: leading batch shape (one signal per data set).
         omega: sinusoid frequency in rad/sample.
-        generator, seed: randomness (a generator wins over a seed).
+        generator, seed: randomness (a generator wins over a seed; neither: fresh entropy,
+            different draws on every call).
     """
     if kind not in INPUT_KINDS:
         raise InputValidationError(f"kind must be one of {INPUT_KINDS}, got {kind!r}.")
@@ -190,7 +197,7 @@ def simulate_data(
             error ``A y = B u + e``, eq. 4.117–4.120).
         noise_kind: distribution of ``e`` (see :func:`noise_signal`).
         theta: true parameters ``(*batch, p)`` or ``(p,)`` (default: the model's).
-        generator, seed: randomness of ``e``.
+        generator, seed: randomness of ``e`` (as in :func:`input_signal`).
         Ts: sample time of the data (default: the model's).
         **noise_options: passed to :func:`noise_signal` (``df``, ``contamination``, ...).
 

@@ -768,6 +768,21 @@ def test_a_singular_normal_matrix_keeps_the_covariance_of_estimable_parameters(s
     assert int(torch.isinf(P).sum()) == 24 and int(rank) == 2
 
 
+def test_unseeded_draws_differ_between_calls_and_an_unseeded_fir_fit_is_unbiased():
+    """Without a seed or generator every call seeded 0: the output noise of simulate_data
+    equalled a white input drawn the same way, so the FIR (nk = 0) estimate was off by exactly
+    the noise level (b1 = 1.5 +- 1e-17 for a true 1.0). Unseeded calls draw fresh entropy;
+    a seed still reproduces."""
+    u = input_signal("white", 400)
+    assert not torch.equal(u, input_signal("white", 400))
+    assert torch.equal(input_signal("white", 400, seed=3), input_signal("white", 400, seed=3))
+    data = simulate_data(FIR(2, 0), u, theta=torch.tensor([1.0, 0.5]), noise_std=0.5)
+    noise = data.y[..., 0] - scipy.signal.lfilter([1.0, 0.5], [1.0], u[..., 0].numpy())
+    assert abs(float(np.corrcoef(noise.numpy(), u[..., 0].numpy())[0, 1])) < 0.25
+    res = fit(FIR(2, 0), data)
+    assert bool(((res.theta - torch.tensor([1.0, 0.5])).abs() < 6 * res.standard_errors).all())
+
+
 def test_robust_scale_is_the_normalised_median_absolute_deviation():
     """``1.4826 MAD`` with numpy's median (the mean of the two middle values of an even
     count; torch.median gave the lower one: 1.4826 instead of 2.2239 for [0, 1, 3, 10]),
