@@ -135,8 +135,9 @@ def fit_percent(y, yhat, skip: int = 0) -> torch.Tensor:
             or, with a model as first argument, the :class:`sysid.IOData` to compare on: the
             fit is then that of the model's noise-free simulated output ``model.simulate(data)``
             to ``data.y`` (MATLAB's ``compare``), computed without gradient.
-        skip: samples left out at the start (``0 <= skip <= N - 2``), e.g. the transient of an
-            unknown initial state; the mean of ``y`` is that of the remaining samples.
+        skip: samples left out at the start (``0 <= skip <= N - 2``; with a model and data,
+            at the start of every experiment), e.g. the transient of an unknown initial state;
+            the mean of ``y`` is that of the remaining samples.
 
     Returns:
         Fit in percent, shape ``(*batch, ny)``.
@@ -149,8 +150,10 @@ def fit_percent(y, yhat, skip: int = 0) -> torch.Tensor:
     pair = _model_and_data(y, yhat, "fit_percent")
     if pair is not None:
         model, data = pair
+        keep = data.samples_after(skip)  # the first skip samples of every experiment out
         with torch.no_grad():
-            y, yhat = data.y, model.predict(data, horizon=math.inf)
+            yhat = model.predict(data, horizon=math.inf).index_select(-2, keep)
+        return _quality(data.y.index_select(-2, keep), yhat, 0, "fit_percent").fit_percent
     return _quality(y, yhat, skip, "fit_percent").fit_percent
 
 
@@ -528,7 +531,8 @@ def select_order(
 
     Every candidate is fitted with :func:`sysid.fit` (batched over the data sets) and scored
     on one-step prediction errors over the same samples (the first ``max lag`` samples of
-    the largest candidate are left out for all, so every candidate sees the same ``N``).
+    the largest candidate are left out of every experiment for all, so every candidate sees
+    the same ``N``).
 
     * ``"aic"`` / ``"fpe"``: the minimum of the criterion (their ``2 d`` and
       ``(1 + d/N)/(1 - d/N)`` penalties trade fit against size); ties go to fewer parameters.
@@ -560,19 +564,21 @@ def select_order(
         estimation, validation_data = data.split(0.5)
     else:
         estimation = data
-    skip = max(max(o) for o in orders) + nk
+    skip = max(max(o) for o in orders) + nk  # the longest lag, left out of every experiment
+    kept = estimation.samples_after(skip)
+    kept_val = validation_data.samples_after(skip) if criterion == "validation" else None
     kw = dict(n_inputs=estimation.nu, dtype=estimation.dtype, device=estimation.device)
     aics, fpes, vals, n_params = [], [], [], []
     for order in orders:  # loop over candidate structures (each fit is batched)
         model = cls(*order, nk=nk, **kw)
         result = fit(model, estimation)
-        e = result.model.prediction_errors(estimation)[..., skip:, :]
+        e = result.model.prediction_errors(estimation).index_select(-2, kept)
         d = result.model.n_params
         n_params.append(d)
         aics.append(aic(e, d))
         fpes.append(fpe(e, d))
         if criterion == "validation":
-            ev = result.model.prediction_errors(validation_data)[..., skip:, :]
+            ev = result.model.prediction_errors(validation_data).index_select(-2, kept_val)
             vals.append((ev * ev).mean(dim=(-2, -1)))
     A, Fp = torch.stack(aics), torch.stack(fpes)
     V = torch.stack(vals) if vals else None

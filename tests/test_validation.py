@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+import scipy.signal
 import scipy.stats
 import torch
 from statsmodels.stats.diagnostic import acorr_ljungbox
@@ -177,9 +178,10 @@ def test_result_without_model_is_refused():
 
 def test_fit_result_validate_leaves_out_the_start_of_every_experiment():
     """Two validation experiments cut from one record (the second starts away from rest):
-    ``validate(data, skip)`` leaves out the first ``skip`` samples of each, as an independent
-    per-experiment simulation from rest by scipy's lfilter does; it left out only the first
-    experiment's (550 samples, fit 88.8 % instead of 95.6 %)."""
+    ``validate(data, skip)`` and ``fit_percent(result, data, skip)`` leave out the first
+    ``skip`` samples of each, as an independent per-experiment simulation from rest by scipy's
+    lfilter does; they left out only the first experiment's (550 samples, fit 88.8 % instead
+    of 95.6 %)."""
     import scipy.signal
 
     rng = np.random.default_rng(0)
@@ -199,8 +201,41 @@ def test_fit_result_validate_leaves_out_the_start_of_every_experiment():
     assert quality.n_samples == 500 and quality.skip == 50
     np.testing.assert_allclose(float(quality.fit_percent), percent, rtol=1e-10)
     np.testing.assert_allclose(float(quality.rmse), np.sqrt(np.mean((ys - yhat) ** 2)), rtol=1e-10)
-    with pytest.raises(InputValidationError, match="skip"):
-        res.validate(data, skip=299)
+    np.testing.assert_allclose(float(fit_percent(res, data, skip=50)), percent, rtol=1e-10)
+    for call in (res.validate, lambda d, skip: fit_percent(res, d, skip=skip)):
+        with pytest.raises(InputValidationError, match="skip"):
+            call(data, skip=299)
+
+
+def test_select_order_scores_every_experiment_after_its_own_start():
+    """AIC/FPE of select_order on two experiments (the second far from rest at its start)
+    equal those of the one-step ARX prediction errors computed per experiment by numpy with the
+    first max-lag samples of each left out; only the first experiment's were left out."""
+    rng = np.random.default_rng(3)
+    parts = []
+    for y0 in (0.0, 8.0):
+        u = rng.standard_normal(200)
+        y = scipy.signal.lfilter([0, 0.5], [1, -0.8], u) + y0 * 0.8 ** np.arange(200)
+        parts.append(IOData(u, y + 0.05 * rng.standard_normal(200)))
+    data = IOData.experiments(parts)
+    orders = [(1, 1), (2, 2)]
+    selection = select_order(data, "arx", orders=orders)
+    skip = 2 + 1  # the largest candidate's lag and the delay
+    for k, (na, nb) in enumerate(orders):
+        theta = fit(ARX(na, nb, 1), data).theta.numpy()
+        errors = []
+        for part in parts:
+            u, y = part.u.numpy()[:, 0], part.y.numpy()[:, 0]
+            pred = np.zeros_like(y)
+            for t in range(skip, len(y)):
+                past_y = [-y[t - i] for i in range(1, na + 1)]
+                past_u = [u[t - i] for i in range(1, nb + 1)]
+                pred[t] = np.dot(theta, past_y + past_u)
+            errors.append((y - pred)[skip:])
+        e = torch.tensor(np.concatenate(errors)).unsqueeze(-1)
+        d = na + nb
+        torch.testing.assert_close(selection.aic[k], aic(e, d), rtol=1e-10, atol=0)
+        torch.testing.assert_close(selection.fpe[k], fpe(e, d), rtol=1e-10, atol=0)
 
 
 def test_independence_test_holds_its_level_with_a_coloured_input():
