@@ -84,8 +84,11 @@ class StepRecords:
         self.W.append(W)
         self.z.append(z)
 
-    def evaluate(self, tq: torch.Tensor):
-        """States at times ``tq`` (M,): ``(x (*batch, M, n), z (*batch, M, m))``."""
+    def evaluate(self, tq: torch.Tensor, interior: bool = False):
+        """States at times ``tq`` (M,): ``(x (*batch, M, n), z (*batch, M, m))``; with
+        ``interior`` also a (*batch, M) bool tensor marking the times strictly inside a step
+        (where ``z`` is interpolated, not a stage value that solves the algebraic equations) and
+        the derivative ``x'`` (*batch, M, n) of the stage polynomial there."""
         t0 = _stack(self.t0, tq)  # (L, *batch)
         batch = t0.shape[1:]
         L = t0.shape[0]
@@ -120,9 +123,14 @@ class StepRecords:
         M = tq.shape[0]
         x = x.permute(1, 0, 2).reshape(*batch, M, n)
         z = z.permute(1, 0, 2).reshape(*batch, M, z.shape[-1])
-        if self.stop is None:
+        if self.stop is not None:
+            x, z = nan_beyond(x, tq, self.stop), nan_beyond(z, tq, self.stop)
+        if not interior:
             return x, z
-        return nan_beyond(x, tq, self.stop), nan_beyond(z, tq, self.stop)
+        inside = ((theta > 0) & (theta < 1)).permute(1, 0).reshape(*batch, M)
+        c = torch.as_tensor(np.array(self.tab.c), dtype=x.dtype, device=x.device)
+        xdot = torch.einsum("mbs,mbsn->mbn", lagrange_basis(c, theta), W[..., :n])
+        return x, z, inside, xdot.permute(1, 0, 2).reshape(*batch, M, n)
 
 
 def stop_times(status: np.ndarray, reached) -> np.ndarray:

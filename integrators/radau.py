@@ -46,7 +46,7 @@ import numpy as np
 import torch
 
 from ._irk_core import IRKCore, IterationMatrix, host_shape, masked_update, to_device, to_host
-from ._irk_dense import StepRecords, extrapolation_matrix, stop_times
+from ._irk_dense import StepRecords, extrapolation_matrix, nan_beyond, stop_times
 from ._irk_fixed import _flag_high_index
 from ._per_sample import ArrayOps, ScalarOps
 from .controllers import GustafssonController, initial_step
@@ -302,8 +302,12 @@ def adaptive_loop(
                 next_stop = where(reached & active, next_stop + 1, next_stop)
 
     records = kernel.records()
-    records.stop = stop_times(ops.host(status, np.int8), ops.host(tcur))
-    x_out, z_out = records.evaluate(t)
+    status = np.array(ops.host(status, np.int8))
+    records.stop = stop_times(status, ops.host(tcur))
+    if core.system.m:
+        x_out, z_out = _outputs_with_consistent_z(core, records, t, status, messages)
+    else:
+        x_out, z_out = records.evaluate(t)
 
     def dev(a, dtype):
         return torch.from_numpy(ops.host(a, dtype)).to(x0.device).reshape(batch)
@@ -311,7 +315,7 @@ def adaptive_loop(
     return dict(
         x=x_out,
         z=z_out,
-        status=dev(status, np.int8),
+        status=torch.from_numpy(status).to(x0.device).reshape(batch),
         messages=messages,
         n_steps=dev(n_steps, np.int64),
         n_rejected=dev(n_rej, np.int64),
@@ -321,6 +325,39 @@ def adaptive_loop(
         n_f=core.n_f_evals,
         records=records,
     )
+
+
+def _outputs_with_consistent_z(core, records, t, status, messages):
+    """``(x, z)`` (*batch, T, n), (*batch, T, m) at the output times ``t`` (T,), with ``z`` at
+    the times inside a step solved from the algebraic equations at the interpolated ``x``
+    (:meth:`~integrators._irk_system.StageSystem.algebraic_states`, from the interpolated
+    ``z`` and ``x'``): the error estimate controls the stage values, which solve them, not the
+    stage polynomial of ``z`` between its nodes. A sample whose solve fails at an output time
+    stops before it (``status`` and ``messages`` updated in place, NaN from there on)."""
+    x, z, inside, xdot = records.evaluate(t, interior=True)
+    live = inside & torch.isfinite(x).all(-1)  # (*batch, T)
+    columns = torch.nonzero(live.reshape(-1, t.shape[0]).any(0)).flatten().tolist()
+    stop = np.full(status.shape, np.inf)
+    values = list(z.unbind(-2))
+    for k in columns:
+        here = live[..., k, None]  # the others (stopped: NaN) solve at zeros, result unused
+        x_k, z_k, xdot_k = (torch.where(here, v[..., k, :], 0.0) for v in (x, z, xdot))
+        _, z_k, res = core.system.algebraic_states(t[k], x_k, z_k, core.signal.at(t[k]), xdot_k)
+        solved = res.converged.reshape(live.shape[:-1]) & live[..., k]
+        values[k] = torch.where(solved[..., None], z_k, values[k])
+        failed = to_host(live[..., k] & ~solved, status.shape) & (status == 0)
+        stop = np.where(failed & np.isinf(stop), float(t[k - 1]), stop)
+        for idx in np.argwhere(failed).tolist():
+            messages.append(
+                f"sample {tuple(idx)}: the algebraic equations did not converge for z at the "
+                f"output time t = {float(t[k]):.6g}; its outputs from there on are NaN."
+            )
+        status[failed] = int(Status.NEWTON_FAILED)
+    z = torch.stack(values, -2)
+    if np.isfinite(stop).any():
+        records.stop = np.minimum(records.stop, stop)
+        x, z = nan_beyond(x, t, stop), nan_beyond(z, t, stop)
+    return x, z
 
 
 class TorchKernel:
