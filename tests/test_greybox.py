@@ -661,3 +661,28 @@ def test_per_experiment_parameter_of_a_batch_with_one_experiment():
     assert res.params["c"].shape == (2, 1)
     torch.testing.assert_close(res.model.simulate(data), data.y, rtol=0, atol=1e-10)
     assert bool((res.quality.fit_percent > 99.99).all())
+
+
+def test_residuals_are_the_prediction_errors_y_minus_yhat():
+    """FitResult.residuals of a grey-box fit are y - yhat, as for the polynomial models (they
+    were yhat - y): checked against the exact zero-order-hold simulation of the fitted
+    first-order plant (scipy's matrix exponential), sample by sample."""
+    import scipy.linalg
+
+    def plant(t, x, u, p):
+        return (-p["a"] * x[..., 0] + p["b"] * u[..., 0]).unsqueeze(-1)
+
+    gen = torch.Generator().manual_seed(5)
+    u = input_signal("prbs", 80, hold=2, generator=gen)
+    true = GreyBoxModel(plant, {"a": 1.2, "b": 0.8}, nx=1, x0=torch.zeros(1))
+    y = true.simulate(IOData(u, torch.zeros_like(u), Ts=0.2))
+    data = IOData(u, y + 0.05 * torch.randn(y.shape, generator=gen, dtype=y.dtype), Ts=0.2)
+    res = fit(GreyBoxModel(plant, {"a": 1.0, "b": 1.0}, nx=1, x0=torch.zeros(1), substeps=20), data)
+    a, b = res.theta.tolist()
+    Phi = scipy.linalg.expm(np.array([[-a, b], [0.0, 0.0]]) * 0.2)
+    x, yhat = 0.0, []
+    for uk in u[:, 0].tolist():
+        yhat.append(x)
+        x = Phi[0, 0] * x + Phi[0, 1] * uk
+    expected = data.y[:, 0].numpy() - np.array(yhat)
+    np.testing.assert_allclose(res.residuals.numpy(), expected, atol=1e-8)

@@ -682,7 +682,7 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
         loss=loss,
         parameter_names=names,
         n_samples=r.shape[-1],
-        residuals=r,
+        residuals=-r,  # r is yhat - y; the result holds the prediction errors y - yhat
         model=fitted,
         info={
             "criterion": problem.criterion,

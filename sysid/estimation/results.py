@@ -62,7 +62,7 @@ class FitResult:
         method, loss: as requested.
         parameter_names: names of the entries of ``theta``.
         n_samples: number of residuals in the criterion.
-        residuals: final residuals (prediction errors or regression residuals),
+        residuals: final residuals (prediction errors ``y - yhat`` or regression residuals),
             ``(*batch, n_samples)``.
         model: the fitted model: a copy of the input model (batched like the data) with the
             estimate as its parameters; the input model is never modified. A grey-box
