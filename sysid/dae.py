@@ -272,22 +272,32 @@ def _stack_conditions(conditions):
 
 
 def _differentiate_rows(f, g, rows):
-    """g with the rows ``rows`` replaced by (dg_i/dx) f (steps 3-4 of §5.6)."""
+    """g with the rows ``rows`` replaced by their time derivative along the solution,
+    dg_i/dt + (dg_i/dx) f (steps 3-4 of §5.6). A 0-dim time of a batch of states is given to
+    ``g`` and ``f`` as one entry per sample, ``(*batch, 1)`` (the form adaptive integrators
+    pass), so each sample's dg_i/dt is its own."""
 
     def g_new(t, x, z, *u):
         with torch.enable_grad(), exact_higher_derivatives():
             xx = x if x.requires_grad else _leaf(x)
-            res = g(t, xx, z, *u)
-            velocity = f(t, xx, z, *u)
+            tt = torch.as_tensor(t, dtype=x.dtype, device=x.device)
+            if tt.dim() == 0 and x.dim() > 1:
+                tt = tt.expand(*x.shape[:-1], 1)
+            tt = tt if tt.requires_grad else _leaf(tt)
+            res = g(tt, xx, z, *u)
+            velocity = f(tt, xx, z, *u)
             out = []
             for i in range(res.shape[-1]):
                 if i in rows:
-                    (gx,) = torch.autograd.grad(
-                        res[..., i].sum(), xx, create_graph=True, allow_unused=True
+                    gx, gt = torch.autograd.grad(
+                        res[..., i].sum(), (xx, tt), create_graph=True, allow_unused=True
                     )
-                    out.append(
-                        torch.zeros_like(res[..., i]) if gx is None else (gx * velocity).sum(-1)
-                    )
+                    along = torch.zeros_like(res[..., i])
+                    if gx is not None:
+                        along = along + (gx * velocity).sum(-1)
+                    if gt is not None:
+                        along = along + gt.sum(-1).reshape(along.shape)
+                    out.append(along)
                 else:
                     out.append(res[..., i])
         return torch.stack(out, -1)

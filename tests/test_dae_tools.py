@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from integrators import odeint
+from integrators import SemiExplicitDAE, daeint, odeint
 from integrators.errors import ConvergenceError, HighIndexError, SingularMatrixError
 from sysid import dae, zoo
 from sysid.linearize import linearize, simulate_lti_zoh
@@ -230,3 +230,36 @@ def test_slow_manifold_is_differentiable_and_names_samples_that_do_not_converge(
     z0 = torch.tensor([[0.35], [0.0]], dtype=DT)  # sample 0 starts on the manifold
     with pytest.raises(ConvergenceError, match=r"slow_manifold: .* batch indices \[\[1\]\]"):
         pert.slow_manifold(x.detach(), z0, u.detach(), max_iter=0)
+
+
+def test_index_reduction_keeps_the_explicit_time_dependence_of_g():
+    """x1' = x2, x2' = z, 0 = x1 - sin t (a prescribed path, index 3): each differentiation
+    adds dg/dt, so the reduced equation is z + sin t = 0 and the hidden constraints are
+    x1 - sin t and x2 - cos t, sample by sample in a batch; the reduced DAE integrates to the
+    path (x1 = sin t, z = -sin t). dg/dt was dropped: z = 0 and x1 = t."""
+
+    def f(t, x, z):
+        return torch.stack([x[..., 1], z[..., 0]], -1)
+
+    def g(t, x, z):
+        return x[..., :1] - torch.sin(t)
+
+    t = torch.tensor(0.4, dtype=torch.float64)
+    reduced = dae.reduce_index(
+        f,
+        g,
+        torch.tensor([0.3, 0.9], dtype=torch.float64),
+        torch.tensor([0.1], dtype=torch.float64),
+        t=t,
+    )
+    assert reduced.index == 3
+    x = torch.tensor([[0.3, 0.9], [0.1, 0.2]], dtype=torch.float64)
+    z = torch.tensor([[0.1], [0.5]], dtype=torch.float64)
+    torch.testing.assert_close(reduced.g(t, x, z), z + torch.sin(t))
+    hidden = torch.stack([x[:, 0] - torch.sin(t), x[:, 1] - torch.cos(t)], -1)
+    torch.testing.assert_close(reduced.consistency(t, x, z), hidden)
+    times = torch.linspace(0.0, 2.0, 5, dtype=torch.float64)
+    sol = daeint(SemiExplicitDAE(reduced.f, reduced.g), torch.tensor([0.0, 1.0], dtype=torch.float64),
+                 torch.tensor([0.0], dtype=torch.float64), times, rtol=1e-10, atol=1e-12)  # fmt: skip
+    torch.testing.assert_close(sol.x[:, 0], torch.sin(times), atol=1e-9, rtol=0)
+    torch.testing.assert_close(sol.z[:, 0], -torch.sin(times), atol=1e-9, rtol=0)
