@@ -305,20 +305,22 @@ def _differentiate_rows(f, g, rows):
     return g_new
 
 
-def eliminate_linear(A, B, C, D, E, F):
+def eliminate_linear(A, B, C, D, E, F, *, rtol=1e-10):
     """Eliminate z from xdot = A x + B u + C z, 0 = D x + E u + F z (eq. 5.29-5.30).
 
     Returns (A - C F^-1 D, B - C F^-1 E, -F^-1 D, -F^-1 E): xdot = Ar x + Br u and
     z = Cz x + Dz u. Batched over leading dimensions; SingularMatrixError if F is singular
-    (the DAE is then not of index 1, Corollary 1).
+    (the DAE is then not of index 1, Corollary 1): numerically, a singular value of F below
+    ``rtol`` times its largest, the rank test of the other functions here.
     """
-    rhs = torch.cat([D, E], -1)
-    sol, info = torch.linalg.solve_ex(F, rhs)
-    if bool((info != 0).any()):
+    if bool((_rank(F, rtol) < F.shape[-1]).any()):
         raise SingularMatrixError(
-            "eliminate_linear: F = dg/dz is singular (the DAE is not of index 1); reduce its "
+            "eliminate_linear: F = dg/dz is singular (the DAE is not of index 1: its "
+            f"smallest singular value is below rtol = {rtol:g} times its largest); reduce its "
             "index first (sysid.dae.reduce_index)"
         )
+    rhs = torch.cat([D, E], -1)
+    sol = torch.linalg.solve(F, rhs)
     fd, fe = sol[..., : D.shape[-1]], sol[..., D.shape[-1] :]
     return A - C @ fd, B - C @ fe, -fd, -fe
 

@@ -139,6 +139,12 @@ def test_eliminate_linear_eq_5_30_matches_substitution_and_linearize_dae():
     torch.testing.assert_close((cz @ x[..., None] + dz @ u[..., None])[..., 0], z)
     with pytest.raises(SingularMatrixError):
         dae.eliminate_linear(a, b[0], c, d, e, torch.zeros(3, 2, 2, dtype=DT))
+    # a rank-one F in floating point (singular values 0.114 and 1.9e-18) factorises without a
+    # zero pivot; its "inverse" gave Cz of order 1e17
+    rank_one = torch.tensor([[0.3], [-0.1]], dtype=DT) @ torch.tensor([[0.2, 0.3]], dtype=DT)
+    assert float(torch.linalg.svdvals(rank_one)[-1]) < 1e-16
+    with pytest.raises(SingularMatrixError, match="smallest singular value"):
+        dae.eliminate_linear(a, b[0], c, d, e, rank_one.expand(3, 2, 2))
     # eq. (5.32): the Jacobians of the linear DAE are its matrices
     f = lambda t, xx, zz, uu: (a @ xx[..., None] + b[0] @ uu[..., None] + c @ zz[..., None])[..., 0]  # noqa: E731
     g = lambda t, xx, zz, uu: (d @ xx[..., None] + e @ uu[..., None] + fm @ zz[..., None])[..., 0]  # noqa: E731
