@@ -124,28 +124,41 @@ class Method:
             )
 
 
+def _default_adaptive(tab: ButcherTableau) -> bool:
+    """Whether a run of ``tab`` adapts its step size unless told: explicit pairs with
+    ``b_err`` and the named Radau IIA methods with an odd number of stages."""
+    if tab.is_explicit:
+        return tab.b_err is not None
+    return _is_radau(tab) and tab.stages % 2 == 1 and tab.name.startswith("radau_iia")
+
+
 def run_kind(tab: ButcherTableau, adaptive: bool | None) -> str:
     """The kind of a run of ``tab`` (a method's tableau) with the ``adaptive`` flag
-    (None: the method's default: explicit pairs with ``b_err`` and the named Radau IIA
-    methods with an odd number of stages adapt).
+    (None: :func:`default_adaptive`).
 
     Raises:
         TableauError: ``adaptive=True`` for an explicit tableau without ``b_err``.
         InputValidationError: ``adaptive=True`` for an implicit tableau other than Radau
-            IIA with an odd number of stages.
+            IIA with an odd number of stages; a named Radau IIA tableau with an even number
+            of stages and ``adaptive`` not given (the method adapts by default, these cannot).
     """
+    radau_odd = _is_radau(tab) and tab.stages % 2 == 1
+    if adaptive is None and tab.name.startswith("radau_iia") and not radau_odd:
+        raise InputValidationError(
+            f"{tab.name!r} has an even number of stages, for which no step-size control is "
+            "implemented (its embedded estimate needs a real eigenvalue of A^-1): rtol and "
+            "atol would set only the Newton tolerance. Use stages=1, 3 or 5 for an adaptive "
+            "run, or pass adaptive=False (and substeps) for fixed steps."
+        )
+    if adaptive is None:
+        adaptive = _default_adaptive(tab)
     if tab.is_explicit:
-        if adaptive is None:
-            adaptive = tab.b_err is not None
         if adaptive and tab.b_err is None:
             raise TableauError(
                 f"tableau {tab.name!r} has no embedded weights b_err, so it cannot control "
                 "its step size; use 'dopri5' or pass adaptive=False."
             )
         return EXPLICIT_ADAPTIVE if adaptive else EXPLICIT_FIXED
-    radau_odd = _is_radau(tab) and tab.stages % 2 == 1
-    if adaptive is None:
-        adaptive = radau_odd and tab.name.startswith("radau_iia")
     if adaptive and not radau_odd:
         raise InputValidationError(
             f"adaptive step control is implemented for Radau IIA with an odd number of "
@@ -162,7 +175,8 @@ def _is_radau(tab: ButcherTableau) -> bool:
 
 
 def _catalogued(name: str) -> Method:
-    return Method(name, run_kind(tableau(name), None), lambda stages: tableau(name))
+    tab = tableau(name)
+    return Method(name, run_kind(tab, _default_adaptive(tab)), lambda stages: tableau(name))
 
 
 _REGISTRY = {
@@ -183,7 +197,7 @@ def resolve_method(method) -> Method:
         TableauError: an unknown name or an object that is neither a name nor a tableau.
     """
     if isinstance(method, ButcherTableau):
-        return Method(method.name, run_kind(method, None), lambda stages: method)
+        return Method(method.name, run_kind(method, _default_adaptive(method)), lambda _: method)
     if isinstance(method, str) and method in _REGISTRY:
         return _REGISTRY[method]
     raise TableauError(

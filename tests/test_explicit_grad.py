@@ -218,7 +218,7 @@ def test_checkpoint_argument_is_validated():
     with pytest.raises(InputValidationError, match="fixed-step explicit"):
         odeint(f, x0, t, method="dopri5", checkpoint=True)
     with pytest.raises(InputValidationError, match="fixed-step explicit"):
-        odeint(f, x0, t, method="radau_iia", stages=2, checkpoint=True)
+        odeint(f, x0, t, method="radau_iia", stages=3, checkpoint=True)
     assert odeint(f, x0, t, method="dopri5", adaptive=False, checkpoint=2).success
 
 

@@ -418,6 +418,9 @@ def test_bad_newton_options_are_refused(option, values, kwargs):
         (lambda: odeint(decay, X0, T, method="rk4", stages=3), "stages=3 applies to"),
         (lambda: odeint(decay, X0, T, method="implicit_euler", stages=2), "stages=2 applies to"),
         (lambda: odeint(decay, X0, T, method="radau_iia", stages=0), "stages"),
+        # an even number of Radau stages ran at one fixed step per interval under rtol
+        (lambda: odeint(decay, X0, T, method="radau_iia", stages=2, rtol=1e-9), "even number"),
+        (lambda: _dae(method="radau_iia", stages=4), "even number"),
         (lambda: odeint(decay, X0, T, method="radau_iia", controller=1), "controller must be"),
         (lambda: odeint(decay, X0, T, method="rk4", controller=1), "controller=1 applies"),
         (lambda: solve_implicit_ode(decay, X0, T, substeps=2.0, adaptive=False), "substeps"),
