@@ -539,6 +539,21 @@ def test_foh_input_between_samples_matches_closed_form():
         (dict(x0="bogus"), "x0 must be one of"),
         (dict(horizon=[(5, 10)]), "start at epoch 0"),
         (dict(batch_size=0), "batch_size"),
+        # clip < 0 made clip_grad_norm_ flip the gradient (ascent), 0 zeroed it
+        (dict(clip=-1.0), "clip .* > 0, got -1.0"),
+        (dict(clip=0.0), "clip .* > 0, got 0.0"),
+        (dict(clip=math.inf), "clip .* > 0, got inf"),
+        # -1 trained nothing, 0 fell back to the default, 2.5 a raw TypeError
+        (dict(steps_per_epoch=-1), "steps_per_epoch .* integer >= 1, got -1"),
+        (dict(steps_per_epoch=0), "steps_per_epoch .* integer >= 1, got 0"),
+        (dict(steps_per_epoch=2.5), "steps_per_epoch .* integer >= 1, got 2.5"),
+        (dict(method="lbfgs", lbfgs_max_iter=0), "lbfgs_max_iter must be an integer >= 1"),
+        (dict(lr=-1.0), "lr must be a finite number >= 0, got -1.0"),
+        (dict(lr=math.nan), "lr must be a finite number >= 0, got nan"),
+        (dict(weight_decay=-1.0), "weight_decay must be a finite number >= 0"),
+        (dict(x0="encoder", n_init=3, encoder_hidden=0), "encoder_hidden must be an integer"),
+        (dict(seed=1.5), "seed must be an integer, got 1.5"),
+        (dict(patience=0), "patience .* integer >= 1, got 0"),
     ],
 )
 def test_bad_options(kwargs, words):

@@ -346,6 +346,21 @@ def _positive_int(value, name: str) -> int:
     return int(value)
 
 
+def _integer(value, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise InputValidationError(f"{name} must be an integer, got {value!r}.")
+    return int(value)
+
+
+def _real(value, name: str, *, positive: bool) -> float:
+    """``value`` as a finite float, > 0 where ``positive``, else >= 0."""
+    real = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+    if not real or not math.isfinite(value) or value < 0 or (positive and value == 0):
+        bound = "> 0" if positive else ">= 0"
+        raise InputValidationError(f"{name} must be a finite number {bound}, got {value!r}.")
+    return float(value)
+
+
 def _curriculum(horizon) -> list[tuple[int, int]]:
     """``horizon`` as a sorted list of (first epoch, T)."""
     if isinstance(horizon, (int, np.integer)) and not isinstance(horizon, bool):
@@ -424,23 +439,23 @@ def train(
         batch_size: windows per minibatch (``"adam"``).
         epochs: number of epochs (the total, also when resuming; a checkpoint of a completed
             training trains on to a larger total, without a ``schedule``).
-        steps_per_epoch: minibatches per epoch; default ``ceil(B * Ntot / (batch_size *
-            T))``, about one pass over the samples.
+        steps_per_epoch: minibatches per epoch, an integer >= 1; None: ``ceil(B * Ntot /
+            (batch_size * T))``, about one pass over the samples.
         lr: learning rate. schedule: None, ``"cosine"`` (cosine annealing to 0 over
             ``epochs``) or a factory ``optimizer -> torch.optim.lr_scheduler.*``, stepped once
-            per epoch. weight_decay: Adam's L2 penalty.
-        clip: clip the gradient to this global norm (None: no clipping).
+            per epoch. weight_decay: Adam's L2 penalty. lr and weight_decay: finite, >= 0.
+        clip: clip the gradient to this global norm, finite and > 0 (None: no clipping).
         x0: ``"estimate"``, ``"encoder"`` or ``"zero"`` (module docstring).
-        n_init, encoder_hidden: encoder window (samples) and hidden width.
+        n_init, encoder_hidden: encoder window (samples) and hidden width (integers >= 1).
         validation: :class:`IOData` for early stopping: its loss is the mean squared
             free-run error of every record from its start (from the encoder's state at
             ``n_init`` with ``x0="encoder"``, from zero with ``x0="zero"``, else from the
             states the output selects, zero for the others). With validation the best
             model by validation loss is returned.
-        patience: stop after this many epochs without a decrease of the validation loss
-            (without validation: of the criterion on the fixed windows tiling the records,
-            evaluated after every epoch); None: never.
-        seed: seeds the ``torch.Generator`` that draws the windows and initialises the
+        patience: stop after this many epochs (an integer >= 1) without a decrease of the
+            validation loss (without validation: of the criterion on the fixed windows tiling
+            the records, evaluated after every epoch); None: never.
+        seed: an integer; seeds the ``torch.Generator`` that draws the windows and initialises the
             encoder: two runs with the same seed give identical parameters.
         checkpoint: path of a checkpoint file: model, initial states, optimiser, scheduler,
             generator state, history and early-stopping state, written atomically every
@@ -451,7 +466,7 @@ def train(
             holds the history (``"train"``, ``"val"``, ``"best"``, ...) and ``"model"``, the
             model being trained (read it, e.g. to evaluate a metric of your own; do not
             modify it).
-        lbfgs_max_iter: L-BFGS iterations per epoch.
+        lbfgs_max_iter: L-BFGS iterations per epoch (integer >= 1).
         progress: tqdm bar over the epochs with train / validation loss: None (when stderr
             is a terminal), True or False.
 
@@ -465,7 +480,7 @@ def train(
     Raises:
         InputValidationError: a model off the contract, data whose channels do not match the
             model or that hold NaN, an unknown method / criterion / x0 mode, a horizon
-            longer than the shortest record allows, bad integer options, a checkpoint of
+            longer than the shortest record allows, bad integer or real options, a checkpoint of
             another configuration.
     """
     _check_model(model)
@@ -484,6 +499,17 @@ def train(
     batch_size = _positive_int(batch_size, "batch_size")
     epochs = _positive_int(epochs, "epochs")
     checkpoint_every = _positive_int(checkpoint_every, "checkpoint_every")
+    if steps_per_epoch is not None:
+        steps_per_epoch = _positive_int(steps_per_epoch, "steps_per_epoch (or None)")
+    lbfgs_max_iter = _positive_int(lbfgs_max_iter, "lbfgs_max_iter")
+    encoder_hidden = _positive_int(encoder_hidden, "encoder_hidden")
+    if patience is not None:
+        patience = _positive_int(patience, "patience (or None: never stop early)")
+    seed = _integer(seed, "seed")
+    lr = _real(lr, "lr", positive=False)
+    weight_decay = _real(weight_decay, "weight_decay", positive=False)
+    if clip is not None:
+        clip = _real(clip, "clip (the largest gradient norm, or None: no clipping)", positive=True)
     n_init = _positive_int(n_init, "n_init") if x0 == "encoder" else 0
     stages = _curriculum(horizon)
     shortest = min(data.lengths)
@@ -502,7 +528,7 @@ def train(
 
     dtype, device = data.dtype, data.device
     trained = copy.deepcopy(model).to(dtype=dtype, device=device)
-    generator = torch.Generator().manual_seed(int(seed))
+    generator = torch.Generator().manual_seed(seed)
     records = _Records(data, trained, dtype, device)
     out_is_state = _output_is_state(trained, dtype, device)
     net = _Trainable(trained, x0, records, n_init, encoder_hidden, generator, out_is_state)
@@ -673,7 +699,9 @@ def _finite_gradients(params, clip) -> bool:
 def _adam_epoch(net, records, T, kmin, batch_size, steps_per_epoch, opt, clip, generator):
     starts = records.starts(T, kmin)
     n = records.B * starts.shape[0]
-    steps = steps_per_epoch or max(1, math.ceil(records.B * records.u.shape[-2] / (batch_size * T)))
+    steps = steps_per_epoch
+    if steps is None:
+        steps = max(1, math.ceil(records.B * records.u.shape[-2] / (batch_size * T)))
     params = [p for group in opt.param_groups for p in group["params"]]
     total = 0.0
     for step in range(steps):  # sequential optimiser steps
