@@ -577,3 +577,28 @@ def test_bad_data():
         sysid.fit(sysid.ARX(1, 1, 1), first_order(50), method="adam")
     with pytest.raises(InputValidationError, match="neural models"):
         sysid.fit(sysid.ARX(1, 1, 1), first_order(50), horizon=5)
+
+
+def test_validate_skip_per_experiment_and_refused_out_of_range():
+    """validate(data, skip) leaves out the first ``skip`` samples of every experiment (the
+    rule of IOData.samples_after): the fit equals a numpy computation over those samples; a
+    negative skip (it wrapped around: 53.62 % instead of an error) and one longer than an
+    experiment (a raw RuntimeError) are refused by name."""
+    data = sysid.IOData.experiments([first_order(50, seed=1), first_order(31, seed=2)])
+    result = sysid.fit(
+        LinearRHS([-0.8], [1.2]), data, horizon=4, batch_size=4, epochs=1, lr=0.0, x0="zero"
+    )
+    y = data.y[:, 0].numpy()
+    yhat = simulate(result.model, data)[:, 0].numpy()
+    skip = 5
+    keep = np.r_[skip:50, 50 + skip : 81]
+    e, d = y[keep] - yhat[keep], y[keep] - y[keep].mean()
+    expected = 100 * (1 - np.linalg.norm(e) / np.linalg.norm(d))
+    got = float(result.validate(data, skip=skip)["fit_percent"][0])
+    assert abs(got - expected) < 1e-9
+    for bad in (-3, 30, 60, 2.5):
+        with pytest.raises(InputValidationError, match="validate: skip must be an integer"):
+            result.validate(data, skip=bad)
+    encoded = _small_run(epochs=1)  # n_init = 3: samples 0..2 are not simulated
+    with pytest.raises(InputValidationError, match="n_init = 3"):
+        encoded.validate(first_order(120, seed=2), skip=1)

@@ -284,30 +284,33 @@ class TrainingResult(FitResult):
         experiment (default ``n_init``; an initialisation window that absorbs the transient
         of a wrong initial state).
 
+        Args:
+            data: :class:`IOData` with the model's channels.
+            skip: an integer in ``[0, N_e - 2]`` for every experiment ``e`` (the rule of
+                :meth:`IOData.samples_after`), at least ``n_init`` where an encoder was
+                trained (its simulation starts at sample ``n_init``).
+            x0: initial state of the free run without an encoder (see :func:`simulate`).
+
         Returns:
             dict of (*batch, ny) tensors: ``"fit_percent"`` (MATLAB's fit), ``"rmse"`` (output
             units) and ``"r2"`` (coefficient of determination, ``1 - SSE/SST`` per channel),
             from :func:`sysid.validation.fit_quality` over the samples kept.
         """
-        skip = self.n_init if skip is None else int(skip)
         _check_data(data, self.model, "validate")
-        yhat = self.simulate(data, x0=x0)
-        keep = torch.cat(
-            [
-                off + torch.arange(skip, N)
-                for off, N in zip(_offsets(data), data.lengths, strict=True)
-            ]
-        ).to(data.device)
-        if keep.numel() < 2:
+        skip = self.n_init if skip is None else skip
+        try:
+            keep = data.samples_after(skip)
+        except InputValidationError as exc:
+            raise InputValidationError(f"validate: {exc}") from None
+        if self.encoder is not None and skip < self.n_init:
             raise InputValidationError(
-                f"validate: skip = {skip} leaves fewer than 2 samples of {data.lengths}."
+                f"validate: skip = {skip} keeps samples before the encoder's n_init = "
+                f"{self.n_init}, where the simulation has not started; use skip >= "
+                f"{self.n_init}."
             )
+        yhat = self.simulate(data, x0=x0)
         quality = fit_quality(data.y[..., keep, :].to(yhat.dtype), yhat[..., keep, :])
         return {"fit_percent": quality.fit_percent, "rmse": quality.rmse, "r2": quality.r_squared}
-
-
-def _offsets(data: IOData) -> list[int]:
-    return list(np.cumsum([0] + data.lengths[:-1]).tolist())
 
 
 # --------------------------------------------------------------------------- checks
