@@ -602,3 +602,20 @@ def test_validate_skip_per_experiment_and_refused_out_of_range():
     encoded = _small_run(epochs=1)  # n_init = 3: samples 0..2 are not simulated
     with pytest.raises(InputValidationError, match="n_init = 3"):
         encoded.validate(first_order(120, seed=2), skip=1)
+
+
+def test_simulate_x0_per_data_set_and_wrong_shape():
+    """x0 (nx,) or (*batch, nx): per data set it starts each free run there (x' = -x from
+    x0 is x0 exp(-t)); any other shape is refused by name (it was a raw RuntimeError from
+    expand)."""
+    N, h = 30, 0.1
+    data = sysid.IOData(torch.zeros(2, N, 1, dtype=torch.float64), torch.zeros(2, N, 1), h)
+    model = LinearRHS([-1.0], [1.0])
+    model.substeps = 4  # RK4 error ~1e-6 at one step per interval, / 4^4 here
+    x0 = torch.tensor([[1.0], [2.0]], dtype=torch.float64)
+    y = simulate(model, data, x0=x0)[..., 0].numpy()
+    exact = np.array([[1.0], [2.0]]) * np.exp(-h * np.arange(N))
+    assert np.abs(y - exact).max() < 1e-8
+    for bad in (torch.zeros(3), torch.zeros(4, 1), torch.zeros(1, 2, 1)):
+        with pytest.raises(InputValidationError, match=r"x0 has shape .*\(2, 1\)"):
+            simulate(model, data, x0=bad)

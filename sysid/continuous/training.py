@@ -236,13 +236,26 @@ def simulate(model, data: IOData, *, x0=None, encoder=None, n_init: int = 0) -> 
             elif x0 is None:
                 start = records.u.new_zeros(records.B, model.nx)
             else:
-                start = torch.as_tensor(x0, dtype=dtype, device=data.device)
-                start = start.expand(*data.batch_shape, model.nx).reshape(-1, model.nx)
+                start = _initial_state(x0, data, model.nx, dtype)
             y = _simulate_windows(model, records, start, b, g, N - 1 - k0)
             pad = y.new_full((records.B, k0, model.ny), math.nan)
             out.append(torch.cat([pad, y], -2))
     y = torch.cat(out, -2)
     return y.reshape(*data.batch_shape, records.u.shape[-2], model.ny)
+
+
+def _initial_state(x0, data: IOData, nx: int, dtype) -> torch.Tensor:
+    """``x0`` of :func:`simulate`, (nx,) or (*batch, nx), as (B, nx) with the batch
+    flattened."""
+    start = torch.as_tensor(x0, dtype=dtype, device=data.device)
+    shape = (*data.batch_shape, nx)
+    try:
+        return start.expand(shape).reshape(-1, nx)
+    except RuntimeError:
+        raise InputValidationError(
+            f"simulate: x0 has shape {tuple(start.shape)}; give one state ({nx},) or one per "
+            f"data set {shape} (the model has nx = {nx}, the data batch {tuple(data.batch_shape)})."
+        ) from None
 
 
 # --------------------------------------------------------------------------- result
