@@ -619,3 +619,32 @@ def test_simulate_x0_per_data_set_and_wrong_shape():
     for bad in (torch.zeros(3), torch.zeros(4, 1), torch.zeros(1, 2, 1)):
         with pytest.raises(InputValidationError, match=r"x0 has shape .*\(2, 1\)"):
             simulate(model, data, x0=bad)
+
+
+def test_a_checkpoint_of_other_options_data_or_model_is_refused(tmp_path):
+    """Resuming with another lr, weight_decay or clip was silently the checkpoint's run
+    (bit-identical to it); other data or another model raised a raw RuntimeError from
+    load_state_dict. Each is refused by name."""
+    path = tmp_path / "train.ckpt"
+    options = dict(x0="estimate", epochs=2, checkpoint=path)
+    _small_run(**options)
+    for changed in (dict(lr=2e-2), dict(weight_decay=1e-3), dict(clip=1.0)):
+        (name,) = changed
+        with pytest.raises(InputValidationError, match=f"differing: {name}"):
+            _small_run(**{**options, "epochs": 4, **changed})
+    resume = dict(
+        method="adam",
+        horizon=10,
+        batch_size=8,
+        epochs=4,
+        steps_per_epoch=3,
+        lr=1e-2,
+        x0="estimate",
+        seed=5,
+        checkpoint=path,
+    )
+    _small_run(**{**options, "epochs": 4})  # the same options resume
+    with pytest.raises(InputValidationError, match="holds the parameters of another model"):
+        sysid.fit(MLPRHS(hidden=8), first_order(100, seed=2), **resume)  # 100 samples, not 120
+    with pytest.raises(InputValidationError, match="holds the parameters of another model"):
+        sysid.fit(MLPRHS(hidden=4), first_order(120, seed=2, noise=0.01), **resume)

@@ -568,18 +568,43 @@ def train(
         "status": None,
         "messages": [],
     }
+    # the options a resumed training must share with the one that wrote the checkpoint
     config = dict(
-        method=method, horizon=stages, batch_size=batch_size, x0=x0, n_init=n_init, seed=seed
+        method=method,
+        horizon=stages,
+        batch_size=batch_size,
+        steps_per_epoch=steps_per_epoch,
+        lr=lr,
+        weight_decay=weight_decay,
+        clip=clip,
+        x0=x0,
+        n_init=n_init,
+        encoder_hidden=encoder_hidden,
+        seed=seed,
+        lbfgs_max_iter=lbfgs_max_iter,
     )
     if checkpoint is not None and os.path.exists(checkpoint):
         saved = torch.load(checkpoint, map_location=device, weights_only=False)
         if saved["config"] != config:
+            differ = sorted(
+                k
+                for k in config.keys() | saved["config"].keys()
+                if config.get(k) != saved["config"].get(k)
+            )
             raise InputValidationError(
                 f"checkpoint {os.fspath(checkpoint)!r} was written by a training with "
-                f"{saved['config']}, not {config}; use another path to start afresh."
+                f"{saved['config']}, not {config} (differing: {', '.join(differ)}); use "
+                "another path to start afresh."
             )
-        net.load_state_dict(saved["net"])
-        opt.load_state_dict(saved["optimizer"])
+        try:
+            net.load_state_dict(saved["net"])
+            opt.load_state_dict(saved["optimizer"])
+        except (RuntimeError, ValueError) as exc:
+            raise InputValidationError(
+                f"checkpoint {os.fspath(checkpoint)!r} holds the parameters of another model "
+                "or of other data (the initial-state table has one row per sample); use "
+                f"another path to start afresh. PyTorch: {exc}"
+            ) from None
         if scheduler is not None:
             scheduler.load_state_dict(saved["scheduler"])
         generator.set_state(saved["generator"])
