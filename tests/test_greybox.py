@@ -389,6 +389,15 @@ def test_bad_input_gets_named_errors():
         GreyBoxModel(SpringMassDamper(), {"mass": 1.0})
     with pytest.raises(InputValidationError, match="outside the bounds"):
         Param(-1.0, min=0.0)
+    # a value or bound that is not a number was a raw TypeError / ValueError
+    with pytest.raises(InputValidationError, match="value must be a number.*got 'a'"):
+        Param("a")
+    with pytest.raises(InputValidationError, match="value must be a number"):
+        Param([1.0, "b"], per_experiment=True)
+    with pytest.raises(InputValidationError, match="min must be a number or None, got 'x'"):
+        Param(1.0, min="x")
+    with pytest.raises(InputValidationError, match="max must be a number or None, got True"):
+        Param(1.0, max=True)
     with pytest.raises(InputValidationError, match="non-finite|not finite|NaN"):
         IOData(data.u, data.y.clone().index_fill_(-2, torch.tensor([3]), float("nan")), Ts=0.1)
     bad_h = GreyBoxModel(

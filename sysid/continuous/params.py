@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from integrators.errors import InputValidationError
@@ -34,11 +35,18 @@ class Param:
             condition that differs between runs) instead of one value shared by all.
 
     Raises:
-        InputValidationError: non-finite values, ``min >= max``, or a start outside the bounds.
+        InputValidationError: a value or bound that is not a number, non-finite values,
+            ``min >= max``, or a start outside the bounds.
     """
 
     def __init__(self, value, *, free: bool = True, min=None, max=None, per_experiment=False):
-        values = torch.as_tensor(value, dtype=torch.float64).detach().reshape(-1)
+        try:
+            values = torch.as_tensor(value, dtype=torch.float64).detach().reshape(-1)
+        except (TypeError, ValueError, RuntimeError):
+            raise InputValidationError(
+                f"Param: value must be a number (or, per experiment, a sequence of numbers), "
+                f"got {value!r}."
+            ) from None
         if values.numel() == 0 or not bool(torch.isfinite(values).all()):
             raise InputValidationError(f"Param: value must be finite, got {value!r}.")
         if values.numel() > 1 and not per_experiment:
@@ -47,6 +55,13 @@ class Param:
                 "or per_experiment=True for one value per experiment."
             )
         for name, bound in (("min", min), ("max", max)):
+            real = isinstance(bound, (int, float, np.integer, np.floating)) or (
+                isinstance(bound, torch.Tensor) and bound.numel() == 1 and bound.dtype != torch.bool
+            )
+            if bound is not None and (isinstance(bound, bool) or not real):
+                raise InputValidationError(
+                    f"Param: {name} must be a number or None, got {bound!r}."
+                )
             if bound is not None and not math.isfinite(float(bound)):
                 raise InputValidationError(f"Param: {name} must be finite or None, got {bound!r}.")
         if min is not None and max is not None and float(min) >= float(max):
