@@ -8,6 +8,7 @@ import warnings
 
 import numpy as np
 import pytest
+import scipy.linalg
 import torch
 
 from integrators import SemiExplicitDAE, sensitivities, tableau
@@ -676,7 +677,6 @@ def test_residuals_are_the_prediction_errors_y_minus_yhat():
     """FitResult.residuals of a grey-box fit are y - yhat, as for the polynomial models (they
     were yhat - y): checked against the exact zero-order-hold simulation of the fitted
     first-order plant (scipy's matrix exponential), sample by sample."""
-    import scipy.linalg
 
     def plant(t, x, u, p):
         return (-p["a"] * x[..., 0] + p["b"] * u[..., 0]).unsqueeze(-1)
@@ -695,3 +695,25 @@ def test_residuals_are_the_prediction_errors_y_minus_yhat():
         x = Phi[0, 0] * x + Phi[0, 1] * uk
     expected = data.y[:, 0].numpy() - np.array(yhat)
     np.testing.assert_allclose(res.residuals.numpy(), expected, atol=1e-7)
+
+
+def test_autonomous_data_with_band_limited_intersample():
+    """nu = 0 (no input): intersample="bl" fitted like "foh" (the rfft of the empty input
+    raised an MKL error); x'' = -k x - 0.5 x' from x(0) = (1, 0), exact by expm, gives k = 4."""
+    Ts, N = 0.2, 40
+    A = np.array([[0.0, 1.0], [-4.0, -0.5]])
+    y = np.array([scipy.linalg.expm(A * Ts * k)[:1, 0] for k in range(N)])
+
+    def f(t, x, u, p):
+        return torch.stack([x[..., 1], -p["k"] * x[..., 0] - 0.5 * x[..., 1]], -1)
+
+    model = GreyBoxModel(f, {"k": Param(3.0, min=0)}, nx=2, output=[0], substeps=4, x0=[1, 0])
+    fits = {}
+    for kind in ("foh", "bl"):
+        data = IOData(torch.zeros(N, 0, dtype=torch.float64), torch.tensor(y), Ts, intersample=kind)
+        fits[kind] = fit(model, data)
+    assert torch.equal(fits["bl"].theta, fits["foh"].theta)
+    assert abs(float(fits["bl"].theta[0]) - 4.0) < 1e-4
+    tau = stage_fractions(tableau("rk4"), 2)
+    for kind in ("zoh", "foh", "cubic", "bl"):
+        assert input_between_samples(torch.zeros(3, N, 0), kind, tau).shape == (3, N - 1, 5, 0)

@@ -648,3 +648,23 @@ def test_a_checkpoint_of_other_options_data_or_model_is_refused(tmp_path):
         sysid.fit(MLPRHS(hidden=8), first_order(100, seed=2), **resume)  # 100 samples, not 120
     with pytest.raises(InputValidationError, match="holds the parameters of another model"):
         sysid.fit(MLPRHS(hidden=4), first_order(120, seed=2, noise=0.01), **resume)
+
+
+def test_autonomous_data_trains_alike_under_band_limited_and_foh():
+    """nu = 0: intersample="bl" trains exactly as "foh" (no input to interpolate; the rfft
+    of the empty input raised an MKL error), and fits the decay y = exp(-t)."""
+    N, h = 60, 0.1
+    y = torch.exp(-h * torch.arange(N, dtype=torch.float64))[:, None]
+    results = {}
+    for kind in ("foh", "bl"):
+        data = sysid.IOData(torch.zeros(N, 0, dtype=torch.float64), y, h, intersample=kind)
+        model = MLPRHS(nu=0, hidden=4)
+        results[kind] = sysid.fit(
+            model, data, method="lbfgs", horizon=10, epochs=3, lbfgs_max_iter=10, x0="estimate"
+        )
+    for p, q in zip(
+        results["foh"].model.parameters(), results["bl"].model.parameters(), strict=True
+    ):
+        assert torch.equal(p, q)
+    assert torch.equal(results["foh"].train_loss, results["bl"].train_loss)
+    assert float(results["bl"].train_loss[-1]) < 1e-4  # outputs of order 0.5

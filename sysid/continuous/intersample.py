@@ -48,10 +48,13 @@ def input_between_samples(u: torch.Tensor, kind: str, tau: np.ndarray) -> torch.
         tau: (q,) fractions of the interval in [0, 1].
 
     Returns:
-        (*batch, N-1, q, nu) tensor (dtype and device of ``u``).
+        (*batch, N-1, q, nu) tensor (dtype and device of ``u``); empty for ``nu = 0`` (an
+        autonomous system: nothing to interpolate), whatever ``kind``.
     """
     N = u.shape[-2]
     tau_t = torch.as_tensor(tau, dtype=u.dtype, device=u.device)
+    if u.shape[-1] == 0:
+        return u.new_zeros(*u.shape[:-2], N - 1, tau_t.shape[0], 0)
     lo, hi = u[..., :-1, None, :], u[..., 1:, None, :]
     if kind == "zoh":
         return lo.expand(*lo.shape[:-2], tau_t.shape[0], u.shape[-1]).clone()
