@@ -668,3 +668,27 @@ def test_autonomous_data_trains_alike_under_band_limited_and_foh():
         assert torch.equal(p, q)
     assert torch.equal(results["foh"].train_loss, results["bl"].train_loss)
     assert float(results["bl"].train_loss[-1]) < 1e-4  # outputs of order 0.5
+
+
+def test_a_diverging_free_run_is_not_converged_and_warns():
+    """x' = 20 x + u barely trained (lr = 1e-12): RK4 at h a = 2 grows 7-fold per sample, so
+    the free run over 300 samples reaches ~1e250 and its squared residuals overflow. It was
+    reported "completed", converged, sigma2 = inf and no warning; now not converged, not
+    stable, a message and an UnstableModelWarning."""
+    data = first_order(300, seed=0)
+    with pytest.warns(sysid.UnstableModelWarning, match="free run .* diverges"):
+        result = sysid.fit(
+            LinearRHS([20.0], [1.0]),
+            data,
+            horizon=5,
+            batch_size=4,
+            epochs=1,
+            steps_per_epoch=1,
+            lr=1e-12,
+            x0="zero",
+        )
+    assert result.status == "completed"  # every epoch ran
+    assert not math.isfinite(float(result.sigma2))
+    assert not bool(result.converged) and not bool(result.stable)
+    assert any("diverges" in m for m in result.messages)
+    result.summary()

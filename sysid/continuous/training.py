@@ -44,6 +44,7 @@ from __future__ import annotations
 import copy
 import math
 import os
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -58,6 +59,7 @@ from integrators.methods import resolve_method
 
 from .._progress import progress_bar
 from ..data import IOData
+from ..errors import UnstableModelWarning
 from ..estimation.results import FitResult, inverse_normal_matrix_and_rank
 from ..validation import fit_quality
 from .intersample import input_between_samples, stage_fractions
@@ -268,6 +270,11 @@ class TrainingResult(FitResult):
             did not improve for ``patience`` epochs), ``"non_finite"`` (a non-finite loss or
             gradient: the best model so far was restored and the training stopped) or
             ``"stopped"`` (the callback asked to stop).
+        converged: status ``"completed"`` or ``"early_stopped"`` and ``stable``.
+        stable: whether the free run of the trained model over the training records stays
+            finite (its residuals and their sum of squares); where it diverges, ``sigma2``,
+            the standard errors and fit percentages are meaningless, a message says so and
+            :class:`~sysid.errors.UnstableModelWarning` is issued.
         train_loss: (epochs_run,) training loss of every epoch: ``"adam"``, the mean of its
             minibatch losses (each before its update); ``"lbfgs"``, the criterion on the
             fixed windows after the epoch's step.
@@ -1044,6 +1051,16 @@ def _result(net: _Trainable, records: _Records, data: IOData, method: str, state
     names, theta, cov, sigma2, r = _physical_statistics(net, records)
     se = torch.diagonal(cov).clamp_min(0).sqrt()
     status = state["status"]
+    messages = list(state["messages"])
+    stable = bool(torch.isfinite(r).all()) and bool(torch.isfinite(sigma2))
+    if not stable:
+        messages.append(
+            f"the free run of the trained model over the training records diverges (residual "
+            f"sum of squares {float((r * r).sum()):.6g}): sigma2, the standard errors and fit "
+            "percentages are meaningless; train longer, lengthen the horizon (short windows do "
+            "not constrain the long free run) or start from a stable model."
+        )
+        warnings.warn(f"fit: {messages[-1]}", UnstableModelWarning, stacklevel=3)
     train_loss = torch.tensor(state["train"], dtype=torch.float64)
     table = None
     if net.x0_table is not None:
@@ -1057,7 +1074,7 @@ def _result(net: _Trainable, records: _Records, data: IOData, method: str, state
         sigma2=sigma2.detach(),
         loss_history=train_loss,
         iterations=torch.tensor(len(state["train"])),
-        converged=torch.tensor(status in ("completed", "early_stopped")),
+        converged=torch.tensor(stable and status in ("completed", "early_stopped")),
         method=method,
         loss="gaussian",
         parameter_names=names,
@@ -1065,7 +1082,8 @@ def _result(net: _Trainable, records: _Records, data: IOData, method: str, state
         residuals=r,
         model=model,
         info={"criterion": "truncated", "best_loss": state["best"]},
-        messages=list(state["messages"]),
+        messages=messages,
+        stable=torch.tensor(stable),
         status=status,
         train_loss=train_loss,
         validation_loss=torch.tensor(state["val"], dtype=torch.float64),
