@@ -385,6 +385,22 @@ def test_uniform_noise_polytope_eq_4_58():
     assert s2.feasible.tolist() == [True, False]
 
 
+def test_uniform_noise_set_bad_inputs_are_named():
+    """A 0-d tensor bound is a number; unbroadcastable batches and NaN data are refused."""
+    A = torch.randn(6, 2, generator=gen(26), dtype=DT)
+    y = A @ torch.tensor([0.5, -1.0], dtype=DT)
+    s = uniform_noise_mle_set(A, y, torch.tensor(0.1, dtype=DT))
+    assert s.a == 0.1 and bool(s.feasible)
+    with pytest.raises(InputValidationError, match=r"\(3, 6, 2\).*\(2, 6\).*do not broadcast"):
+        uniform_noise_mle_set(A.expand(3, 6, 2), y.expand(2, 6), 0.1)
+    y_nan = y.clone()
+    y_nan[1] = math.nan
+    with pytest.raises(InputValidationError, match="finite"):
+        uniform_noise_mle_set(A, y_nan, 0.1)
+    with pytest.raises(InputValidationError, match="a number"):
+        uniform_noise_mle_set(A, y, torch.tensor([0.1, 0.2]))
+
+
 def _unstable_batch():
     """Three OE data sets; the middle one from an unstable plant (F roots of modulus sqrt(1.2))."""
     th = torch.tensor([[0.5, 0.3, -1.2, 0.5], [0.5, 0.3, -2.1, 1.2], [0.5, 0.3, -1.2, 0.5]])

@@ -4,6 +4,7 @@ polytope, bounded per parameter by linear programs."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,20 +55,36 @@ def uniform_noise_mle_set(A: torch.Tensor, y: torch.Tensor, a: float) -> Uniform
     polytope is one linear program (scipy HiGHS); the Chebyshev centre is one more.
 
     Args:
-        A: ``(*batch, M, p)`` regressors; y: ``(*batch, M)``; a: noise half-width (> 0).
+        A: ``(*batch, M, p)`` regressors; y: ``(*batch, M)`` (batch shapes broadcast), both
+            finite; a: noise half-width (a finite number > 0, or a one-element tensor).
 
     Returns:
         :class:`UniformNoiseSet`.
     """
-    if not a > 0:
-        raise InputValidationError(f"the noise half-width a must be > 0, got {a}.")
+    a_shape = tuple(torch.as_tensor(a).shape)
+    if math.prod(a_shape) != 1:
+        raise InputValidationError(f"the noise half-width a must be a number, got shape {a_shape}.")
+    a = float(a)
+    if not 0 < a < math.inf:
+        raise InputValidationError(f"the noise half-width a must be finite and > 0, got {a}.")
     A = torch.as_tensor(A)
     y = torch.as_tensor(y, dtype=A.dtype, device=A.device)
-    if A.dim() < 2 or y.shape[-1] != A.shape[-2]:
+    if A.dim() < 2 or y.dim() < 1 or y.shape[-1] != A.shape[-2]:
         raise InputValidationError(
             f"A must be (*batch, M, p) and y (*batch, M); got {tuple(A.shape)}, {tuple(y.shape)}."
         )
-    batch = torch.broadcast_shapes(A.shape[:-2], y.shape[:-1])
+    try:
+        batch = torch.broadcast_shapes(A.shape[:-2], y.shape[:-1])
+    except RuntimeError:
+        raise InputValidationError(
+            f"the batch shapes of A {tuple(A.shape)} and y {tuple(y.shape)} do not broadcast: "
+            "give A (*batch, M, p) and y (*batch, M) with matching (or size-1) batch dimensions."
+        ) from None
+    if not (bool(torch.isfinite(A).all()) and bool(torch.isfinite(y).all())):
+        raise InputValidationError(
+            "A and y must be finite (a NaN or inf has no residual bound); remove or "
+            "interpolate the non-finite samples."
+        )
     M, p = A.shape[-2:]
     An = A.expand(*batch, M, p).detach().cpu().double().numpy().reshape(-1, M, p)
     yn = y.expand(*batch, M).detach().cpu().double().numpy().reshape(-1, M)
@@ -108,7 +125,7 @@ def uniform_noise_mle_set(A: torch.Tensor, y: torch.Tensor, a: float) -> Uniform
     return UniformNoiseSet(
         A=A,
         y=y,
-        a=float(a),
+        a=a,
         lower=torch.as_tensor(lower, **to).reshape(*batch, p),
         upper=torch.as_tensor(upper, **to).reshape(*batch, p),
         feasible=torch.as_tensor(feasible, device=A.device).reshape(batch),
