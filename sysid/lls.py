@@ -173,6 +173,18 @@ def _check_finite(name: str, x: torch.Tensor) -> None:
         )
 
 
+def _batch_shape(where: str, x: torch.Tensor, x_name: str, x_core: int, y: torch.Tensor):
+    """Broadcast batch shape of ``x`` (``x_core`` trailing non-batch dimensions) and ``y``
+    (one trailing non-batch dimension); InputValidationError naming both shapes if none."""
+    try:
+        return torch.broadcast_shapes(x.shape[: x.dim() - x_core], y.shape[:-1])
+    except RuntimeError:
+        raise InputValidationError(
+            f"{where}: the batch shapes of {x_name} {tuple(x.shape)} and y {tuple(y.shape)} do "
+            "not broadcast; give them equal (or size-1) leading batch dimensions."
+        ) from None
+
+
 def _prepare_weights(W: torch.Tensor | None, M: int, like: torch.Tensor, y_dim: int):
     """Return ``(kind, W)`` with kind in {"none", "diag", "full"} after validation.
 
@@ -322,6 +334,7 @@ def lls(
         )
     if method not in ("qr", "cholesky"):
         raise InputValidationError(f"lls: method must be 'qr' or 'cholesky', got {method!r}.")
+    _batch_shape("lls", A, "A", 2, y)
     _check_finite("A", A)
     _check_finite("y", y)
     wkind, Wt = _prepare_weights(W, M, A, y.dim())
@@ -745,7 +758,7 @@ def fir_lls(
         raise InputValidationError(
             f"fir_lls: need nb >= 1, nk >= 0 and N > nb; got {nb}, {nk}, {N}."
         )
-    batch = torch.broadcast_shapes(u.shape[:-1], y.shape[:-1])
+    batch = _batch_shape("fir_lls", u, "u", 1, y)
     w = F.pad(u, (nk, 0))[..., :N] if nk else u
     r = _lagged_products(w, w, nb)
     c = _lagged_products(w, y, nb)

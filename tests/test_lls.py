@@ -349,6 +349,16 @@ def test_fir_lls_singular_member_and_non_finite_samples_are_named():
             fir_lls(*args, 4, 2)
 
 
+def test_batch_shapes_that_do_not_broadcast_are_named():
+    """lls and fir_lls name both shapes when the batch dimensions of the data disagree."""
+    from sysid.lls import fir_lls
+
+    with pytest.raises(InputValidationError, match=r"A \(3, 10, 2\) and y \(2, 10\)"):
+        lls(torch.randn(3, 10, 2, dtype=DT), torch.randn(2, 10, dtype=DT))
+    with pytest.raises(InputValidationError, match=r"u \(3, 10\) and y \(2, 10\)"):
+        fir_lls(torch.randn(3, 10, dtype=DT), torch.randn(2, 10, dtype=DT), 2)
+
+
 @pytest.mark.parametrize(
     "sigma",
     [-1.0, 0.0, float("inf"), float("nan"), torch.full((60,), -0.5), torch.zeros(60)],
