@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from integrators.errors import InputValidationError
@@ -256,7 +257,7 @@ class MonteCarloSummary:
 
 
 def summarize_estimates(
-    estimates: torch.Tensor,
+    estimates: torch.Tensor | np.ndarray,
     truth: torch.Tensor,
     predicted_covariance: torch.Tensor | None = None,
     standard_errors: torch.Tensor | None = None,
@@ -265,17 +266,30 @@ def summarize_estimates(
     """Bias, spread and covariance of Monte-Carlo estimates against theory.
 
     Args:
-        estimates: ``(*trials, p)`` (all leading dimensions are trials).
+        estimates: ``(*trials, p)`` (all leading dimensions are trials); a tensor or a
+            numpy array (as are the other array arguments).
         truth: ``(p,)``.
         predicted_covariance: e.g. ``sigma^2 (U'U)^{-1}`` (eq. 4.101), ``(p, p)``.
-        standard_errors: per-trial standard errors ``(*trials, p)`` for the coverage.
+        standard_errors: per-trial standard errors ``(*trials, p)`` for the coverage (or a
+            shape that broadcasts to it, e.g. ``(p,)`` shared by all trials).
         k: half-width of the coverage interval in standard errors.
     """
-    est = estimates.detach().reshape(-1, estimates.shape[-1])
+    estimates = torch.as_tensor(estimates).detach()
+    if estimates.dim() < 1:
+        raise InputValidationError("estimates must be (*trials, p), got a 0-d tensor.")
+    if not estimates.is_floating_point():
+        estimates = estimates.to(torch.get_default_dtype())
+    p = estimates.shape[-1]
+    est = estimates.reshape(-1, p)
     T = est.shape[0]
     if T < 2:
         raise InputValidationError("need at least 2 trials to summarise estimates.")
     truth = torch.as_tensor(truth, dtype=est.dtype, device=est.device)
+    if truth.shape != (p,):
+        raise InputValidationError(
+            f"truth must have shape (p,) = ({p},) like the last dimension of estimates "
+            f"{tuple(estimates.shape)}, got {tuple(truth.shape)}."
+        )
     mean = est.mean(0)
     dev = est - mean
     cov = dev.T @ dev / (T - 1)
@@ -291,11 +305,23 @@ def summarize_estimates(
     )
     if predicted_covariance is not None:
         P = torch.as_tensor(predicted_covariance, dtype=est.dtype, device=est.device)
+        if P.shape != (p, p):
+            raise InputValidationError(
+                f"predicted_covariance must have shape (p, p) = ({p}, {p}) for p = {p} "
+                f"parameters, got {tuple(P.shape)}."
+            )
         summary.predicted_covariance = P
         summary.relative_frobenius_error = torch.linalg.matrix_norm(
             cov - P
         ) / torch.linalg.matrix_norm(P)
     if standard_errors is not None:
-        se = standard_errors.detach().reshape(-1, est.shape[-1])
+        se = torch.as_tensor(standard_errors, dtype=est.dtype, device=est.device).detach()
+        try:
+            se = se.expand(estimates.shape).reshape(-1, p)
+        except RuntimeError:
+            raise InputValidationError(
+                f"standard_errors must have the shape of estimates {tuple(estimates.shape)} "
+                f"(one row per trial, or one row shared by all), got {tuple(se.shape)}."
+            ) from None
         summary.coverage = ((est - truth).abs() <= k * se).all(-1).to(est.dtype).mean()
     return summary

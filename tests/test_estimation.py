@@ -109,6 +109,23 @@ def test_oe_gauss_newton_monte_carlo_coverage():
     assert (h[1:] <= h[:-1] + 1e-12).all()
 
 
+def test_summarize_estimates_checks_shapes_and_takes_numpy():
+    """Mismatched truth, standard errors or covariance are named; numpy arrays give the
+    statistics of the same tensors."""
+    est = np.array([[1.0, 2.0], [3.0, 1.0], [2.0, 4.0], [0.0, 1.0]])
+    s = summarize_estimates(est, np.zeros(2), np.eye(2), standard_errors=np.ones(2), k=2.5)
+    ref = summarize_estimates(torch.tensor(est), torch.zeros(2, dtype=DT), torch.eye(2, dtype=DT))
+    torch.testing.assert_close(s.covariance, ref.covariance)
+    torch.testing.assert_close(s.std, torch.tensor(est).std(0))
+    assert float(s.coverage) == 0.5  # rows within 2.5 of 0 in every parameter: 1st and 4th
+    with pytest.raises(InputValidationError, match=r"truth .*\(2,\).*got \(3,\)"):
+        summarize_estimates(est, np.zeros(3))
+    with pytest.raises(InputValidationError, match=r"standard_errors .*\(4, 2\).*\(5, 2\)"):
+        summarize_estimates(est, np.zeros(2), standard_errors=np.ones((5, 2)))
+    with pytest.raises(InputValidationError, match=r"predicted_covariance .*got \(3, 3\)"):
+        summarize_estimates(est, np.zeros(2), predicted_covariance=np.eye(3))
+
+
 def test_arx_biased_on_output_noise_oe_and_iv_are_not():
     """White output noise: ARX least squares is biased (coloured equation error A e)."""
     oe, th_oe = TRUE["OE"]
