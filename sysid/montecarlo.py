@@ -12,6 +12,7 @@ Frobenius error, coverage of confidence intervals). All randomness comes from a
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +53,13 @@ def _generator(generator, seed, device) -> torch.Generator:
     return g
 
 
+def _check_float_dtype(dtype) -> None:
+    if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+        raise InputValidationError(
+            f"dtype must be a real floating torch dtype (e.g. torch.float64), got {dtype}."
+        )
+
+
 def input_signal(
     kind: str,
     N: int,
@@ -74,16 +82,21 @@ def input_signal(
             signal whose spectrum is white for ``hold = 1``), ``"step"`` (``amplitude`` from
             sample 0 on, system at rest before) or ``"sinusoid"``
             (``amplitude sin(omega k + phase)`` with a random phase per data set).
-        N: number of samples.
+        N: number of samples (an integer >= 1).
         batch_shape: leading batch shape (one signal per data set).
+        n_inputs: number of input channels (an integer >= 1).
+        hold: samples per PRBS level (an integer >= 1).
+        dtype: a floating dtype.
         omega: sinusoid frequency in rad/sample.
         generator, seed: randomness (a generator wins over a seed; neither: fresh entropy,
             different draws on every call).
     """
     if kind not in INPUT_KINDS:
         raise InputValidationError(f"kind must be one of {INPUT_KINDS}, got {kind!r}.")
-    if N < 1 or hold < 1:
-        raise InputValidationError(f"need N >= 1 and hold >= 1, got N = {N}, hold = {hold}.")
+    for name, value in (("N", N), ("hold", hold), ("n_inputs", n_inputs)):
+        if not isinstance(value, numbers.Integral) or value < 1:
+            raise InputValidationError(f"{name} must be an integer >= 1, got {value!r}.")
+    _check_float_dtype(dtype)
     batch_shape = torch.Size((batch_shape,) if isinstance(batch_shape, int) else batch_shape)
     shape = (*batch_shape, N, n_inputs)
     g = _generator(generator, seed, device)
@@ -123,9 +136,23 @@ def noise_signal(
             ``a = sqrt(3) std``; ``"contaminated"``: Gaussian with probability
             ``1 - contamination`` and Gaussian ``outlier_scale`` times wider otherwise
             (scaled so the inlier standard deviation is ``std``).
+        std: finite and >= 0.
+        contamination: outlier probability in ``[0, 1]``.
+        dtype: a floating dtype.
+
+    Returns:
+        noise of shape ``shape``.
     """
     if kind not in NOISE_KINDS:
         raise InputValidationError(f"noise kind must be one of {NOISE_KINDS}, got {kind!r}.")
+    if not 0 <= std < math.inf:
+        raise InputValidationError(f"std must be finite and >= 0, got {std}.")
+    if not 0 <= contamination <= 1:
+        raise InputValidationError(
+            f"contamination is the probability of an outlier and must lie in [0, 1], "
+            f"got {contamination}."
+        )
+    _check_float_dtype(dtype)
     g = _generator(generator, seed, device)
     to = dict(dtype=dtype, device=device)
     shape = tuple(shape)

@@ -28,7 +28,7 @@ from sysid.estimation.prediction_error import _OutputError
 from sysid.estimation.results import inverse_normal_matrix_and_rank
 from sysid.filters import iir_filter
 from sysid.models import ARMAX, ARX, BJ, FIR, OE
-from sysid.montecarlo import input_signal, simulate_data, summarize_estimates
+from sysid.montecarlo import input_signal, noise_signal, simulate_data, summarize_estimates
 
 DT = torch.float64
 TRUE = {
@@ -107,6 +107,23 @@ def test_oe_gauss_newton_monte_carlo_coverage():
     # the Gauss-Newton loss decreased monotonically per data set
     h = res.loss_history
     assert (h[1:] <= h[:-1] + 1e-12).all()
+
+
+def test_input_and_noise_signal_arguments_are_checked():
+    """Non-integer or zero sizes, integer dtypes, negative std and a contamination outside
+    [0, 1] are refused by name; numpy integer sizes are integers."""
+    assert input_signal("prbs", np.int64(7), n_inputs=2, seed=0).shape == (7, 2)
+    for kwargs, word in [
+        (dict(N=10.5), "N must be an integer"),
+        (dict(N=10, n_inputs=0), "n_inputs must be an integer >= 1"),
+        (dict(N=10, dtype=torch.int64), "floating"),
+    ]:
+        with pytest.raises(InputValidationError, match=word):
+            input_signal("white", seed=0, **kwargs)
+    with pytest.raises(InputValidationError, match="std must be"):
+        noise_signal((5,), std=-1.0, seed=0)
+    with pytest.raises(InputValidationError, match=r"\[0, 1\]"):
+        noise_signal((5,), "contaminated", contamination=1.5, seed=0)
 
 
 def test_summarize_estimates_checks_shapes_and_takes_numpy():
