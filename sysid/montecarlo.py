@@ -183,7 +183,17 @@ def fir_regressor(u: torch.Tensor, nb: int, nk: int = 0) -> torch.Tensor:
     Unlike :meth:`sysid.FIR.regression`, which keeps only the rows whose lags are all inside
     the record, this uses every sample and the knowledge that the system was at rest before
     sample 0 (as in :func:`simulate_data`), as the notes do for Fig. 4.1.
+
+    Args:
+        u: inputs ``(*batch, N)``.
+        nb: number of taps (an integer >= 1); nk: input delay (an integer >= 0).
     """
+    if not isinstance(nb, numbers.Integral) or nb < 1:
+        raise InputValidationError(f"fir_regressor: nb must be an integer >= 1, got {nb!r}.")
+    if not isinstance(nk, numbers.Integral) or nk < 0:
+        raise InputValidationError(
+            f"fir_regressor: the delay nk must be an integer >= 0, got {nk!r}."
+        )
     padded = torch.nn.functional.pad(u, (nb - 1 + nk, 0))[..., : u.shape[-1] + nb - 1]
     return padded.unfold(-1, nb, 1).flip(-1)
 

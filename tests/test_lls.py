@@ -349,6 +349,19 @@ def test_fir_lls_singular_member_and_non_finite_samples_are_named():
             fir_lls(*args, 4, 2)
 
 
+def test_fir_regressor_values_and_refused_orders():
+    """U[k, i] = u_{k-nk-i} from rest with N rows; nb < 1 and nk < 0 are refused by name."""
+    from sysid.montecarlo import fir_regressor
+
+    u = torch.tensor([1.0, 2.0, 3.0], dtype=DT)
+    expected = torch.tensor([[0.0, 0.0], [1.0, 0.0], [2.0, 1.0]], dtype=DT)
+    torch.testing.assert_close(fir_regressor(u, 2, 1), expected)
+    with pytest.raises(InputValidationError, match="nb must be an integer >= 1"):
+        fir_regressor(u, 0)
+    with pytest.raises(InputValidationError, match="nk must be an integer >= 0"):
+        fir_regressor(u, 2, -1)
+
+
 def test_batch_shapes_that_do_not_broadcast_are_named():
     """lls and fir_lls name both shapes when the batch dimensions of the data disagree."""
     from sysid.lls import fir_lls
