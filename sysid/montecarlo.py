@@ -226,6 +226,10 @@ def simulate_data(
 ) -> IOData:
     """Data sets of a known system: ``y = G u + v`` with ``v = e`` or ``v = H e``.
 
+    The simulation and the noise are computed in the model's dtype (``u`` and ``theta`` are
+    cast to it, as :meth:`PolynomialModel.simulate` casts ``u``); the returned data hold
+    ``u`` and ``y`` in the wider of the dtypes of ``u`` and the model (see :class:`IOData`).
+
     Args:
         model: the true system (its parameters, or ``theta``).
         u: inputs ``(*batch, N, nu)``.
@@ -244,8 +248,9 @@ def simulate_data(
     """
     if noise not in ("output", "model"):
         raise InputValidationError(f"noise must be 'output' or 'model', got {noise!r}.")
+    # the simulation runs in the model's dtype, as model.simulate treats u
     th = model.parameter_vector().detach() if theta is None else torch.as_tensor(theta)
-    th = th.to(dtype=u.dtype, device=u.device)
+    th = th.to(dtype=model.a.dtype, device=model.a.device)
     y = model.simulate(u, theta=th)
     if noise_std > 0:
         e = noise_signal(

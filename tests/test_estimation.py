@@ -380,6 +380,22 @@ def test_float32_fit():
     assert ((res.theta - th_oe).abs() < 4 * res.standard_errors).all()
 
 
+def test_simulate_data_runs_in_the_model_dtype():
+    """float32 u with a float64 model: the float64 simulation of the (exactly widened) u, noise
+    included; a float32 model with float64 u gives the float64 answer to float32 rounding."""
+    th = torch.tensor([0.5, 0.3, -1.2, 0.5], dtype=DT)
+    u32 = input_signal("white", 100, (2,), generator=gen(27), dtype=torch.float32)
+    d32 = simulate_data(OE(2, 2, 1), u32, theta=th, noise_std=0.1, seed=3)
+    d64 = simulate_data(OE(2, 2, 1), u32.double(), theta=th, noise_std=0.1, seed=3)
+    assert d32.dtype == torch.float64
+    torch.testing.assert_close(d32.u, d64.u, rtol=0, atol=0)
+    torch.testing.assert_close(d32.y, d64.y, rtol=0, atol=0)
+    low = simulate_data(OE(2, 2, 1, dtype=torch.float32), u32.double(), theta=th)
+    exact = OE(2, 2, 1).simulate(u32.double(), theta=th)
+    torch.testing.assert_close(low.y, exact, rtol=1e-5, atol=1e-5)
+    assert (low.y.float().double() == low.y).all()  # computed in float32
+
+
 def test_invalid_requests():
     u = input_signal("white", 50, generator=gen(22))
     data = simulate_data(FIR(2, 1), u, theta=torch.tensor([1.0, 0.5]))
