@@ -241,13 +241,22 @@ def _residuals_and_size(residuals, n_params, func: str) -> tuple[torch.Tensor, i
     if pair is not None:
         model, data = pair
         with torch.no_grad():
-            return model.prediction_errors(data), model.n_params
-    if isinstance(n_params, bool) or not isinstance(n_params, (int, np.integer)):
+            e, d = model.prediction_errors(data), model.n_params
+    else:
+        if isinstance(n_params, bool) or not isinstance(n_params, (int, np.integer)):
+            raise InputValidationError(
+                f"{func}: n_params must be an int, got {type(n_params).__name__}; expected "
+                f"{_USAGE[func]}."
+            )
+        e, d = _as_sequences(residuals, "residuals", func), int(n_params)
+    N = e.shape[-2]
+    if not 0 <= d < N:
         raise InputValidationError(
-            f"{func}: n_params must be an int, got {type(n_params).__name__}; expected "
-            f"{_USAGE[func]}."
+            f"{func}: need 0 <= n_params < N (fewer estimated parameters than samples, else "
+            f"the criterion is meaningless), got d = {d}, N = {N}; use more data or a "
+            "smaller model."
         )
-    return _as_sequences(residuals, "residuals", func), int(n_params)
+    return e, d
 
 
 def _loss_function(e: torch.Tensor) -> torch.Tensor:
@@ -265,9 +274,10 @@ def aic(residuals, n_params) -> torch.Tensor:
     Args:
         residuals: prediction errors ``(*batch, N, ny)`` of the model on the estimation data;
             or a fitted :class:`sysid.PolynomialModel` / :class:`sysid.FitResult`.
-        n_params: number ``d`` of estimated parameters; or, with a model as first argument,
-            the :class:`sysid.IOData` on which its one-step prediction errors are taken
-            (all ``N`` samples, without gradient), with ``d = model.n_params``.
+        n_params: number ``d`` of estimated parameters (``0 <= d < N``); or, with a model
+            as first argument, the :class:`sysid.IOData` on which its one-step prediction
+            errors are taken (all ``N`` samples, without gradient), with
+            ``d = model.n_params``.
 
     Returns:
         AIC, shape ``(*batch,)``; smaller is better.
@@ -285,7 +295,7 @@ def fpe(residuals, n_params) -> torch.Tensor:
     Args:
         residuals: prediction errors ``(*batch, N, ny)`` on the estimation data; or a fitted
             :class:`sysid.PolynomialModel` / :class:`sysid.FitResult`.
-        n_params: number ``d`` of estimated parameters (``d < N``); or, with a model as
+        n_params: number ``d`` of estimated parameters (``0 <= d < N``); or, with a model as
             first argument, the :class:`sysid.IOData` on which its one-step prediction errors
             are taken (all ``N`` samples, without gradient), with ``d = model.n_params``.
 
@@ -294,8 +304,6 @@ def fpe(residuals, n_params) -> torch.Tensor:
     """
     e, d = _residuals_and_size(residuals, n_params, "fpe")
     N = e.shape[-2]
-    if d >= N:
-        raise InputValidationError(f"fpe: need n_params < N, got d = {d}, N = {N}.")
     return _loss_function(e) * (1 + d / N) / (1 - d / N)
 
 

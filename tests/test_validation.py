@@ -146,6 +146,15 @@ def test_model_forms_equal_array_forms():
     assert 90.0 < fit_percent(model, val).item() < 100.0  # OE of the true order fits well
 
 
+@pytest.mark.parametrize("criterion", [aic, fpe])
+@pytest.mark.parametrize("d", [3, 5, -1])
+def test_criteria_refuse_n_params_outside_0_to_N(criterion, d):
+    """AIC and FPE need 0 <= d < N (FPE's denominator 1 - d/N vanishes at d = N)."""
+    e = torch.randn(3, 1, generator=gen(16), dtype=torch.float64)
+    with pytest.raises(InputValidationError, match=rf"0 <= n_params < N.*d = {d}, N = 3"):
+        criterion(e, d)
+
+
 @pytest.mark.parametrize(
     ("call", "words"),
     [
