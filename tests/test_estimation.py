@@ -396,6 +396,22 @@ def test_simulate_data_runs_in_the_model_dtype():
     assert (low.y.float().double() == low.y).all()  # computed in float32
 
 
+def test_initial_estimate_of_a_model_with_a_and_f_is_the_models_values():
+    """The documented exception to the data-based start: a model with both A and F starts
+    from its current parameters, broadcast over the data's batch; OE starts from data."""
+    from sysid.estimation.initial import _initial_estimate
+    from sysid.models import PolynomialModel
+
+    u = input_signal("white", 80, (2,), generator=gen(28))
+    th = torch.tensor([0.5, 0.3, -1.2, 0.5], dtype=DT)
+    data = simulate_data(OE(2, 2, 1), u, theta=th)
+    general = PolynomialModel(na=1, nb=2, nf=1)
+    general.set_parameter_vector(torch.tensor([-0.3, 1.0, 0.2, 0.1], dtype=DT))
+    start = _initial_estimate(general, data)
+    torch.testing.assert_close(start, general.parameter_vector().detach().expand(2, 4))
+    assert _initial_estimate(OE(2, 2, 1), data).abs().min() > 0
+
+
 def test_invalid_requests():
     u = input_signal("white", 50, generator=gen(22))
     data = simulate_data(FIR(2, 1), u, theta=torch.tensor([1.0, 0.5]))

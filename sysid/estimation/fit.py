@@ -85,7 +85,8 @@ def fit(
             models: ``"simulation"`` (the default), ``"multiple_shooting"`` or ``"one_step"``
             (see :mod:`sysid.continuous.fit`).
         init: starting parameters ``(*batch, p)``, ``"model"`` (the model's current values) or
-            ``None`` (automatic: ARX least squares / instrumental variables, stabilised).
+            ``None`` (automatic: ARX least squares / instrumental variables, stabilised; a
+            model with both A and F starts from its current values, one without B from 0).
         max_iter, xtol, ftol: iteration limit and step/relative-decrease tolerances.
         iv_iterations: instrument refinements of ``"iv"`` (and of the automatic start).
         x0: grey-box models: the initial state, ``"zero"``, ``"estimate"`` (one per

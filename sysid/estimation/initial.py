@@ -33,12 +33,16 @@ def _aux_arx(model: PolynomialModel, na: int, nb, nk, batch) -> ARX:
 
 
 def _initial_estimate(model: PolynomialModel, data: IOData) -> torch.Tensor:
-    """A stable, consistent-ish starting point (never zero for OE/BJ/ARMAX).
+    """A stable, consistent-ish starting point ``(*batch, p)``.
 
     ARX/FIR: least squares. OE and the G-part of BJ: an ARX model with ``na = nf`` fitted by
     instrumental variables (``F = A``). ARMAX: A, B by instrumental variables, ``C = 1``.
     BJ: then ``D`` from an AR(nd) least-squares fit to the residual ``y - B/F u``, ``C = 1``.
     Finally roots of C, D, F outside the unit circle are reflected inside.
+
+    Two cases get no data-based start: a general model with both A and some F_i starts from
+    the model's current parameters (zeros unless set), and a model without B parameters
+    (no input part) starts from zeros.
     """
     batch = data.batch_shape
     g = _groups(model)
