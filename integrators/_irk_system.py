@@ -93,7 +93,15 @@ class StageSystem:
 
             start = torch.zeros_like(xd) if xdot is None else xdot.detach()
             guess = torch.cat([start, z.detach()], dim=-1)
-        res = newton(phi, guess, xd, method="damped", max_iter=50)
+        # rows equilibrated by their largest Jacobian entry at the guess: Newton's absolute
+        # residual test then bounds the error of the root, whatever the scale of g (or F)
+        J = batch_jacobian(lambda v: phi(v, xd), guess, strategy="rows")[1]
+        scale = J.abs().amax(-1).clamp_min(torch.finfo(J.dtype).tiny)
+
+        def equilibrated(v, x):
+            return phi(v, x) / scale
+
+        res = newton(equilibrated, guess, xd, method="damped", max_iter=50)
         v = root_derivatives(lambda v: phi(v, x), res.x)
         if self.kind == "semi":
             return self.rhs_f(t, x, v, u), v, res

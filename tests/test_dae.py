@@ -545,3 +545,22 @@ def test_adaptive_radau_solves_z_at_output_times_inside_a_step(kind, batch):
         step = 1e-6
         fd = (run(k + step).z[..., 7, 0] - run(k - step).z[..., 7, 0]).sum() / (2 * step)
         assert abs(float(grad.sum() - fd)) < 1e-5 * abs(float(fd))
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1e-9])
+@pytest.mark.parametrize("options", [{}, dict(adaptive=False, substeps=4)])
+def test_consistent_start_of_a_badly_scaled_constraint(scale, options):
+    """0 = scale (z - x): Newton's absolute residual test (|g| <= 1e-10) accepted a guess
+    z0 = 1 + 9e-8 unchanged at scale 1e-3 and z0 = 1.05 at scale 1e-9 (z(t0) off by 0.05).
+    With the equations equilibrated by their Jacobian rows the start is z(t0) = x(t0) to
+    rounding, whatever the scale; the correction is reported."""
+
+    def g(t, x, z):
+        return scale * (z - x)
+
+    guess = 1.0 + 9e-8 if scale == 1e-3 else 1.05
+    sol = daeint(SemiExplicitDAE(lambda t, x, z: -z, g), torch.tensor([1.0]),
+                 torch.tensor([guess]), torch.tensor([0.0, 0.5]), rtol=1e-10, atol=1e-12,
+                 **options)  # fmt: skip
+    assert abs(float(sol.z[0, 0]) - 1.0) < 1e-14
+    assert float(sol.stats.extra["z0_correction"]) == pytest.approx(guess - 1.0, rel=1e-6)
