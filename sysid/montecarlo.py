@@ -35,7 +35,16 @@ __all__ = [
     "summarize_estimates",
 ]
 
-INPUT_KINDS = ("white", "prbs", "step", "sinusoid")
+INPUT_KINDS = ("white", "prbs", "mls", "multisine", "step", "sinusoid")
+
+#: Feedback taps of a maximal-length linear-feedback shift register of each order: the
+#: exponents of a primitive polynomial ``x^n + ... + 1`` over GF(2) besides the constant.
+MLS_TAPS = {
+    2: (2, 1), 3: (3, 2), 4: (4, 3), 5: (5, 3), 6: (6, 5), 7: (7, 6), 8: (8, 6, 5, 4),
+    9: (9, 5), 10: (10, 7), 11: (11, 9), 12: (12, 6, 4, 1), 13: (13, 4, 3, 1),
+    14: (14, 5, 3, 1), 15: (15, 14), 16: (16, 15, 13, 4), 17: (17, 14), 18: (18, 11),
+    19: (19, 6, 2, 1), 20: (20, 17),
+}  # fmt: skip
 NOISE_KINDS = ("gaussian", "student_t", "laplace", "uniform", "contaminated")
 
 
@@ -69,6 +78,9 @@ def input_signal(
     amplitude: float = 1.0,
     omega: float = 0.3,
     hold: int = 1,
+    order: int | None = None,
+    band: tuple[float, float] = (0.0, 0.5),
+    period: int | None = None,
     generator: torch.Generator | None = None,
     seed: int | None = None,
     dtype=torch.float64,
@@ -79,13 +91,26 @@ def input_signal(
     Args:
         kind: ``"white"`` (Gaussian, standard deviation ``amplitude``), ``"prbs"`` (random
             binary ``+-amplitude``, each level held ``hold`` samples: a pseudo-random binary
-            signal whose spectrum is white for ``hold = 1``), ``"step"`` (``amplitude`` from
-            sample 0 on, system at rest before) or ``"sinusoid"``
-            (``amplitude sin(omega k + phase)`` with a random phase per data set).
+            signal whose spectrum is white for ``hold = 1``), ``"mls"`` (a maximum-length
+            binary sequence ``+-amplitude``, MATLAB's ``idinput(..., 'prbs')``: the output of a
+            shift register of ``order`` bits with primitive feedback, period ``2^order - 1``
+            levels, each held ``hold`` samples, its periodic autocorrelation ``1`` at lag 0 and
+            ``-1 / (2^order - 1)`` elsewhere (``hold = 1``); a random circular shift per data
+            set and channel), ``"multisine"`` (``sum_k cos(2 pi k j / period + phi_k)`` over
+            the integers ``k`` with ``band[0] < k / period <= band[1]`` (frequencies in cycles
+            per sample, at most 0.5), random phases ``phi_k`` per data set and channel, scaled
+            to RMS ``amplitude`` over a period), ``"step"`` (``amplitude`` from sample 0 on,
+            system at rest before) or ``"sinusoid"`` (``amplitude sin(omega k + phase)`` with a
+            random phase per data set).
         N: number of samples (an integer >= 1).
         batch_shape: leading batch shape (one signal per data set).
         n_inputs: number of input channels (an integer >= 1).
-        hold: samples per PRBS level (an integer >= 1).
+        hold: samples per PRBS / MLS level (an integer >= 1).
+        order: MLS register length, 2 to 20 (default: the shortest whose period of
+            ``(2^order - 1) hold`` samples covers ``N``).
+        band: multisine frequency band ``(low, high)`` in cycles per sample,
+            ``0 <= low < high <= 0.5``; period: multisine period in samples (default ``N``:
+            the record holds one whole period, so its DFT has lines only in the band).
         dtype: a floating dtype.
         omega: sinusoid frequency in rad/sample.
         generator, seed: randomness (a generator wins over a seed; neither: fresh entropy,
@@ -108,11 +133,62 @@ def input_signal(
         levels = torch.randint(0, 2, (*batch_shape, n_levels, n_inputs), generator=g, device=device)
         levels = (2 * levels - 1).to(dtype)
         return amplitude * levels.repeat_interleave(hold, dim=-2)[..., :N, :]
+    if kind == "mls":
+        return amplitude * _mls(N, hold, order, batch_shape, n_inputs, g, dtype, device)
+    if kind == "multisine":
+        return amplitude * _multisine(N, band, period, batch_shape, n_inputs, g, dtype, device)
     if kind == "step":
         return torch.full(shape, float(amplitude), **to)
     phase = 2 * math.pi * torch.rand((*batch_shape, 1, n_inputs), generator=g, **to)
     k = torch.arange(N, **to).reshape(N, 1)
     return amplitude * torch.sin(omega * k + phase)
+
+
+def _mls(N, hold, order, batch_shape, n_inputs, g, dtype, device) -> torch.Tensor:
+    """``(*batch_shape, N, n_inputs)`` maximum-length sequences of +-1 (see
+    :func:`input_signal`)."""
+    levels = -(-N // hold)
+    if order is None:
+        order = next((n for n in MLS_TAPS if 2**n - 1 >= levels), max(MLS_TAPS))
+    if order not in MLS_TAPS:
+        raise InputValidationError(
+            f"order must be an integer from {min(MLS_TAPS)} to {max(MLS_TAPS)}, got {order!r}."
+        )
+    P = 2**order - 1
+    bits = [1] * order  # any non-zero register state starts the period
+    for k in range(P - order):
+        bits.append(sum(bits[k + order - tap] for tap in MLS_TAPS[order]) % 2)
+    sequence = torch.tensor(bits, dtype=dtype, device=device) * 2 - 1  # (P,)
+    shift = torch.randint(0, P, (*batch_shape, 1, n_inputs), generator=g, device=device)
+    index = (torch.arange(levels, device=device).reshape(levels, 1) + shift) % P
+    return sequence[index].repeat_interleave(hold, dim=-2)[..., :N, :]
+
+
+def _multisine(N, band, period, batch_shape, n_inputs, g, dtype, device) -> torch.Tensor:
+    """``(*batch_shape, N, n_inputs)`` random-phase multisines of RMS 1 (see
+    :func:`input_signal`)."""
+    P = N if period is None else period
+    if not isinstance(P, numbers.Integral) or P < 2:
+        raise InputValidationError(f"period must be an integer >= 2, got {period!r}.")
+    low, high = (float(f) for f in band)
+    if not 0.0 <= low < high <= 0.5:
+        raise InputValidationError(
+            f"band must be (low, high) in cycles per sample with 0 <= low < high <= 0.5, got "
+            f"{band!r}."
+        )
+    lines = [k for k in range(1, P // 2 + 1) if low < k / P <= high]
+    if not lines:
+        raise InputValidationError(
+            f"no frequency k / period (k = 1, 2, ...) of period {P} lies in the band {band!r}; "
+            "widen the band or lengthen the period."
+        )
+    k = torch.tensor(lines, dtype=dtype, device=device)  # (K,)
+    phase = 2 * math.pi * torch.rand((*batch_shape, 1, n_inputs, len(lines)), generator=g,
+                                     dtype=dtype, device=device)  # fmt: skip
+    j = torch.arange(N, dtype=dtype, device=device).reshape(N, 1, 1)
+    # a line at the Nyquist frequency (k = P / 2) has power cos^2(phi), the others 1/2
+    power = torch.where(2 * k == P, torch.cos(phase) ** 2, 0.5).sum(-1)
+    return torch.cos(2 * math.pi * k * j / P + phase).sum(-1) / power.sqrt()
 
 
 def noise_signal(

@@ -1,0 +1,70 @@
+"""Excitation signals of :func:`sysid.montecarlo.input_signal` against their definitions: the
+maximum-length sequence (period, two-valued periodic autocorrelation, balance) and the
+random-phase multisine (DFT lines only in the band, flat amplitude, RMS)."""
+
+import numpy as np
+import pytest
+import torch
+
+from integrators.errors import InputValidationError
+from sysid.montecarlo import MLS_TAPS, input_signal
+
+
+@pytest.mark.parametrize("order", [n for n in MLS_TAPS if n <= 14])
+def test_mls_is_a_maximum_length_sequence(order):
+    """Period exactly 2^n - 1 (not a divisor of it), 2^(n-1) levels +1 and one fewer -1, and
+    periodic autocorrelation 1 at lag 0 and -1/P at every other lag (by numpy's FFT)."""
+    P = 2**order - 1
+    u = input_signal("mls", 2 * P, order=order, seed=order)[:, 0].numpy()
+    assert np.array_equal(u[:P], u[P:])
+    assert all(not np.array_equal(u[:P], np.roll(u[:P], d)) for d in range(1, P) if P % d == 0)
+    assert u[:P].sum() == 1.0
+    spectrum = np.fft.fft(u[:P])
+    autocorrelation = np.fft.ifft(spectrum * spectrum.conj()).real / P
+    np.testing.assert_allclose(autocorrelation[0], 1.0, atol=1e-12)
+    np.testing.assert_allclose(autocorrelation[1:], -1.0 / P, atol=1e-12)
+
+
+def test_mls_holds_levels_shifts_per_data_set_and_covers_the_record():
+    """Each level is held ``hold`` samples; every data set and channel is a circular shift of
+    one sequence (the same seed reproduces them); the default order is the shortest whose
+    period covers N (N = 100, hold = 3: 34 levels, order 6)."""
+    u = input_signal("mls", 100, (3,), n_inputs=2, hold=3, amplitude=2.0, seed=4)
+    assert u.shape == (3, 100, 2) and set(u.unique().tolist()) == {-2.0, 2.0}
+    levels = u[..., 0::3, :]  # (3, 34, 2)
+    assert torch.equal(levels.repeat_interleave(3, dim=-2)[..., :100, :], u)
+    reference = input_signal("mls", 63, order=6, seed=0)[:, 0]
+    doubled = torch.cat([reference, reference]) * 2.0
+    for member in levels.permute(0, 2, 1).reshape(6, 34):
+        assert any(torch.equal(member, doubled[s : s + 34]) for s in range(63))
+    assert not torch.equal(levels[0, :, 0], levels[1, :, 0])
+    assert torch.equal(u, input_signal("mls", 100, (3,), n_inputs=2, hold=3, amplitude=2.0, seed=4))
+
+
+@pytest.mark.parametrize("N, band", [(200, (0.05, 0.2)), (64, (0.3, 0.5)), (101, (0.0, 0.5))])
+def test_multisine_has_flat_lines_only_in_its_band(N, band):
+    """Over one period (N samples) the DFT of a random-phase multisine is non-zero exactly at
+    the bins k with band[0] < k/N <= band[1], all of one magnitude, and its RMS is the
+    amplitude (with a line at the Nyquist frequency, N = 64, whose power depends on its
+    phase)."""
+    u = input_signal("multisine", N, (2,), amplitude=1.5, band=band, seed=7)[..., 0].numpy()
+    for member in u:
+        np.testing.assert_allclose(np.sqrt(np.mean(member**2)), 1.5, rtol=1e-12)
+        spectrum = np.abs(np.fft.rfft(member))
+        k = np.arange(spectrum.size)
+        inside = (k / N > band[0]) & (k / N <= band[1])
+        assert spectrum[~inside].max() < 1e-9 * spectrum.max()
+        interior = inside & (2 * k != N)
+        np.testing.assert_allclose(spectrum[interior], spectrum[interior][0], rtol=1e-10)
+    assert not np.allclose(u[0], u[1])
+
+
+def test_bad_signal_options_are_named():
+    with pytest.raises(InputValidationError, match="order"):
+        input_signal("mls", 10, order=40)
+    with pytest.raises(InputValidationError, match="band"):
+        input_signal("multisine", 10, band=(0.3, 0.2))
+    with pytest.raises(InputValidationError, match="no frequency"):
+        input_signal("multisine", 8, band=(0.01, 0.1))
+    with pytest.raises(InputValidationError, match="period"):
+        input_signal("multisine", 10, period=1)
