@@ -421,6 +421,9 @@ def test_invalid_requests():
         fit(FIR(2, 1), data, method="lls", loss="fair")
     with pytest.raises(InputValidationError, match="method"):
         fit(FIR(2, 1), data, method="newton")
+    # 6 samples: the automatic start of OE(2, 2, 1) is named as what cannot be formed
+    with pytest.raises(InputValidationError, match="automatic starting estimate of OE"):
+        fit(OE(2, 2, 1), IOData(data.u[:6], data.y[:6]))
 
 
 def test_uniform_noise_polytope_eq_4_58():

@@ -185,7 +185,14 @@ def _fit_iterative(
             warnings.simplefilter("ignore", PoorExcitationWarning)
             theta0 = lls(Phi, target).theta
     elif init is None:
-        theta0 = _initial_estimate(model, data)
+        try:
+            theta0 = _initial_estimate(model, data)
+        except InputValidationError as exc:
+            raise InputValidationError(
+                f"fit: the automatic starting estimate of {type(model).__name__} (an ARX "
+                f"least-squares / instrumental-variable fit) cannot be formed from these data "
+                f"({exc}); or give init= (starting parameters of your own)."
+            ) from None
     elif isinstance(init, str) and init == "model":
         theta0 = model.parameter_vector().detach().expand(*batch, p).clone()
     else:
