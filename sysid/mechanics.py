@@ -60,13 +60,18 @@ def spring_potential(p_a, p_b, stiffness, rest_length=0.0):
     """Energy 1/2 k (||p_b - p_a|| - L0)^2 of a spring (eq. 2.31; eq. 2.32 when L0 = 0).
 
     p_a, p_b: (..., D); stiffness, rest_length broadcast against (...,). Returns (...,).
-    With L0 = 0 the norm is never formed, so the energy is smooth at p_a = p_b.
+    With a number L0 = 0 the norm is never formed, so the energy is smooth at p_a = p_b; with
+    a tensor L0 (a parameter) the norm's derivative is taken as 0 where the points coincide
+    (the limit of L0 = 0; for L0 != 0 the force's direction is undefined there), so the
+    force stays finite instead of 0 * inf = NaN.
     """
     delta = p_b - p_a
     sq = (delta * delta).sum(-1)
     if isinstance(rest_length, (int, float)) and rest_length == 0:
         return 0.5 * stiffness * sq
-    return 0.5 * stiffness * (torch.sqrt(sq) - rest_length) ** 2
+    apart = sq > 0
+    norm = torch.where(apart, torch.sqrt(torch.where(apart, sq, torch.ones_like(sq))), 0.0)
+    return 0.5 * stiffness * (norm - rest_length) ** 2
 
 
 def distributed_body(mass, position: Callable, n_nodes: int = 4):

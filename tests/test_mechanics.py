@@ -95,6 +95,24 @@ def test_distributed_body_and_spring_potential():
     torch.testing.assert_close(spring_potential(a, b, 2.0), torch.tensor([25.0], dtype=DT))
 
 
+def test_spring_with_a_tensor_rest_length_has_a_finite_force_where_its_ends_meet():
+    """A rest length given as a tensor (a parameter to identify) formed the norm, whose
+    derivative 0 * inf made the force NaN where the ends coincide (a number L0 = 0 never forms
+    it). Its gradient is now that of the number form: 0 there, k (p_b - p_a) elsewhere for
+    L0 = 0, and k (1 - L0 / r) (p_b - p_a) for L0 = 0.5 (hand formula)."""
+    a = torch.tensor([[0.0, 0.0], [0.0, 0.0], [1.0, 2.0]], dtype=DT)
+    b = torch.tensor([[0.0, 0.0], [0.3, -0.4], [1.0, 2.0]], dtype=DT, requires_grad=True)
+    for L0 in (0.0, 0.5):
+        energy = spring_potential(a, b, 3.0, torch.tensor(L0, dtype=DT, requires_grad=True))
+        (grad,) = torch.autograd.grad(energy.sum(), b)
+        assert bool(torch.isfinite(grad).all())
+        delta = (b - a).detach()
+        r = delta.norm(dim=-1, keepdim=True)
+        expected = torch.where(r > 0, 3.0 * (1 - L0 / r.clamp_min(1e-300)) * delta, 0.0)
+        torch.testing.assert_close(grad, expected)
+        torch.testing.assert_close(energy, 1.5 * (r[:, 0] - L0) ** 2)
+
+
 def test_implicit_residual_vanishes_at_explicit_derivative():
     crane = Crane()
     q, qd = _random(5, 2, 3)
