@@ -3,11 +3,24 @@
 All functions take sequences in the project convention ``(*batch, N, channels)`` (a 1-D
 tensor is one single-channel sequence) and reduce over the time axis, so a Monte-Carlo
 batch of data sets is validated in one call. ``fit_percent``, ``aic``, ``fpe`` and
-``residual_test`` also take a fitted model and its data, ``f(model, data)`` (``model`` a
-:class:`sysid.PolynomialModel` or the :class:`sysid.FitResult` of :func:`sysid.fit`, ``data``
-an :class:`sysid.IOData`), and then evaluate the model on the data themselves (without
-gradient): the simulated output for ``fit_percent`` (MATLAB's ``compare``), the one-step
-prediction errors for the others. Any other argument types raise
+``residual_test`` also take a fitted model and data, ``f(model, data)`` with ``data`` an
+:class:`sysid.IOData` and ``model`` one of
+
+* a :class:`sysid.PolynomialModel` or its :class:`sysid.FitResult`: ``fit_percent`` scores
+  the free-run simulation (MATLAB's ``compare``); the residuals of the others are the
+  one-step prediction errors (the simulation errors for an OE model), ``d = model.n_params``;
+* the :class:`sysid.FitResult` of a :class:`sysid.GreyBoxModel` (an output-error model):
+  the free run ``result.model.simulate(data)`` from the initial states the fit used (the
+  estimated ones for ``x0="estimate"``) both for ``fit_percent`` and as the residuals
+  ``y - yhat``, ``d = result.theta.shape[-1]`` (the free parameters and estimated initial
+  states);
+* the :class:`~sysid.continuous.training.TrainingResult` of a neural or hybrid model
+  (``fit_percent`` and ``residual_test`` only): the free run ``result.simulate(data)``, its
+  residuals ``y - yhat`` from sample ``result.n_init`` of every experiment on (where the
+  simulation starts). ``aic`` and ``fpe`` refuse it: their penalty assumes identifiable
+  parameters at the maximum-likelihood optimum, which network weights are not.
+
+The model is evaluated without gradient. Any other argument types raise
 :class:`~integrators.errors.InputValidationError` naming the expected signature.
 
 Formulas (``N`` samples, ``d`` estimated parameters, residuals ``e_k``,
@@ -48,6 +61,7 @@ import torch
 from integrators.errors import InputValidationError
 
 from . import models
+from .continuous.greybox import GreyBoxModel
 from .data import IOData
 from .estimation import FitResult, fit
 from .models import PolynomialModel
@@ -65,36 +79,86 @@ __all__ = [
 ]
 
 
+_MODEL_FORM = (
+    "with a fitted polynomial model, its FitResult, a grey-box FitResult or a "
+    "neural/hybrid TrainingResult, and IOData"
+)
 _USAGE = {
     "fit_quality": "fit_quality(y, yhat, skip=0) with tensors/arrays (*batch, N, ny)",
     "fit_percent": "fit_percent(y, yhat) with tensors/arrays (*batch, N, ny), or "
-    "fit_percent(model, data) with a fitted model (or FitResult) and IOData",
+    f"fit_percent(model, data) {_MODEL_FORM}",
     "aic": "aic(residuals, n_params) with residuals (*batch, N, ny) and an int, or "
-    "aic(model, data) with a fitted model (or FitResult) and IOData",
+    "aic(model, data) with a fitted polynomial model, its FitResult or a grey-box FitResult, "
+    "and IOData",
     "fpe": "fpe(residuals, n_params) with residuals (*batch, N, ny) and an int, or "
-    "fpe(model, data) with a fitted model (or FitResult) and IOData",
+    "fpe(model, data) with a fitted polynomial model, its FitResult or a grey-box FitResult, "
+    "and IOData",
     "residual_test": "residual_test(residuals, u=None, ...) with tensors/arrays (*batch, N, 1) "
-    "and (*batch, N, nu), or residual_test(model, data, ...) with a fitted model (or "
-    "FitResult) and IOData",
+    f"and (*batch, N, nu), or residual_test(model, data, ...) {_MODEL_FORM}",
 }
 
 
-def _model_and_data(first, second, func: str) -> tuple[PolynomialModel, IOData] | None:
-    """``(model, data)`` when ``func`` was called in its model form, None for the array form.
+def _model_and_data(first, second, func: str) -> tuple[object, IOData] | None:
+    """``(fitted, data)`` when ``func`` was called in its model form, None for the array form.
 
-    Raises :class:`InputValidationError` with the expected signature when a model, a
-    :class:`FitResult` or an :class:`IOData` appears anywhere else.
+    ``fitted`` is a :class:`PolynomialModel`, a :class:`FitResult` holding a polynomial or
+    grey-box model, or a :class:`~sysid.continuous.training.TrainingResult`. Raises
+    :class:`InputValidationError` with the expected signature when a model, a result or an
+    :class:`IOData` appears anywhere else.
     """
-    model = first.model if isinstance(first, FitResult) else first
-    if isinstance(model, PolynomialModel) and isinstance(second, IOData):
-        return model, second
-    model_like = (PolynomialModel, FitResult, IOData, torch.nn.Module)
+    from .continuous.training import TrainingResult
+
+    if isinstance(second, IOData):
+        if isinstance(first, TrainingResult):
+            return first, second
+        model = first.model if isinstance(first, FitResult) else first
+        if isinstance(model, PolynomialModel):
+            return first, second
+        if isinstance(first, FitResult) and isinstance(model, GreyBoxModel):
+            return first, second
+    model_like = (PolynomialModel, FitResult, IOData, GreyBoxModel, torch.nn.Module)
     if isinstance(first, model_like) or isinstance(second, model_like):
         raise InputValidationError(
             f"{func}: got ({type(first).__name__}, {type(second).__name__}); expected "
             f"{_USAGE[func]}."
         )
     return None
+
+
+def _free_run(fitted, data: IOData) -> torch.Tensor:
+    """Free-run (simulated) output ``(*batch, N, ny)`` of a polynomial or grey-box
+    ``fitted`` (see :func:`_model_and_data`) on ``data``, without gradient."""
+    model = fitted.model if isinstance(fitted, FitResult) else fitted
+    with torch.no_grad():
+        if isinstance(model, GreyBoxModel):
+            return model.simulate(data).to(data.y)
+        return model.predict(data, horizon=math.inf)
+
+
+def _model_residuals(
+    fitted, data: IOData, func: str
+) -> tuple[torch.Tensor, torch.Tensor, int | None]:
+    """Residuals ``(*batch, M, ny)`` of ``fitted`` on ``data``, the inputs ``(*batch, M, nu)``
+    of the same samples and the number ``d`` of estimated parameters.
+
+    Polynomial models: the one-step prediction errors of all ``M = N`` samples,
+    ``d = model.n_params``. Grey-box results: ``data.y`` minus the free run from the fit's
+    initial states, all ``N`` samples, ``d = theta.shape[-1]``. Training results: ``data.y``
+    minus ``result.simulate(data)`` from sample ``n_init`` of every experiment on; ``d`` is
+    None (no count of estimated parameters suits AIC/FPE).
+    """
+    from .continuous.training import TrainingResult, _check_data
+
+    if isinstance(fitted, TrainingResult):
+        _check_data(data, fitted.model, func)
+        keep = data.samples_after(fitted.n_init)
+        e = data.y - fitted.simulate(data).to(data.y)
+        return e.index_select(-2, keep), data.u.index_select(-2, keep), None
+    model = fitted.model if isinstance(fitted, FitResult) else fitted
+    if isinstance(model, GreyBoxModel):
+        return data.y - _free_run(fitted, data), data.u, fitted.theta.shape[-1]
+    with torch.no_grad():
+        return model.prediction_errors(data), data.u, model.n_params
 
 
 def _as_sequences(x, name: str, func: str) -> torch.Tensor:
@@ -123,21 +187,27 @@ def _as_sequences(x, name: str, func: str) -> torch.Tensor:
     return x
 
 
-def fit_percent(y, yhat, skip: int = 0) -> torch.Tensor:
+def fit_percent(y, yhat, skip: int | None = None) -> torch.Tensor:
     """MATLAB's fit: ``100 (1 - ||y - yhat|| / ||y - mean(y)||)`` per output channel.
 
     Call as ``fit_percent(y, yhat)`` or ``fit_percent(model, data)``.
 
     Args:
         y: measured outputs ``(*batch, N, ny)`` (or ``(N,)``); or a fitted
-            :class:`sysid.PolynomialModel` / :class:`sysid.FitResult`.
+            :class:`sysid.PolynomialModel` / its :class:`sysid.FitResult`, a grey-box
+            :class:`sysid.FitResult` or a :class:`~sysid.continuous.training.TrainingResult`.
         yhat: model outputs (simulated or predicted), same shape as ``y`` (broadcastable);
             or, with a model as first argument, the :class:`sysid.IOData` to compare on: the
-            fit is then that of the model's noise-free simulated output ``model.simulate(data)``
-            to ``data.y`` (MATLAB's ``compare``), computed without gradient.
+            fit is then that of the model's noise-free simulated output to ``data.y``
+            (MATLAB's ``compare``), computed without gradient: ``model.simulate(data)`` of a
+            polynomial model (from rest), ``result.model.simulate(data)`` of a grey-box result
+            (from the initial states the fit used), ``result.validate(data, skip)`` of a
+            training result.
         skip: samples left out at the start (``0 <= skip <= N - 2``; with a model and data,
-            at the start of every experiment), e.g. the transient of an unknown initial state;
-            the mean of ``y`` is that of the remaining samples.
+            at the start of every experiment, the rule of :meth:`sysid.IOData.samples_after`),
+            e.g. the transient of an unknown initial state; the mean of ``y`` is that of the
+            remaining samples. None: 0, except ``result.n_init`` for a training result (its
+            ``validate`` default, where the simulation starts).
 
     Returns:
         Fit in percent, shape ``(*batch, ny)``.
@@ -147,14 +217,17 @@ def fit_percent(y, yhat, skip: int = 0) -> torch.Tensor:
             shapes do not match, non-finite values, a bad ``skip``, or a constant ``y`` (the
             normalisation ``||y - mean(y)||`` is zero).
     """
+    from .continuous.training import TrainingResult
+
     pair = _model_and_data(y, yhat, "fit_percent")
-    if pair is not None:
-        model, data = pair
-        keep = data.samples_after(skip)  # the first skip samples of every experiment out
-        with torch.no_grad():
-            yhat = model.predict(data, horizon=math.inf).index_select(-2, keep)
-        return _quality(data.y.index_select(-2, keep), yhat, 0, "fit_percent").fit_percent
-    return _quality(y, yhat, skip, "fit_percent").fit_percent
+    if pair is None:
+        return _quality(y, yhat, 0 if skip is None else skip, "fit_percent").fit_percent
+    fitted, data = pair
+    if isinstance(fitted, TrainingResult):
+        return fitted.validate(data, skip)["fit_percent"]
+    keep = data.samples_after(0 if skip is None else skip)  # the start of every experiment out
+    yhat = _free_run(fitted, data).index_select(-2, keep)
+    return _quality(data.y.index_select(-2, keep), yhat, 0, "fit_percent").fit_percent
 
 
 @dataclass
@@ -236,12 +309,20 @@ def _quality(y, yhat, skip, func: str, check: bool = True) -> FitQuality:
 
 def _residuals_and_size(residuals, n_params, func: str) -> tuple[torch.Tensor, int]:
     """Residuals ``(*batch, N, ny)`` and ``d`` of ``func(residuals, n_params)`` or of
-    ``func(model, data)`` (one-step prediction errors on ``data``, ``d = model.n_params``)."""
+    ``func(model, data)`` (see :func:`_model_residuals`)."""
     pair = _model_and_data(residuals, n_params, func)
     if pair is not None:
-        model, data = pair
-        with torch.no_grad():
-            e, d = model.prediction_errors(data), model.n_params
+        e, _, d = _model_residuals(*pair, func)
+        if d is None:
+            raise InputValidationError(
+                f"{func}: a TrainingResult has no parameter count that suits {func}: its "
+                "penalty assumes few identifiable parameters at the maximum-likelihood "
+                "optimum, and network weights are neither (symmetries, over-parameterisation, "
+                "training stopped early on windows). Compare neural models on validation "
+                f"data (fit_percent(result, data)), or call {func}(residuals, n_params) with "
+                "the residuals data.y - result.simulate(data) of the samples "
+                "data.samples_after(result.n_init) and a count you can justify."
+            )
     else:
         if isinstance(n_params, bool) or not isinstance(n_params, (int, np.integer)):
             raise InputValidationError(
@@ -273,11 +354,15 @@ def aic(residuals, n_params) -> torch.Tensor:
 
     Args:
         residuals: prediction errors ``(*batch, N, ny)`` of the model on the estimation data;
-            or a fitted :class:`sysid.PolynomialModel` / :class:`sysid.FitResult`.
+            or a fitted :class:`sysid.PolynomialModel` / its :class:`sysid.FitResult`, or a
+            grey-box :class:`sysid.FitResult` (a
+            :class:`~sysid.continuous.training.TrainingResult` is refused: see the module
+            docstring).
         n_params: number ``d`` of estimated parameters (``0 <= d < N``); or, with a model
-            as first argument, the :class:`sysid.IOData` on which its one-step prediction
-            errors are taken (all ``N`` samples, without gradient), with
-            ``d = model.n_params``.
+            as first argument, the :class:`sysid.IOData` on which its residuals are taken
+            (all ``N`` samples, without gradient): a polynomial model's one-step prediction
+            errors with ``d = model.n_params``, a grey-box model's simulation errors
+            ``y - result.model.simulate(data)`` with ``d = result.theta.shape[-1]``.
 
     Returns:
         AIC, shape ``(*batch,)``; smaller is better.
@@ -294,10 +379,10 @@ def fpe(residuals, n_params) -> torch.Tensor:
 
     Args:
         residuals: prediction errors ``(*batch, N, ny)`` on the estimation data; or a fitted
-            :class:`sysid.PolynomialModel` / :class:`sysid.FitResult`.
+            model or result, as for :func:`aic`.
         n_params: number ``d`` of estimated parameters (``0 <= d < N``); or, with a model as
-            first argument, the :class:`sysid.IOData` on which its one-step prediction errors
-            are taken (all ``N`` samples, without gradient), with ``d = model.n_params``.
+            first argument, the :class:`sysid.IOData` on which its residuals are taken, as
+            for :func:`aic`.
 
     Returns:
         FPE, shape ``(*batch,)``; an estimate of the prediction-error variance on fresh data.
@@ -375,8 +460,13 @@ def residual_test(
 
     Args:
         residuals: prediction errors ``(*batch, N, 1)`` (or ``(N,)``); one output. Or a
-            fitted :class:`sysid.PolynomialModel` / :class:`sysid.FitResult`, whose one-step
-            prediction errors on ``data`` are tested (without gradient), against ``data.u``.
+            fitted model, whose residuals on ``data`` are tested (without gradient) against
+            ``data.u`` of the same samples: a :class:`sysid.PolynomialModel` / its
+            :class:`sysid.FitResult` (one-step prediction errors, all samples), a grey-box
+            :class:`sysid.FitResult` (simulation errors ``y - result.model.simulate(data)``,
+            all samples) or a :class:`~sysid.continuous.training.TrainingResult`
+            (simulation errors ``y - result.simulate(data)`` from sample ``n_init`` of every
+            experiment on).
         u: inputs ``(*batch, N, nu)`` of the same data set, or None; with a model as first
             argument, the :class:`sysid.IOData` (required).
         max_lag: largest lag ``m`` (``1 <= m < N``).
@@ -393,9 +483,7 @@ def residual_test(
     """
     pair = _model_and_data(residuals, u, "residual_test")
     if pair is not None:
-        model, data = pair
-        with torch.no_grad():
-            residuals, u = model.prediction_errors(data), data.u
+        residuals, u, _ = _model_residuals(*pair, "residual_test")
     e = _as_sequences(residuals, "residuals", "residual_test")
     if e.shape[-1] != 1:
         raise InputValidationError(

@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+import scipy.linalg
 import scipy.signal
 import scipy.stats
 import torch
@@ -271,3 +272,145 @@ def test_independence_test_holds_its_level_with_a_coloured_input():
     np.testing.assert_allclose(
         float(result.independence_pvalue[0, 0]), scipy.stats.chi2.sf(S, m + 1), rtol=1e-10
     )
+
+
+# ------------------------------------- model form of grey-box and neural/hybrid fit results
+def _zoh_first_order(a, b, x0, u, Ts):
+    """Exact zero-order-hold samples of x' = -a x + b u, y = x from x(0) = x0 (scipy expm)."""
+    M = scipy.linalg.expm(np.array([[-a, b], [0.0, 0.0]]) * Ts)
+    x = np.empty(len(u))
+    x[0] = x0
+    for k in range(len(u) - 1):
+        x[k + 1] = M[0, 0] * x[k] + M[0, 1] * u[k]
+    return x
+
+
+def test_greybox_result_model_forms_score_the_fitted_free_run():
+    """A grey-box fit of x' = -a x + b u (initial states estimated) to noisy ZOH data of two
+    experiments: fit_percent, residual_test, aic and fpe of (result, data) score
+    y - yhat with yhat the exact ZOH response of the fitted (a, b) from each experiment's
+    estimated x0, d = 4 (a, b and two initial states); the model form refused the result."""
+    from sysid import GreyBoxModel, Param
+
+    rng = np.random.default_rng(3)
+    Ts, parts = 0.1, []
+    for x0, n in ((0.0, 80), (0.8, 70)):
+        u = np.repeat(rng.uniform(-1, 1, n // 4 + 1), 4)[:n]
+        y = _zoh_first_order(1.5, 0.7, x0, u, Ts) + 0.02 * rng.standard_normal(n)
+        parts.append(IOData(u, y, Ts=Ts))
+    data = IOData.experiments(parts)
+    model = GreyBoxModel(
+        lambda t, x, u, p: -p["a"] * x + p["b"] * u,
+        {"a": Param(1.0, min=0.0), "b": Param(1.0)},
+        nx=1,
+        output=[0],
+        substeps=2,
+        compile=False,
+    )
+    result = fit(model, data, x0="estimate")
+    a, b, x0_1, x0_2 = result.theta.tolist()
+    yhat = [
+        _zoh_first_order(a, b, x0, p.u.numpy()[:, 0], Ts)
+        for x0, p in zip((x0_1, x0_2), parts, strict=True)
+    ]
+    ys = [p.y.numpy()[:, 0] for p in parts]
+
+    skip = 10
+    y_kept = np.concatenate([y[skip:] for y in ys])
+    e_kept = y_kept - np.concatenate([h[skip:] for h in yhat])
+    percent = 100 * (1 - np.linalg.norm(e_kept) / np.linalg.norm(y_kept - y_kept.mean()))
+    np.testing.assert_allclose(float(fit_percent(result, data, skip=skip)), percent, rtol=1e-7)
+    y_all, e = np.concatenate(ys), np.concatenate(ys) - np.concatenate(yhat)
+    percent_all = 100 * (1 - np.linalg.norm(e) / np.linalg.norm(y_all - y_all.mean()))
+    np.testing.assert_allclose(float(fit_percent(result, data)), percent_all, rtol=1e-7)
+
+    got = residual_test(result, data, max_lag=10)
+    ref = residual_test(torch.tensor(e), data.u, max_lag=10)
+    torch.testing.assert_close(got.autocorrelation, ref.autocorrelation, rtol=0, atol=1e-5)
+    torch.testing.assert_close(got.cross_correlation, ref.cross_correlation, rtol=0, atol=1e-5)
+    torch.testing.assert_close(got.whiteness_statistic, ref.whiteness_statistic, rtol=1e-4, atol=0)
+    torch.testing.assert_close(
+        got.independence_statistic, ref.independence_statistic, rtol=1e-4, atol=1e-6
+    )
+
+    N, d, V = len(e), 4, np.mean(e**2)
+    assert result.theta.shape[-1] == d
+    np.testing.assert_allclose(
+        float(aic(result, data)), N * np.log(V) + 2 * d + N * (np.log(2 * np.pi) + 1), rtol=1e-7
+    )
+    np.testing.assert_allclose(float(fpe(result, data)), V * (1 + d / N) / (1 - d / N), rtol=1e-6)
+
+
+class _LinearNeuralRHS(torch.nn.Module):
+    """Neural-model contract stand-in: dx/dt = a x + b u (a, b trainable), y = x."""
+
+    def __init__(self):
+        super().__init__()
+        self.a = torch.nn.Parameter(torch.tensor([-0.8], dtype=DT))
+        self.b = torch.nn.Parameter(torch.tensor([1.2], dtype=DT))
+        self.nx = self.ny = self.nu = 1
+        self.method, self.substeps = "rk4", 1
+
+    def forward(self, t, x, u):
+        return self.a * x + self.b * u
+
+    def output(self, x, u):
+        return x
+
+    def physical_parameters(self):
+        return {}
+
+    def to_physical(self, name, raw):
+        raise KeyError(name)
+
+
+def test_training_result_model_forms_score_the_free_run_after_n_init():
+    """A TrainingResult (initial-state encoder, n_init = 3, two experiments): fit_percent
+    equals result.validate (default skip n_init) and the numpy fit of result.simulate after
+    ``skip`` samples of each experiment; residual_test tests y - yhat and u of the samples
+    from n_init of every experiment on; aic/fpe refuse it by name; the model form refused
+    the result."""
+    rng = np.random.default_rng(4)
+    parts = []
+    for n in (60, 45):
+        u = np.repeat(rng.uniform(-1, 1, n // 3 + 1), 3)[:n]
+        y = _zoh_first_order(1.0, 1.0, 0.0, u, 0.1) + 0.01 * rng.standard_normal(n)
+        parts.append(IOData(u, y, Ts=0.1))
+    data = IOData.experiments(parts)
+    result = fit(
+        _LinearNeuralRHS(),
+        data,
+        method="adam",
+        horizon=5,
+        batch_size=4,
+        epochs=2,
+        steps_per_epoch=2,
+        lr=1e-2,
+        x0="encoder",
+        n_init=3,
+        seed=0,
+    )
+    yhat = result.simulate(data)[:, 0].numpy()
+    y = data.y[:, 0].numpy()
+    torch.testing.assert_close(fit_percent(result, data), result.validate(data)["fit_percent"])
+    for skip in (3, 7):
+        keep = np.r_[skip:60, 60 + skip : 105]
+        percent = 100 * (
+            1 - np.linalg.norm(y[keep] - yhat[keep]) / np.linalg.norm(y[keep] - y[keep].mean())
+        )
+        np.testing.assert_allclose(float(fit_percent(result, data, skip=skip)), percent, rtol=1e-10)
+    with pytest.raises(InputValidationError, match="n_init = 3"):
+        fit_percent(result, data, skip=1)
+
+    keep = np.r_[3:60, 63:105]
+    got = residual_test(result, data, max_lag=8)
+    ref = residual_test(torch.tensor(y[keep] - yhat[keep]), data.u[keep], max_lag=8)
+    torch.testing.assert_close(got.autocorrelation, ref.autocorrelation)
+    torch.testing.assert_close(got.cross_correlation, ref.cross_correlation)
+    torch.testing.assert_close(got.independence_statistic, ref.independence_statistic)
+    two_inputs = IOData(np.ones((60, 2)), y[:60], Ts=0.1)
+    with pytest.raises(InputValidationError, match="residual_test: the data have nu = 2"):
+        residual_test(result, two_inputs)
+    for criterion in (aic, fpe):
+        with pytest.raises(InputValidationError, match="TrainingResult.*network weights"):
+            criterion(result, data)
