@@ -9,7 +9,8 @@ simplified-Newton matrix is
 
 Two ways to solve ``J dW = -R``:
 
-- ``"full"``: one LU of the ``s p x s p`` matrix (any tableau).
+- ``"full"``: one LU of the ``s p x s p`` matrix (any tableau), plus one of the real block
+  ``gamma / dt E + G`` when the Radau IIA error filter asks for it (``want_real_block``).
 - ``"transformed"`` (Hairer-Wanner's trick, for invertible, diagonalisable ``A``: Radau IIA,
   Gauss-Legendre, implicit Euler/midpoint): with ``A^{-1} = V Lambda V^{-1}``,
   ``(V^{-1} (x) I) ((dt A)^{-1} (x) I) J (V (x) I) = blockdiag(lambda_j / dt E + G)``, so one
@@ -44,6 +45,8 @@ class StageLinearSolver:
     def __init__(self, A: np.ndarray, dtype, device, mode: str = "auto"):
         self.s = A.shape[0]
         self.dtype, self.device = dtype, device
+        self._A_np = np.array(A, dtype=np.float64)
+        self._full_gamma = None  # lazily, see _full_real_eigenvalue
         self.A = torch.as_tensor(np.array(A), dtype=dtype, device=device)
         transform = _eigen_transform(A) if mode in ("auto", "transformed") else None
         if mode == "transformed" and transform is None:
@@ -91,7 +94,13 @@ class StageLinearSolver:
             eye = torch.eye(s, dtype=E.dtype, device=E.device)
             big = _kron(eye, E) + hb[..., 0] * _kron(self.A, G)
             lu, piv, info = torch.linalg.lu_factor_ex(big.reshape(*E.shape[:-2], s * p, s * p))
-            return ("full", lu, piv), info != 0
+            singular = info != 0
+            real_lu = real_piv = None
+            if self.want_real_block:
+                gamma = self._full_real_eigenvalue()
+                real_lu, real_piv, info_r = torch.linalg.lu_factor_ex((gamma / hb[..., 0]) * E + G)
+                singular = singular | (info_r != 0)
+            return ("full", lu, piv, real_lu, real_piv), singular
         if self.dense(E.shape[-1]):
             return self._factorize_dense(E, G, h, self.prepare(E, G) if parts is None else parts)
         singular = torch.zeros(E.shape[:-2], dtype=torch.bool, device=E.device)
@@ -112,6 +121,17 @@ class StageLinearSolver:
         else:
             factors += [None, None, None]
         return tuple(factors), singular
+
+    def _full_real_eigenvalue(self) -> float:
+        """The first real eigenvalue of ``A^{-1}`` (the Radau IIA error filter's ``gamma``) for
+        the full factorisation, which has no eigen-decomposition of its own."""
+        if self._full_gamma is None:
+            lam = np.linalg.eigvals(np.linalg.inv(self._A_np))
+            real = lam[np.abs(lam.imag) <= 1e-12 * np.abs(lam).max()].real
+            if not len(real):
+                raise ValueError("the tableau's A^{-1} has no real eigenvalue")
+            self._full_gamma = float(real[0])
+        return self._full_gamma
 
     def dense(self, p: int) -> bool:
         """Whether systems with ``p`` unknowns per stage take the explicit-inverse path."""
@@ -198,7 +218,7 @@ class StageLinearSolver:
             flat = R.reshape(*R.shape[:-2], -1, 1)
             return (factors[1] @ flat).reshape(R.shape)
         if factors[0] == "full":
-            _, lu, piv = factors
+            lu, piv = factors[1], factors[2]
             flat = R.reshape(*R.shape[:-2], -1, 1)
             return -torch.linalg.lu_solve(lu, piv, flat).reshape(R.shape)
         fac_r, fac_c = factors[1:4], factors[4:7]
@@ -214,9 +234,13 @@ class StageLinearSolver:
         return out
 
     def solve_real_block(self, factors, rhs: torch.Tensor) -> torch.Tensor:
-        """Solve ``(lambda_r / h E + G) y = rhs`` with the first real block: (*batch, p)."""
+        """Solve ``(lambda_r / h E + G) y = rhs`` (*batch, p) with the first real block (the
+        full factorisation holds that block's own LU when ``want_real_block`` was set):
+        (*batch, p)."""
         if factors[0] == "dense":
             return (factors[2] @ rhs[..., None])[..., 0]
+        if factors[0] == "full":
+            return torch.linalg.lu_solve(factors[3], factors[4], rhs[..., None])[..., 0]
         return _solve_blocks(factors[1:4], rhs[..., None, :])[..., 0, :]
 
 

@@ -139,6 +139,50 @@ def test_large_blocks_use_the_transformed_lu_path(tab):
     torch.testing.assert_close(solver.solve(factors, R, h), ref, rtol=1e-10, atol=1e-10)
 
 
+def _vdp5(t, x):
+    """Van der Pol with mu = 5."""
+    return torch.stack([x[..., 1], 5 * (1 - x[..., 0] ** 2) * x[..., 1] - x[..., 0]], -1)
+
+
+@pytest.mark.parametrize("batch", [None, 3])
+def test_adaptive_radau_with_the_full_linear_solver_equals_the_default(batch):
+    """linear_solver="full" (one LU of the s n x s n matrix plus the error filter's real
+    block) takes the default solver's steps to rounding, on an ODE (against scipy's Radau)
+    and on a DAE (against its closed form), unbatched and batched."""
+    t = torch.linspace(0.0, 2.0, 5)
+    scale = torch.tensor(1.0) if batch is None else torch.linspace(0.8, 1.0, batch)[:, None]
+    x0 = torch.tensor([2.0, 0.0]) * scale
+    kw = dict(method="radau_iia", rtol=1e-10, atol=1e-10, host_loop=False)
+    ref = odeint(_vdp5, x0, t, **kw)
+    full = odeint(_vdp5, x0, t, linear_solver="full", **kw)
+    assert full.stats.extra["linear_solver"] == "full"
+    assert torch.equal(full.stats.n_steps, ref.stats.n_steps)
+    torch.testing.assert_close(full.x, ref.x, rtol=1e-12, atol=1e-12)
+    for x0_i, x_i in zip(x0.reshape(-1, 2), full.x.reshape(-1, len(t), 2), strict=True):
+        sp = solve_ivp(
+            lambda tt, y: _vdp5(tt, torch.as_tensor(y)).numpy(),
+            (0.0, 2.0),
+            x0_i.numpy(),
+            method="Radau",
+            rtol=1e-12,
+            atol=1e-12,
+            t_eval=t.numpy(),
+        )
+        np.testing.assert_allclose(x_i.numpy(), sp.y.T, rtol=0, atol=1e-7)
+
+    # x' = -z x, 0 = z - x^2: x = x0 / sqrt(1 + 2 x0^2 t), z = x^2
+    dae = SemiExplicitDAE(lambda t, x, z: -z * x, lambda t, x, z: z - x**2)
+    x0 = torch.ones(1) * scale
+    dkw = dict(rtol=1e-10, atol=1e-10)
+    ref = daeint(dae, x0, x0**2, t, **dkw)
+    full = daeint(dae, x0, x0**2, t, linear_solver="full", **dkw)
+    assert torch.equal(full.stats.n_steps, ref.stats.n_steps)
+    torch.testing.assert_close(full.x, ref.x, rtol=1e-12, atol=1e-12)
+    exact = x0[..., None, :] / torch.sqrt(1 + 2 * x0[..., None, :] ** 2 * t[:, None])
+    torch.testing.assert_close(full.x, exact, rtol=1e-8, atol=1e-8)
+    torch.testing.assert_close(full.z, exact**2, rtol=1e-8, atol=1e-8)
+
+
 def test_radau3_error_estimate_matches_radau5_constants():
     """Our Vandermonde-derived embedded weights e reproduce Hairer-Wanner/scipy's for s = 3:
     scipy uses f0 + Z^T E / h with Z = h A K, i.e. e = A^T E / gamma."""
