@@ -44,8 +44,10 @@ class _Problem:
     def check_start(self, t0, x0, z0, u0) -> None:
         """Evaluate every function once at the start and check what it returns.
 
-        Each output must be a tensor whose last dimension is the expected number of residuals
-        and whose batch shape broadcasts to that of ``x0``, with finite entries. Called by
+        Each output must be a floating-point tensor whose last dimension is the expected
+        number of residuals and whose batch shape broadcasts to that of ``x0``, with finite
+        entries; the residuals that ``daeint`` differentiates for its index check and Newton
+        matrix (``g``, ``F``) must carry an autograd graph back to the states. Called by
         :func:`daeint` before the index check and the consistent initialisation, so that a
         wrong width or a non-finite value is reported against the function that produced it.
 
@@ -56,8 +58,10 @@ class _Problem:
             u0: the input at ``t0`` (*batch, nu), or None when the problem takes no input.
 
         Raises:
-            InputValidationError: naming the function, the shape it returned and the one
-                expected (or the first sample with a non-finite entry).
+            InputValidationError: naming the function, when calling it fails with a
+                ``TypeError`` (e.g. it takes no ``u`` but ``daeint`` received one), or the
+                shape, dtype or graph it returned against the one expected (or the first sample
+                with a non-finite entry).
         """
         raise NotImplementedError
 
@@ -66,6 +70,12 @@ class _Problem:
         """``out`` must be a (*batch, width) tensor (batch broadcastable) of finite values."""
         if not isinstance(out, torch.Tensor):
             raise InputValidationError(f"{label} must return a tensor, got {type(out).__name__}.")
+        if not out.is_floating_point():
+            raise InputValidationError(
+                f"{label} returned a {out.dtype} tensor; it must return floating-point values "
+                "in the states' dtype (a comparison or an integer cast is not differentiable: "
+                "write the residual with torch operations on float arguments)."
+            )
         if out.dim() == 0 or out.shape[-1] != width:
             got = "a scalar" if out.dim() == 0 else f"width {out.shape[-1]}"
             raise InputValidationError(
@@ -94,9 +104,33 @@ class _Problem:
         return ", ".join(("t", *names) + (("u",) if u0 is not None else ()))
 
     @staticmethod
-    def _call(fn, t0, u0, *args):
-        with torch.no_grad():
-            return fn(t0, *args) if u0 is None else fn(t0, *args, u0)
+    def _call(fn, label, t0, u0, *args, graph=False):
+        """``fn(t0, *args[, u0])`` without autograd, or with ``graph`` on fresh leaves of the
+        state arguments ``args``, whose output must then depend on them through autograd.
+
+        Raises:
+            InputValidationError: the call fails with a ``TypeError`` (wrong number of
+                arguments), or ``graph`` and the output has no autograd graph.
+        """
+        if graph:
+            args = tuple(a.detach().requires_grad_() for a in args)
+        try:
+            with torch.set_grad_enabled(graph):
+                out = fn(t0, *args) if u0 is None else fn(t0, *args, u0)
+        except TypeError as exc:
+            raise InputValidationError(
+                f"calling the model as {label} failed: {exc}. The functions are called with "
+                "an input u only when daeint receives u."
+            ) from exc
+        if graph and isinstance(out, torch.Tensor) and out.is_floating_point():
+            if not out.requires_grad:
+                raise InputValidationError(
+                    f"{label} returned a tensor without autograd graph: daeint differentiates "
+                    "it with torch.autograd (index check, Newton matrix), so compute it with "
+                    "torch operations on its arguments, not through numpy, .detach(), .item() "
+                    "or torch.tensor(...)."
+                )
+        return out
 
 
 class _Residual(_Problem):
@@ -121,10 +155,11 @@ class ImplicitODE(_Residual):
 
     def check_start(self, t0, x0, z0, u0) -> None:
         n = x0.shape[-1]
-        out = self._call(self.F, t0, u0, torch.zeros_like(x0), x0)
+        label = f"F({self._args(u0, 'xdot', 'x')})"
+        out = self._call(self.F, label, t0, u0, torch.zeros_like(x0), x0, graph=True)
         self._check_output(
             out,
-            f"F({self._args(u0, 'xdot', 'x')})",
+            label,
             n,
             f"x0 has width {n}: F must return one residual per state",
             x0.shape[:-1],
@@ -162,7 +197,7 @@ class SemiExplicitDAE(_Problem):
         args = self._args(u0, "x", "z")
         point = "(t0, x0, z0)"
         self._check_output(
-            self._call(self.f, t0, u0, x0, z0),
+            self._call(self.f, f"f({args})", t0, u0, x0, z0),
             f"f({args})",
             n,
             f"x0 has width {n}: f must return one derivative per differential state",
@@ -170,7 +205,7 @@ class SemiExplicitDAE(_Problem):
             point,
         )
         self._check_output(
-            self._call(self.g, t0, u0, x0, z0),
+            self._call(self.g, f"g({args})", t0, u0, x0, z0, graph=True),
             f"g({args})",
             m,
             f"z0 has width {m}: g must return one residual per algebraic state",
@@ -196,10 +231,11 @@ class ImplicitDAE(_Residual):
                 "an ImplicitDAE needs at least one algebraic state, got z0 of width 0; for "
                 "F(t, x', x) = 0 use ImplicitODE (F is then called without z)."
             )
-        out = self._call(self.F, t0, u0, torch.zeros_like(x0), x0, z0)
+        label = f"F({self._args(u0, 'xdot', 'x', 'z')})"
+        out = self._call(self.F, label, t0, u0, torch.zeros_like(x0), x0, z0, graph=True)
         self._check_output(
             out,
-            f"F({self._args(u0, 'xdot', 'x', 'z')})",
+            label,
             n + m,
             f"x0 and z0 have widths {n} + {m}: F must return one residual per differential "
             f"and algebraic state ({n + m})",

@@ -115,6 +115,56 @@ def _semi(f_width=None, g_width=None):
             ),
             ["x0 has width 0", "adaptive=False"],
         ),
+        (
+            lambda: daeint(_semi(), torch.ones(2, 1), torch.ones(2, 1), T, u=torch.ones(3, 1)),
+            ["calling the model as f(t, x, z, u) failed", "takes 3 positional", "receives u"],
+        ),
+        (
+            lambda: daeint(
+                ImplicitDAE(lambda t, xd, x, z: torch.cat([xd + x, z - x], -1)),
+                torch.ones(2, 1),
+                torch.ones(2, 1),
+                T,
+                u=torch.ones(3, 1),
+            ),
+            ["calling the model as F(t, xdot, x, z, u) failed", "receives u"],
+        ),
+        (
+            lambda: daeint(
+                SemiExplicitDAE(lambda t, x, z: -z, lambda t, x, z: z > x),
+                torch.ones(2, 1),
+                torch.ones(2, 1),
+                T,
+            ),
+            ["g(t, x, z) returned a torch.bool tensor", "floating-point"],
+        ),
+        (
+            lambda: daeint(
+                SemiExplicitDAE(lambda t, x, z: -z, lambda t, x, z: (z - x).long()),
+                torch.ones(2, 1),
+                torch.ones(2, 1),
+                T,
+            ),
+            ["g(t, x, z) returned a torch.int64 tensor", "floating-point"],
+        ),
+        (
+            lambda: daeint(
+                SemiExplicitDAE(lambda t, x, z: -z, lambda t, x, z: (z - x).detach()),
+                torch.ones(2, 1),
+                torch.ones(2, 1),
+                T,
+            ),
+            ["g(t, x, z) returned a tensor without autograd graph", "numpy"],
+        ),
+        (
+            lambda: daeint(
+                ImplicitODE(lambda t, xd, x: torch.tensor((xd + x).detach().numpy())),
+                torch.ones(2, 1),
+                None,
+                T,
+            ),
+            ["F(t, xdot, x) returned a tensor without autograd graph"],
+        ),
     ],
 )
 def test_daeint_entry_checks_name_the_function_and_the_shapes(call, words):
