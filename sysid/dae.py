@@ -33,6 +33,7 @@ from torch import nn
 from integrators.errors import (
     ConvergenceError,
     HighIndexError,
+    InputValidationError,
     SingularMatrixError,
 )
 from integrators.jacobians import jacobian_rows
@@ -59,6 +60,31 @@ def _rank(mat, rtol):
         return torch.zeros(mat.shape[:-2], dtype=torch.long, device=mat.device)
     s = torch.linalg.svdvals(mat)
     return (s > rtol * s[..., :1].clamp_min(torch.finfo(mat.dtype).tiny)).sum(-1)
+
+
+def _input(u, x, name):
+    """``u`` as a (*batch, nu) tensor in ``x``'s dtype, expanded to the batch of ``x``
+    (*batch, nx).
+
+    Raises:
+        InputValidationError: ``u`` is a scalar (0-dim) or its batch does not broadcast to
+            that of ``x``.
+    """
+    u = torch.as_tensor(u, dtype=x.dtype, device=x.device)
+    batch = tuple(x.shape[:-1])
+    if u.dim() == 0:
+        raise InputValidationError(
+            f"{name}: u must have shape (*batch, nu) = ({', '.join(map(str, batch))}"
+            f"{', ' if batch else ''}nu), got a scalar; pass one input as a vector of width 1, "
+            "e.g. torch.tensor([u]) or u[..., None]."
+        )
+    try:
+        return u.expand(*batch, u.shape[-1])
+    except RuntimeError:
+        raise InputValidationError(
+            f"{name}: u of shape {tuple(u.shape)} does not broadcast to the states' batch "
+            f"{batch}; give u the shape (*batch, nu)."
+        ) from None
 
 
 def _leaf(x):
@@ -144,15 +170,18 @@ def differential_index(F, xdot, x, z, u=None, *, t=None, max_index=5, rtol=1e-8,
     first k for which ydot is uniquely determined (rank of the Jacobian minus the rank of its
     columns for the higher derivatives equals dim y). An ODE has index 0.
 
-    x (*batch, nx), z (*batch, nz) (width 0 allowed), xdot (*batch, nx) a guess. Returns a
-    long tensor (*batch,); raises HighIndexError where the index exceeds ``max_index``.
+    x (*batch, nx), z (*batch, nz) (width 0 allowed), xdot (*batch, nx) a guess, u None or
+    (*batch, nu) (a batch that broadcasts). Returns a long tensor (*batch,); raises
+    HighIndexError where the index exceeds ``max_index``, InputValidationError for a scalar
+    u or one whose batch does not broadcast.
     """
     batch = x.shape[:-1]
     rows = batch.numel()  # explicit: a reshape cannot infer it from a width-0 z
     x2, z2 = x.reshape(rows, x.shape[-1]).detach(), z.reshape(rows, z.shape[-1]).detach()
     xd2 = xdot.reshape(rows, x.shape[-1]).detach()
     if u is not None:
-        u = torch.as_tensor(u, dtype=x.dtype).expand(*batch, -1).reshape(-1, u.shape[-1])
+        u = _input(u, x, "differential_index")
+        u = u.reshape(rows, u.shape[-1])
     n = x2.shape[-1] + z2.shape[-1]
     tt = _as_time(t, x)
     index = torch.full((x2.shape[0],), -1, dtype=torch.long, device=x.device)
@@ -220,13 +249,16 @@ def reduce_index(f, g, x, z, u=None, *, t=None, max_steps=5, rtol=1e-8):
     derivatives are not available); a rank-deficient dg/dz without such a row cannot be
     reduced by this procedure (it needs algebraic manipulations): both raise HighIndexError.
 
+    x (*batch, nx), z (*batch, nz), u None or (*batch, nu) (a batch that broadcasts; a
+    scalar u raises InputValidationError: one input is a vector of width 1).
+
     Returns :class:`ReducedDAE` with index = differentiations + 1 (eq. 5.81 -> 5.86: 2).
     """
     tt = _as_time(t, x)
     g_current, conditions, steps = g, [], []
     for step in range(max_steps + 1):
         with torch.enable_grad(), exact_higher_derivatives():
-            zz, uu = _leaf(z), None if u is None else _leaf(torch.as_tensor(u, dtype=x.dtype))
+            zz, uu = _leaf(z), None if u is None else _leaf(_input(u, x, "reduce_index"))
             res = _call(g_current, tt, x, zz, u=uu)
             inputs = (zz,) if u is None else (zz, uu)
             jacs = jacobian_rows(res, inputs)
@@ -328,15 +360,14 @@ def eliminate_linear(A, B, C, D, E, F, *, rtol=1e-10):
 def linearize_dae(f, g, x, z, u=None, *, t=None):
     """Jacobians of a semi-explicit DAE (eq. 5.32): dict with fx, fz, fu, gx, gz, gu, each
     (*batch, rows, cols) (the u blocks have 0 columns without u); the linearised DAE has the
-    form (5.29) and :func:`eliminate_linear` reduces it when gz is invertible."""
+    form (5.29) and :func:`eliminate_linear` reduces it when gz is invertible.
+
+    x (*batch, nx), z (*batch, nz), u None or (*batch, nu) (a batch that broadcasts; a scalar
+    u raises InputValidationError: one input is a vector of width 1)."""
     tt = _as_time(t, x)
     with torch.enable_grad():
         xx, zz = _leaf(x), _leaf(z)
-        uu = (
-            None
-            if u is None
-            else _leaf(torch.as_tensor(u, dtype=x.dtype).expand(*x.shape[:-1], -1))
-        )
+        uu = None if u is None else _leaf(_input(u, x, "linearize_dae"))
         inputs = (xx, zz) if u is None else (xx, zz, uu)
         out = {}
         for name, fn in (("f", f), ("g", g)):
@@ -349,12 +380,16 @@ def linearize_dae(f, g, x, z, u=None, *, t=None):
 
 
 def linearize_implicit_dae(F, xdot, x, z, u=None, *, t=None):
-    """Jacobians dF/dxdot, dF/dx, dF/dz, dF/du of a fully implicit DAE (eq. 5.31), as a dict."""
+    """Jacobians dF/dxdot, dF/dx, dF/dz, dF/du of a fully implicit DAE (eq. 5.31), as a dict
+    of (*batch, rows, cols) tensors.
+
+    xdot, x (*batch, nx), z (*batch, nz), u None or (*batch, nu) (a batch that broadcasts; a
+    scalar u raises InputValidationError: one input is a vector of width 1)."""
     tt = _as_time(t, x)
     with torch.enable_grad():
         leaves = [_leaf(xdot), _leaf(x), _leaf(z)]
         if u is not None:
-            leaves.append(_leaf(torch.as_tensor(u, dtype=x.dtype).expand(*x.shape[:-1], -1)))
+            leaves.append(_leaf(_input(u, x, "linearize_implicit_dae")))
         res = _call(F, tt, *leaves[:3], u=None if u is None else leaves[3])
         jacs = [j.detach() for j in jacobian_rows(res, tuple(leaves))]
     if u is None:

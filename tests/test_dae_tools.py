@@ -4,7 +4,12 @@ import pytest
 import torch
 
 from integrators import SemiExplicitDAE, daeint, odeint
-from integrators.errors import ConvergenceError, HighIndexError, SingularMatrixError
+from integrators.errors import (
+    ConvergenceError,
+    HighIndexError,
+    InputValidationError,
+    SingularMatrixError,
+)
 from sysid import dae, zoo
 from sysid.linearize import linearize, simulate_lti_zoh
 from sysid.zoo import Bowl, RigidCraneCartesian
@@ -152,6 +157,44 @@ def test_eliminate_linear_eq_5_30_matches_substitution_and_linearize_dae():
     torch.testing.assert_close(jac["fx"], a.expand(3, 2, 2))
     torch.testing.assert_close(jac["gz"], fm)
     torch.testing.assert_close(jac["gu"], e)
+
+
+def test_dae_helpers_refuse_a_scalar_input_and_take_a_width_one_vector():
+    """u must be (*batch, nu): a scalar is refused by name (it crashed with an integer
+    overflow in expand), one input as a vector of width 1 (or a shared (nu,) for a batch)
+    gives the analytic Jacobians of x' = x z + u^2 (here fu = 2 u), 0 = z^3 + x u."""
+
+    def f(t, x, z, u):
+        return x * z + u**2
+
+    def g(t, x, z, u):
+        return z**3 + x * u
+
+    def F(t, xdot, x, z, u):
+        return torch.cat([xdot - f(t, x, z, u), g(t, x, z, u)], -1)
+
+    x, z = torch.full((3, 1), 0.3, dtype=DT), torch.full((3, 1), 0.5, dtype=DT)
+    calls = {
+        "linearize_dae": lambda u: dae.linearize_dae(f, g, x, z, u),
+        "linearize_implicit_dae": lambda u: dae.linearize_implicit_dae(F, x, x, z, u),
+        "differential_index": lambda u: dae.differential_index(F, x, x, z, u),
+        "reduce_index": lambda u: dae.reduce_index(f, g, x, z, u),
+    }
+    for name, call in calls.items():
+        for scalar in (0.7, torch.tensor(0.7, dtype=DT)):
+            with pytest.raises(InputValidationError, match=rf"{name}: u must have shape"):
+                call(scalar)
+        with pytest.raises(InputValidationError, match=rf"{name}: u of shape \(2, 1\)"):
+            call(torch.ones(2, 1, dtype=DT))
+    jac = dae.linearize_dae(f, g, x, z, torch.tensor([0.7], dtype=DT))
+    torch.testing.assert_close(jac["fu"], torch.full((3, 1, 1), 1.4, dtype=DT))
+    torch.testing.assert_close(jac["gu"], torch.full((3, 1, 1), 0.3, dtype=DT))
+    torch.testing.assert_close(jac["gz"], torch.full((3, 1, 1), 0.75, dtype=DT))
+    imp = dae.linearize_implicit_dae(F, x, x, z, torch.full((3, 1), 0.7, dtype=DT))
+    torch.testing.assert_close(imp["Fu"][:, :, 0], torch.tensor([[-1.4, 0.3]] * 3, dtype=DT))
+    index = dae.differential_index(F, x, x, z, torch.tensor([0.7], dtype=DT))
+    assert index.tolist() == [1, 1, 1]
+    assert dae.reduce_index(f, g, x, z, torch.tensor([0.7], dtype=DT)).index == 1
 
 
 def test_tikhonov_eq_5_36_converges_to_dae_limit_eq_5_38():
