@@ -544,13 +544,28 @@ def _check_index(system, t0, xdot, x, z, u, index_tol):
         return
     idx = [tuple(i) for i in torch.nonzero(bad).tolist()][:10]
     which = "dg/dz" if system.kind == "semi" else ("[dF/dx', dF/dz]" if system.m else "dF/dx'")
-    raise HighIndexError(
-        f"the DAE is of index > 1: {which} is rank deficient at t0 for samples {idx} "
-        f"(smallest singular value / Jacobian norm = {float(ratio[bad].min()):.2e} <= "
-        f"index_tol = {index_tol:g}; Theorem 9, Corollary 1). Implicit RK methods give "
-        "meaningless results on such DAEs (notes §7.6.1): index-reduce the model "
-        "(differentiate the constraints, notes §5.4-5.5) before calling daeint."
+    found = (
+        f"{which} is rank deficient at t0 for samples {idx} (smallest singular value / "
+        f"Jacobian norm = {float(ratio[bad].min()):.2e} <= index_tol = {index_tol:g}; "
+        "Theorem 9, Corollary 1)"
     )
+    reduce = (
+        "Implicit RK methods give meaningless results on DAEs of index > 1 (notes §7.6.1): "
+        "index-reduce the model (differentiate the constraints, notes §5.4-5.5) before "
+        "calling daeint."
+    )
+    if system.kind != "semi" and not system.m:
+        raise HighIndexError(
+            f"F(t, x', x) = 0 is not an implicit ODE: {found}, so it is a DAE. If the "
+            "singular part of dF/dx' belongs to states whose derivatives do not enter F "
+            "(algebraic states), write the model as ImplicitDAE F(t, x', x, z) with those "
+            "states in z (and x0, z0 split accordingly): daeint integrates it when "
+            "[dF/dx', dF/dz] is invertible (index 1). If the derivatives enter only in a "
+            "singular combination, combine the equations or change variables so that the "
+            "algebraic states appear without derivatives (notes §5.1) first. "
+            f"{reduce}"
+        )
+    raise HighIndexError(f"the DAE is of index > 1: {found}. {reduce}")
 
 
 def _raise_unconverged(res, what):

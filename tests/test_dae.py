@@ -20,6 +20,7 @@ from integrators import (
     odeint,
     solve_implicit_ode,
 )
+from sysid.zoo.dae import AlgebraicStateDAE
 
 pytestmark = pytest.mark.usefixtures("float64_default")
 
@@ -148,6 +149,36 @@ def test_index2_semi_explicit_dae_raises():
     prob = SemiExplicitDAE(lambda t, x, z: z, lambda t, x, z: x - torch.sin(t))
     with pytest.raises(HighIndexError, match="dg/dz"):
         daeint(prob, torch.zeros(2, 1), torch.ones(2, 1), torch.linspace(0, 1, 3))
+
+
+def test_implicit_ode_with_an_algebraic_state_points_to_implicit_dae():
+    """Eq. 5.2 as ImplicitODE (x2 never differentiated, index 1): dF/dx' is singular; the
+    error says to put x2 in z of an ImplicitDAE, and that form integrates to the closed form
+    x1 = e^{5 t}, x2 = 3 x1 (x1' = 2 x1 + x2, 0 = 3 x1 - x2)."""
+    model = AlgebraicStateDAE()
+    t = torch.linspace(0, 0.4, 3)
+    with pytest.raises(HighIndexError) as info:
+        daeint(
+            ImplicitODE(lambda tt, xd, x: model.residual(tt, xd, x, None)),
+            torch.tensor([1.0, 3.0]),
+            None,
+            t,
+        )
+    msg = str(info.value)
+    for words in ("not an implicit ODE", "dF/dx'", "ImplicitDAE F(t, x', x, z)", "in z"):
+        assert words in msg, msg
+    assert "the DAE is of index > 1" not in msg
+
+    def F(tt, xd, x, z):
+        return model.residual(
+            tt, torch.cat([xd, torch.zeros_like(z)], -1), torch.cat([x, z], -1), None
+        )
+
+    sol = daeint(
+        ImplicitDAE(F), torch.tensor([1.0]), torch.tensor([3.0]), t, rtol=1e-10, atol=1e-12
+    )
+    torch.testing.assert_close(sol.x[:, 0], torch.exp(5 * t), rtol=1e-8, atol=0)
+    torch.testing.assert_close(sol.z[:, 0], 3 * torch.exp(5 * t), rtol=1e-8, atol=0)
 
 
 def test_index_check_during_integration_warns_and_sets_status():
