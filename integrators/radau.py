@@ -222,9 +222,19 @@ def adaptive_loop(
                         "at t = 1, notes eq. 1.44); its outputs from there on are not defined",
                     )
                     tiny &= not_(escape)
+                nonfinite = tiny & nonfinite_last
+                if any_(nonfinite):
+                    stop(
+                        nonfinite,
+                        Status.NON_FINITE,
+                        "the model's functions or the stage values became inf/nan in every trial "
+                        "step until the step size fell below the time resolution; check the "
+                        "model there for a division by zero, a log or sqrt of a negative "
+                        "argument or a finite escape time",
+                    )
                 stop(
-                    tiny,
-                    where(nonfinite_last, Status.NON_FINITE, Status.STEP_TOO_SMALL),
+                    tiny & not_(nonfinite_last),
+                    Status.STEP_TOO_SMALL,
                     "the step size fell below the time resolution; the problem may be non-smooth, "
                     "of index > 1, or blow up there — loosen the tolerances or check the model",
                 )

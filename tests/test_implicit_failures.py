@@ -198,3 +198,25 @@ def test_adaptive_radau_escape_to_infinity_is_nan_beyond_the_escape(host_loop):
     assert 0.99 < _stop_time(sol, 0) <= 1.0
     assert bool(torch.isnan(sol.x[0, 1]).all() and torch.isfinite(sol.x[0, 0]).all())
     torch.testing.assert_close(sol.x[1, -1, 0], torch.tensor(-1 / 3, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("kind, host_loop", [("ode", False), ("ode", True), ("dae", None)])
+def test_adaptive_radau_non_finite_model_gets_its_own_message(kind, host_loop):
+    """x' = -x + 0 log(x - 0.5) from x0 = 1 is NaN from t = ln 2 on (the other member,
+    x0 = 5, stays finite): sample 0 stops there as NON_FINITE with a message about inf/nan in
+    the model, not the step-size text of STEP_TOO_SMALL; before the stop x = e^{-t}."""
+    x0 = torch.tensor([[1.0], [5.0]], dtype=torch.float64)
+    t = torch.linspace(0.0, 2.0, 5, dtype=torch.float64)
+    if kind == "ode":
+        sol = solve_implicit_ode(
+            lambda tt, x: -x + 0 * torch.log(x - 0.5), x0, t, "radau_iia", host_loop=host_loop
+        )
+    else:
+        prob = SemiExplicitDAE(lambda tt, x, z: -z + 0 * torch.log(x - 0.5), lambda tt, x, z: z - x)
+        sol = daeint(prob, x0, x0.clone(), t)
+    assert sol.status.tolist() == [Status.NON_FINITE, Status.SUCCESS]
+    assert len(sol.messages) == 1 and "NON_FINITE" in sol.messages[0], sol.messages
+    assert "inf/nan" in sol.messages[0] and "non-smooth" not in sol.messages[0]
+    assert _stop_time(sol, 0) == pytest.approx(0.693147, abs=1e-6)
+    torch.testing.assert_close(sol.x[0, :2, 0], torch.exp(-t[:2]), rtol=1e-5, atol=0)
+    assert bool(torch.isnan(sol.x[0, 2:]).all() and torch.isfinite(sol.x[1]).all())
