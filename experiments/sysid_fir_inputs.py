@@ -1,13 +1,15 @@
-"""FIR model with 20 taps estimated from four inputs (notes Fig. 4.1, eq. 4.8–4.11, 4.93).
+"""FIR model with 20 taps estimated from six inputs (notes Fig. 4.1, eq. 4.8–4.11, 4.93).
 
-The same 20-tap system is excited by white noise, a PRBS, a step and a sinusoid, with a
-slight measurement noise, starting at rest (so the regressor U of eq. 4.8 uses every sample
-with u_k = 0 for k < 0; without that transient, a step or a sinusoid makes U'U exactly
-singular). For each input: the least-squares estimate (eq. 4.11) by ``sysid.lls``, the
+The same 20-tap system is excited by white noise, a random binary signal, a step and a
+sinusoid (the notes' four), and a maximum-length binary sequence and a random-phase
+multisine, with a slight measurement noise, starting at rest (so the regressor U of eq. 4.8
+uses every sample with u_k = 0 for k < 0; without that transient, a step or a sinusoid makes
+U'U exactly singular). For each input: the least-squares estimate (eq. 4.11) by ``sysid.lls``, the
 condition number of U'U, the parameter error and the fit of the simulated output, both on the
 estimation data and on fresh white-noise validation data. The sinusoid (and the step) excite
 only one or two directions of the 20-dimensional parameter space: U'U is near singular, the
-estimates are poor although the output fit on the estimation data is excellent.
+estimates are poor although the output fit on the estimation data is excellent; the
+maximum-length sequence and the multisine excite all directions evenly (U'U best conditioned).
 
 Run: ``python -m experiments.sysid_fir_inputs [--quick] [--out DIR]``.
 """
@@ -44,7 +46,9 @@ import torch
 from experiments._common import plt
 from sysid import FIR, fit_percent, lls
 from sysid.errors import PoorExcitationWarning
-from sysid.montecarlo import INPUT_KINDS, fir_regressor, input_signal, simulate_data
+from sysid.montecarlo import fir_regressor, input_signal, simulate_data
+
+KINDS = ("white", "prbs", "step", "sinusoid", "mls", "multisine")
 
 
 def true_fir(n_taps: int = 20) -> torch.Tensor:
@@ -64,7 +68,7 @@ def main(argv=None):
     u_val = input_signal("white", N, generator=g)
     val = simulate_data(model, u_val, theta=b)
     rows, fits = [], {}
-    for kind in INPUT_KINDS:
+    for kind in KINDS:
         u = input_signal(kind, N, generator=g, omega=0.3)
         data = simulate_data(model, u, theta=b, noise_std=args.noise, generator=g)
         U = fir_regressor(u[:, 0], n_taps)
@@ -87,8 +91,8 @@ def main(argv=None):
             }
         )
     markdown = write_table(rows, out / "fir_inputs")
-    fig, axes = plt.subplots(len(INPUT_KINDS), 3, figsize=(12, 2.4 * len(INPUT_KINDS)))
-    for row, kind in enumerate(INPUT_KINDS):
+    fig, axes = plt.subplots(len(KINDS), 3, figsize=(12, 2.4 * len(KINDS)))
+    for row, kind in enumerate(KINDS):
         data, y_est, theta = fits[kind]
         axes[row, 0].plot(data.u[:, 0], color="k")
         axes[row, 0].set_ylabel(f"{kind} input")

@@ -30,6 +30,10 @@ def test_fir_inputs_fig_4_1(tmp_path, saved_figures):
         assert poor["poor_excitation_warning"]
         assert poor["param_error_rel"] > 5 * max(white["param_error_rel"], prbs["param_error_rel"])
     assert not white["poor_excitation_warning"] and not prbs["poor_excitation_warning"]
+    # a maximum-length sequence and a multisine excite every direction evenly
+    for rich in (by(rows, input="mls"), by(rows, input="multisine")):
+        assert not rich["poor_excitation_warning"] and rich["cond_UtU"] < 10
+        assert rich["param_error_rel"] < 2 * max(white["param_error_rel"], prbs["param_error_rel"])
     # ... while the sinusoid's output fit on its own data stays excellent (notes' remark)
     assert sine["fit_estimation_pct"] > 95
     assert sine["fit_validation_pct"] < white["fit_validation_pct"]
