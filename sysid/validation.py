@@ -331,11 +331,12 @@ def _residuals_and_size(residuals, n_params, func: str) -> tuple[torch.Tensor, i
             )
         e, d = _as_sequences(residuals, "residuals", func), int(n_params)
     N = e.shape[-2]
-    if not 0 <= d < N:
+    if d < 0:
+        raise InputValidationError(f"{func}: n_params must be >= 0, got d = {d}.")
+    if func == "fpe" and d >= N:
         raise InputValidationError(
-            f"{func}: need 0 <= n_params < N (fewer estimated parameters than samples, else "
-            f"the criterion is meaningless), got d = {d}, N = {N}; use more data or a "
-            "smaller model."
+            f"fpe: need n_params < N (its factor (1 + d/N) / (1 - d/N) is infinite or "
+            f"negative otherwise), got d = {d}, N = {N}; use more data or a smaller model."
         )
     return e, d
 
@@ -358,7 +359,7 @@ def aic(residuals, n_params) -> torch.Tensor:
             grey-box :class:`sysid.FitResult` (a
             :class:`~sysid.continuous.training.TrainingResult` is refused: see the module
             docstring).
-        n_params: number ``d`` of estimated parameters (``0 <= d < N``); or, with a model
+        n_params: number ``d >= 0`` of estimated parameters; or, with a model
             as first argument, the :class:`sysid.IOData` on which its residuals are taken
             (all ``N`` samples, without gradient): a polynomial model's one-step prediction
             errors with ``d = model.n_params``, a grey-box model's simulation errors
