@@ -875,9 +875,13 @@ class LagrangianSystem(nn.Module):
         return q, qdot
 
     def linearize(self, q_eq, u_eq=None):
-        """A, B of xdot = f(x, u) at an equilibrium (q_eq, qdot = 0, u_eq) (eq. 1.35)."""
+        """A (*batch, 2 nq, 2 nq), B (*batch, 2 nq, nu) of xdot = f(x, u) at an equilibrium
+        (q_eq, qdot = 0, u_eq) (eq. 1.35); ``u_eq`` None: zero inputs (B still has its nu
+        columns)."""
         from .linearize import linearize
 
         x = torch.cat([q_eq, torch.zeros_like(q_eq)], -1)
+        if u_eq is None and self.nu > 0:
+            u_eq = q_eq.new_zeros(*q_eq.shape[:-1], self.nu)
         a, b, _, _ = linearize(self, x, u_eq)
         return a, b

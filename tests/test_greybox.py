@@ -717,3 +717,24 @@ def test_autonomous_data_with_band_limited_intersample():
     tau = stage_fractions(tableau("rk4"), 2)
     for kind in ("zoh", "foh", "cubic", "bl"):
         assert input_between_samples(torch.zeros(3, N, 0), kind, tau).shape == (3, N - 1, 5, 0)
+
+
+def test_names_of_a_module_without_nn_parameters_are_checked():
+    """A module holding its constants as a buffer and a plain float: a misspelt name was
+    accepted (the check ran only for modules with nn.Parameters) and fitted as a parameter the
+    model never reads (1.5 +- NaN under a poor-excitation warning); a plain attribute raised a
+    raw TypeError from torch.func. Both are refused by name; the buffer is estimable."""
+
+    class Damped(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.nx, self.gain = 1, 1.0
+            self.register_buffer("c", torch.tensor(0.3, dtype=torch.float64))
+
+        def forward(self, t, x, u):
+            return -self.c * x + self.gain * u
+
+    for name in ("cc", "gain"):
+        with pytest.raises(InputValidationError, match=f"unknown parameter name '{name}'"):
+            GreyBoxModel(Damped(), {name: 1.5}, x0=torch.zeros(1))
+    assert GreyBoxModel(Damped(), {"c": 0.5}, x0=torch.zeros(1)).params["c"].free

@@ -217,6 +217,10 @@ def test_linearisation_of_crane_at_rest():
     ref[3, 1] = -(M + m) * G / (M * L)
     torch.testing.assert_close(a[0], ref, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(b[0, :, 0], torch.tensor([0, 0, 1 / M, -1 / (M * L)], dtype=DT))
+    # without u_eq: zero inputs, and B keeps its input column (it came back (4, 0))
+    a0, b0 = Crane(M=M, m=m, L=L).linearize(torch.zeros(1, 2, dtype=DT))
+    torch.testing.assert_close(a0, a)
+    torch.testing.assert_close(b0, b)
 
 
 def test_projection_with_singular_constraint_gradients_raises_with_sample_index():

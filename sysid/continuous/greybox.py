@@ -595,16 +595,21 @@ def _collect_params(f, params, kind) -> dict[str, Param]:
         }
     if not isinstance(params, dict) or not params:
         raise InputValidationError("GreyBoxModel: params must be a non-empty dict name -> Param.")
+    # a module's tensors that can be set by name: its parameters and buffers
+    is_module = kind in ("module", "dae_module")
+    settable = {**dict(f.named_buffers()), **module_params} if is_module else {}
     out = {}
     for name, p in params.items():
-        if module_params and name not in module_params:
+        if is_module and name not in settable:
             raise InputValidationError(
                 f"GreyBoxModel: unknown parameter name {name!r}; the module "
-                f"{type(f).__name__} has {sorted(module_params)}."
+                f"{type(f).__name__} has the parameters and buffers {sorted(settable)} (a "
+                "plain attribute cannot be estimated: register it with nn.Parameter or "
+                "register_buffer)."
             )
-        if module_params and module_params[name].numel() != 1:
+        if is_module and settable[name].numel() != 1:
             raise InputValidationError(
-                f"GreyBoxModel: module parameter {name!r} has {module_params[name].numel()} "
+                f"GreyBoxModel: module parameter {name!r} has {settable[name].numel()} "
                 "entries; only scalar parameters can be estimated by name."
             )
         out[name] = p if isinstance(p, Param) else Param(p)
