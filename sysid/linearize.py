@@ -131,24 +131,58 @@ def zoh_discretize(a, b, dt):
 def simulate_lti_zoh(a, b, x0, u, dt, c=None, d=None):
     """Exact samples of xdot = A x + B u with u held constant over each step (reference).
 
-    x0 (*batch, n), u (*batch, T, m) or (T, m): returns x (*batch, T + 1, n) (x_0 .. x_T) and,
-    when c is given, y_k = C x_k + D u_k (*batch, T, p).
+    a (*batch, n, n), b (*batch, n, m), dt a float or tensor (*batch), x0 (*batch, n),
+    u (*batch, T, m), c (*batch, p, n) and d (*batch, p, m) or None: the batch shapes
+    broadcast against each other (e.g. an unbatched x0 (n,) and u (T, m) start every system
+    of a batched A or dt). Returns x (*batch, T + 1, n) (x_0 .. x_T) and, when c is given,
+    y_k = C x_k + D u_k (*batch, T, p) (D = 0 when d is None).
     """
     ad, bd = zoh_discretize(a, b, dt)
+    n, m = bd.shape[-2], bd.shape[-1]
     u = torch.as_tensor(u, dtype=ad.dtype)
     x0 = torch.as_tensor(x0, dtype=ad.dtype)
-    if u.dim() < 2 or u.shape[-1] != bd.shape[-1] or x0.shape[-1:] != ad.shape[-1:]:
+    if u.dim() < 2 or u.shape[-1] != m or x0.shape[-1:] != (n,):
         raise InputValidationError(
-            f"simulate_lti_zoh: u must be (*batch, T, m) with m = {bd.shape[-1]} and x0 "
-            f"(*batch, n) with n = {ad.shape[-1]}, got {tuple(u.shape)} and {tuple(x0.shape)}."
+            f"simulate_lti_zoh: u must be (*batch, T, m) with m = {m} and x0 "
+            f"(*batch, n) with n = {n}, got {tuple(u.shape)} and {tuple(x0.shape)}."
         )
-    xs = [x0]
+    if c is not None:
+        c = torch.as_tensor(c, dtype=ad.dtype)
+        p = c.shape[-2] if c.dim() >= 2 else None
+        if p is None or c.shape[-1] != n:
+            raise InputValidationError(
+                f"simulate_lti_zoh: C must be (*batch, p, n) with n = {n}, got "
+                f"{tuple(c.shape)} (a single output row is C[None, :])."
+            )
+        if d is not None:
+            d = torch.as_tensor(d, dtype=ad.dtype)
+            if d.dim() < 2 or d.shape[-2:] != (p, m):
+                raise InputValidationError(
+                    f"simulate_lti_zoh: D must be (*batch, p, m) = (*batch, {p}, {m}) to "
+                    f"match C {tuple(c.shape)} and B {tuple(bd.shape)}, got {tuple(d.shape)}."
+                )
+    shapes = {"A/B/dt": ad.shape[:-2], "x0": x0.shape[:-1], "u": u.shape[:-2]}
+    if c is not None:
+        shapes["C"] = c.shape[:-2]
+        if d is not None:
+            shapes["D"] = d.shape[:-2]
+    try:
+        batch = torch.broadcast_shapes(*shapes.values())
+    except RuntimeError as exc:
+        got = ", ".join(f"{k} {tuple(v)}" for k, v in shapes.items())
+        raise InputValidationError(
+            f"simulate_lti_zoh: the batch shapes of {got} do not broadcast; give x0 and u "
+            "either without batch dimensions or with the batch of the systems."
+        ) from exc
+    ad, bd = ad.expand(*batch, n, n), bd.expand(*batch, n, m)
+    u = u.expand(*batch, *u.shape[-2:])
+    xs = [x0.expand(*batch, n)]
     for k in range(u.shape[-2]):
         xs.append((ad @ xs[-1].unsqueeze(-1) + bd @ u[..., k, :].unsqueeze(-1)).squeeze(-1))
     x = torch.stack(xs, -2)
     if c is None:
         return x
-    y = (c @ x[..., :-1, :].unsqueeze(-1)).squeeze(-1)
+    y = (c.unsqueeze(-3) @ x[..., :-1, :].unsqueeze(-1)).squeeze(-1)
     if d is not None:
-        y = y + (d @ u.unsqueeze(-1)).squeeze(-1)
+        y = y + (d.unsqueeze(-3) @ u.unsqueeze(-1)).squeeze(-1)
     return x, y

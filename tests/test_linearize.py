@@ -9,7 +9,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from integrators.errors import ConvergenceError, SingularMatrixError
+from integrators.errors import ConvergenceError, InputValidationError, SingularMatrixError
 from sysid.linearize import linearize, simulate_lti_zoh, steady_state, zoh_discretize
 from sysid.zoo import NonlinearExample
 
@@ -142,3 +142,43 @@ def test_zoh_simulation_matches_scipy_dlsim_and_lsim():
         (a, b, c, d), np.append(u_fine, u_fine[-1]), t, X0=x0, interp=False
     )
     np.testing.assert_allclose(x.numpy(), x_cont, rtol=1e-8, atol=1e-10)
+
+
+def _dlsim_ref(a, b, c, d, x0, u, dt):
+    sys_d = scipy.signal.cont2discrete((a, b, c, d), dt, "zoh")
+    _, y_ref, x_ref = scipy.signal.dlsim(sys_d[:4] + (dt,), u, x0=x0)
+    return np.atleast_2d(y_ref.T).T, x_ref
+
+
+def test_zoh_simulation_broadcasts_an_unbatched_x0_and_u_over_batched_systems():
+    a = np.stack([_random_lti(s, n=2, m=1)[0] - 3 * np.eye(2) for s in range(3)])
+    b = np.stack([_random_lti(s, n=2, m=1)[1] for s in range(3)])
+    c = np.stack([[[1.0, -0.5]], [[0.3, 2.0]], [[0.0, 1.0]]])
+    d = np.array([[0.2]])
+    dts = np.array([0.05, 0.1, 0.2])
+    u = np.cos(np.arange(20) * 0.4)[:, None]
+    x0 = np.array([0.5, -1.0])
+    tt = torch.tensor
+    # batched A, B, C and dt; x0 (n,), u (T, m) and D (p, m) shared by every system
+    x, y = simulate_lti_zoh(tt(a), tt(b), tt(x0), tt(u), tt(dts), tt(c), tt(d))
+    assert x.shape == (3, 21, 2) and y.shape == (3, 20, 1)
+    for i in range(3):
+        y_ref, x_ref = _dlsim_ref(a[i], b[i], c[i], d, x0, u, dts[i])
+        np.testing.assert_allclose(x[i, :-1].numpy(), x_ref, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(y[i].numpy(), y_ref, rtol=1e-10, atol=1e-12)
+    # one system and a batch of steps dt
+    x = simulate_lti_zoh(tt(a[0]), tt(b[0]), tt(x0), tt(u), tt(dts))
+    for i in range(3):
+        _, x_ref = _dlsim_ref(a[0], b[0], c[0], d, x0, u, dts[i])
+        np.testing.assert_allclose(x[i, :-1].numpy(), x_ref, rtol=1e-10, atol=1e-12)
+
+
+def test_zoh_simulation_names_wrong_output_matrices_and_batches():
+    a, b = -torch.eye(2, dtype=DT), torch.ones(2, 1, dtype=DT)
+    x0, u = torch.zeros(2, dtype=DT), torch.ones(5, 1, dtype=DT)
+    with pytest.raises(InputValidationError, match=r"C must be \(\*batch, p, n\) with n = 2"):
+        simulate_lti_zoh(a, b, x0, u, 0.1, c=torch.ones(1, 3, dtype=DT))
+    with pytest.raises(InputValidationError, match=r"D must be \(\*batch, p, m\)"):
+        simulate_lti_zoh(a, b, x0, u, 0.1, c=torch.ones(1, 2, dtype=DT), d=torch.ones(1, 2))
+    with pytest.raises(InputValidationError, match="do not broadcast"):
+        simulate_lti_zoh(a.expand(3, 2, 2), b, torch.zeros(2, 2, dtype=DT), u, 0.1)
