@@ -26,7 +26,9 @@ def linearize(f, x, u=None, h=None, t=None):
 
     f(t, x[, u]) -> (*batch, nx) (called with u only when u is given); h(x[, u]) -> (*batch, ny)
     or None; x (*batch, nx), e.g. the samples of a trajectory (batched over time); u
-    (*batch, nu) or None; t a scalar (default 0). Returns A (*batch, nx, nx), B (*batch, nx, nu)
+    (*batch, nu) or None, whose batch broadcasts against that of x (every member is
+    linearised at its own point (x, u), e.g. one x_eq with several u_eq); t a scalar
+    (default 0). Returns A (*batch, nx, nx), B (*batch, nx, nu)
     (nu = 0 without u), C (*batch, ny, nx) and D (*batch, ny, nu) (None without h). The
     Jacobians are differentiable (autograd graphs) when grad mode is on and x, u or the
     parameters of f require grad. Samples of the batch must not interact in f and h.
@@ -35,7 +37,21 @@ def linearize(f, x, u=None, h=None, t=None):
     t = torch.as_tensor(0.0 if t is None else t, dtype=x.dtype, device=x.device)
     nx = x.shape[-1]
     if u is not None:
-        u = torch.as_tensor(u, dtype=x.dtype, device=x.device).expand(*x.shape[:-1], -1)
+        u = torch.as_tensor(u, dtype=x.dtype, device=x.device)
+        if x.dim() < 1 or u.dim() < 1:
+            raise InputValidationError(
+                f"linearize: x must be (*batch, nx) and u (*batch, nu), got {tuple(x.shape)} "
+                f"and {tuple(u.shape)} (a single input is a vector of width 1: u[..., None])."
+            )
+        try:
+            batch = torch.broadcast_shapes(x.shape[:-1], u.shape[:-1])
+        except RuntimeError as exc:
+            raise InputValidationError(
+                f"linearize: the batch shapes of x {tuple(x.shape[:-1])} and u "
+                f"{tuple(u.shape[:-1])} do not broadcast; give one point per batch member "
+                "or an unbatched x or u shared by all."
+            ) from exc
+        x, u = x.expand(*batch, nx), u.expand(*batch, u.shape[-1])
     create = torch.is_grad_enabled() and (
         x.requires_grad
         or (u is not None and u.requires_grad)

@@ -182,3 +182,40 @@ def test_zoh_simulation_names_wrong_output_matrices_and_batches():
         simulate_lti_zoh(a, b, x0, u, 0.1, c=torch.ones(1, 2, dtype=DT), d=torch.ones(1, 2))
     with pytest.raises(InputValidationError, match="do not broadcast"):
         simulate_lti_zoh(a.expand(3, 2, 2), b, torch.zeros(2, 2, dtype=DT), u, 0.1)
+
+
+def test_linearize_broadcasts_x_and_u_to_a_common_batch():
+    def f(t, x, u):
+        return torch.stack([x[..., 1] * u[..., 0], -torch.sin(x[..., 0]) + u[..., 0] ** 2], -1)
+
+    def h(x, u):
+        return (x[..., :1] * u) ** 2
+
+    x = torch.tensor([0.3, -0.7], dtype=DT)
+    u = torch.tensor([[1.0], [2.0], [-0.5]], dtype=DT)
+    a, b, c, d = linearize(f, x, u, h)
+    assert a.shape == (3, 2, 2) and b.shape == (3, 2, 1)
+    assert c.shape == (3, 1, 2) and d.shape == (3, 1, 1)
+    for i, ui in enumerate(u[:, 0].tolist()):
+        a_ref = torch.tensor([[0.0, ui], [-np.cos(0.3), 0.0]], dtype=DT)
+        b_ref = torch.tensor([[-0.7], [2 * ui]], dtype=DT)
+        torch.testing.assert_close(a[i], a_ref)
+        torch.testing.assert_close(b[i], b_ref)
+        torch.testing.assert_close(c[i], torch.tensor([[2 * 0.3 * ui**2, 0.0]], dtype=DT))
+        torch.testing.assert_close(d[i], torch.tensor([[2 * 0.3**2 * ui]], dtype=DT))
+    # a batch of states against one input
+    a2, b2, _, _ = linearize(f, torch.stack([x, 2 * x]), u[1])
+    torch.testing.assert_close(a2[0], a[1])
+    torch.testing.assert_close(b2[1], torch.tensor([[-1.4], [4.0]], dtype=DT))
+
+
+def test_plant_linearize_with_several_input_levels_and_mismatched_batches():
+    from sysid.zoo.mechanical import SpringMassDamper
+
+    plant = SpringMassDamper(m=1.5, xi=0.6, K=5.0)
+    a, b = plant.linearize(torch.zeros(1, dtype=DT), torch.tensor([[1.0], [2.0]], dtype=DT))
+    a_ref = torch.tensor([[0.0, 1.0], [-5.0 / 1.5, -0.6 / 1.5]], dtype=DT)
+    torch.testing.assert_close(a, a_ref.expand(2, 2, 2))
+    torch.testing.assert_close(b, torch.tensor([[0.0], [1 / 1.5]], dtype=DT).expand(2, 2, 1))
+    with pytest.raises(InputValidationError, match=r"x \(2,\) and u \(3,\) do not broadcast"):
+        linearize(plant, torch.zeros(2, 2, dtype=DT), torch.zeros(3, 1, dtype=DT))
