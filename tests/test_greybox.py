@@ -738,3 +738,25 @@ def test_names_of_a_module_without_nn_parameters_are_checked():
         with pytest.raises(InputValidationError, match=f"unknown parameter name '{name}'"):
             GreyBoxModel(Damped(), {name: 1.5}, x0=torch.zeros(1))
     assert GreyBoxModel(Damped(), {"c": 0.5}, x0=torch.zeros(1)).params["c"].free
+
+
+def test_known_x0_batch_not_matching_the_data_is_named_by_fit_and_simulate():
+    N = 30
+    u = torch.sin(torch.arange(N, dtype=torch.float64) * 0.3)
+    x0_pair = torch.tensor([[0.1, 0.0], [0.2, 0.0]], dtype=torch.float64)
+    gm = GreyBoxModel(SpringMassDamper(), None, output=[0], x0=x0_pair, compile=False)
+    single = IOData(u, torch.zeros(N, 1, dtype=torch.float64), Ts=0.1)
+    pair = IOData(u, torch.zeros(2, N, 1, dtype=torch.float64), Ts=0.1)
+    # simulate broadcasts one data set over the initial states, member by member
+    y = gm.simulate(single)
+    for i in range(2):
+        torch.testing.assert_close(y[i], gm.simulate(single, x0=x0_pair[i]))
+    # the fit is batched over data sets: an x0 batch the data do not have is refused by name
+    with pytest.raises(InputValidationError, match=r"x0 \(2, 2\) does not match the data's batch"):
+        fit(gm, single)
+    with pytest.raises(InputValidationError, match=r"\(\*data batch, 2\) = \(2, 2\)"):
+        fit(gm, pair, x0=torch.zeros(3, 2))
+    with pytest.raises(InputValidationError, match=r"data \(2,\), x0 \(2,\).*K \(3,\)"):
+        gm.simulate(pair, params={"K": torch.tensor([1.0, 2.0, 3.0])})
+    with pytest.raises(InputValidationError, match=r"data \(2,\), x0 \(3,\)"):
+        gm.simulate(pair, x0=torch.zeros(3, 2))

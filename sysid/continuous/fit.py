@@ -208,9 +208,22 @@ class _Problem:
     # ----------------------------------------------------------------------- start values
     def _known_x0(self, value) -> torch.Tensor:
         """A known initial state (checked by :func:`initial_states`) in the data's dtype;
-        None or "zero": zeros."""
+        None or "zero": zeros. Its batch must broadcast to the data's batch without widening
+        it (the fit is batched over data sets, not over initial states)."""
+        nx = self.model.nx
         if value is None or isinstance(value, str):
-            return torch.zeros(self.model.nx, dtype=self.dtype, device=self.device)
+            return torch.zeros(nx, dtype=self.dtype, device=self.device)
+        try:
+            fits = torch.broadcast_shapes(value.shape[:-1], self.batch) == self.batch
+        except RuntimeError:
+            fits = False
+        if not fits:
+            raise InputValidationError(
+                f"fit: the known initial state x0 {tuple(value.shape)} does not match the data's "
+                f"batch {tuple(self.batch)}; x0 must be ({nx},) or (*data batch, {nx}) = "
+                f"{tuple(self.batch) + (nx,)}. To fit one data set per initial state, give "
+                "data batched like x0."
+            )
         return value.to(device=self.device, dtype=self.dtype)
 
     def _node_guess(self, part: IOData, at: torch.Tensor) -> torch.Tensor:

@@ -504,17 +504,22 @@ class GreyBoxModel:
         starts = initial_states(x0 if x0 is not None else self.x0, self.nx, data.n_experiments)
         parts = []
         for e, part in enumerate(data.experiment_list):
-            P = torch.stack(
-                torch.broadcast_tensors(
-                    *(self._value(n, values[n], e, part.dtype) for n in self.names)
-                ),
-                -1,
-            )
+            vals = [self._value(n, values[n], e, part.dtype) for n in self.names]
             x_e = starts[e]
             if x_e is None or isinstance(x_e, str):
                 x_e = torch.zeros(self.nx)
             x_e = torch.as_tensor(x_e, dtype=part.dtype, device=part.device)
-            full = torch.broadcast_shapes(part.batch_shape, P.shape[:-1], x_e.shape[:-1])
+            shapes = {"data": part.batch_shape, "x0": x_e.shape[:-1]}
+            shapes.update({n: v.shape for n, v in zip(self.names, vals, strict=True)})
+            try:
+                full = torch.broadcast_shapes(*shapes.values())
+            except RuntimeError as exc:
+                got = ", ".join(f"{k} {tuple(v)}" for k, v in shapes.items())
+                raise InputValidationError(
+                    f"simulate: the batch shapes of {got} do not broadcast; give the "
+                    "parameters and x0 without a batch or with the data's batch."
+                ) from exc
+            P = torch.stack(torch.broadcast_tensors(*vals), -1)
             P = P.to(part.device).expand(*full, len(self.names))
             nodes = x_e.expand(*full, self.nx).unsqueeze(-2)
             u = part.u.expand(*full, *part.u.shape[-2:])
