@@ -229,7 +229,8 @@ def semi_explicit_index(f, g, x, z, u=None, **kwargs):
 class ReducedDAE:
     """Result of :func:`reduce_index`: the index-1 semi-explicit DAE xdot = f, 0 = g and the
     consistency conditions (the algebraic equations that were differentiated, each before its
-    differentiation; §5.6), all callables (t, x, z[, u]) -> (*batch, .)."""
+    differentiation; §5.6), all callables (t, x, z[, u]) -> (*batch, .); the reduced ones
+    take t None as t = 0, like the functions of this module."""
 
     f: object
     g: object
@@ -289,7 +290,7 @@ def reduce_index(f, g, x, z, u=None, *, t=None, max_steps=5, rtol=1e-8):
 
 def _select_rows(g, rows):
     def selected(t, x, z, *u):
-        return g(t, x, z, *u)[..., rows]
+        return g(_as_time(t, x), x, z, *u)[..., rows]
 
     return selected
 
@@ -298,7 +299,8 @@ def _stack_conditions(conditions):
     def consistency(t, x, z, *u):
         if not conditions:
             return x.new_zeros(*x.shape[:-1], 0)
-        return torch.cat([c(t, x, z, *u) for c in conditions], -1)
+        tt = _as_time(t, x)
+        return torch.cat([c(tt, x, z, *u) for c in conditions], -1)
 
     return consistency
 
@@ -312,7 +314,7 @@ def _differentiate_rows(f, g, rows):
     def g_new(t, x, z, *u):
         with torch.enable_grad(), exact_higher_derivatives():
             xx = x if x.requires_grad else _leaf(x)
-            tt = torch.as_tensor(t, dtype=x.dtype, device=x.device)
+            tt = _as_time(t, x)
             if tt.dim() == 0 and x.dim() > 1:
                 tt = tt.expand(*x.shape[:-1], 1)
             tt = tt if tt.requires_grad else _leaf(tt)

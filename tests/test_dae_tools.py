@@ -312,3 +312,14 @@ def test_index_reduction_keeps_the_explicit_time_dependence_of_g():
     sol = daeint(SemiExplicitDAE(reduced.f, reduced.g), x0, z0, times, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(sol.x[:, 0], torch.sin(times), atol=1e-9, rtol=0)
     torch.testing.assert_close(sol.z[:, 0], -torch.sin(times), atol=1e-9, rtol=0)
+
+
+@pytest.mark.parametrize("example", [LinearIndex2DAE, UnitSphereDAE])
+def test_reduced_functions_take_no_time_as_time_zero(example):
+    plant = example()
+    x, z = _rand(3, plant.nx), _rand(3, plant.nz, seed=1)
+    reduced = dae.reduce_index(plant.f, plant.g, x, z)
+    t0 = torch.tensor(0.0, dtype=DT)
+    torch.testing.assert_close(reduced.g(None, x, z), plant.reduced_g(t0, x, z))
+    torch.testing.assert_close(reduced.consistency(None, x, z), plant.g(t0, x, z)[..., :1])
+    torch.testing.assert_close(reduced.g(0.0, x, z), reduced.g(t0, x, z))
