@@ -1,6 +1,7 @@
 """Small right-hand sides shared by several test modules."""
 
 import torch
+from torch import nn
 
 
 def pendulum(t, x, u, p):
@@ -13,3 +14,26 @@ def pendulum(t, x, u, p):
         ],
         -1,
     )
+
+
+class LinearRHS(nn.Module):
+    """dx/dt = diag(a) x + b u (a, b trainable); y = x."""
+
+    def __init__(self, a, b, method="rk4"):
+        super().__init__()
+        self.a = nn.Parameter(torch.as_tensor(a, dtype=torch.float64))
+        self.b = nn.Parameter(torch.as_tensor(b, dtype=torch.float64))
+        self.nx = self.ny = self.a.shape[0]
+        self.nu, self.method, self.substeps = 1, method, 1
+
+    def forward(self, t, x, u):
+        return self.a * x + self.b * u
+
+    def output(self, x, u):
+        return x
+
+    def physical_parameters(self):
+        return {}
+
+    def to_physical(self, name, raw):
+        raise KeyError(name)

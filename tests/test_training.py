@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 import torch
+from _shared_models import LinearRHS
 from torch import nn
 
 import sysid
@@ -73,29 +74,6 @@ class HybridSpring(nn.Module):
 
     def to_physical(self, name, raw):
         return raw.exp()
-
-
-class LinearRHS(nn.Module):
-    """dx/dt = diag(a) x + b u (a, b trainable); y = x."""
-
-    def __init__(self, a, b, method="rk4"):
-        super().__init__()
-        self.a = nn.Parameter(torch.as_tensor(a, dtype=torch.float64))
-        self.b = nn.Parameter(torch.as_tensor(b, dtype=torch.float64))
-        self.nx = self.ny = self.a.shape[0]
-        self.nu, self.method, self.substeps = 1, method, 1
-
-    def forward(self, t, x, u):
-        return self.a * x + self.b * u
-
-    def output(self, x, u):
-        return x
-
-    def physical_parameters(self):
-        return {}
-
-    def to_physical(self, name, raw):
-        raise KeyError(name)
 
 
 # --------------------------------------------------------------------------- data
@@ -356,8 +334,10 @@ def test_the_forward_sensitivity_jacobian_equals_reverse_mode_autograd(
     torch.testing.assert_close(R.T @ R, gram, rtol=1e-9, atol=1e-11 * gram.abs().max())
 
 
-def _small_run(**kw):
-    data = first_order(120, seed=2, noise=0.01)
+def _small_run(model=None, data=None, **kw):
+    """A short seeded Adam training of ``model`` (default ``MLPRHS(hidden=8)``) on ``data``
+    (default 120 noisy samples of the first-order plant)."""
+    data = first_order(120, seed=2, noise=0.01) if data is None else data
     options = dict(
         method="adam",
         horizon=10,
@@ -370,7 +350,7 @@ def _small_run(**kw):
         seed=5,
     )
     options.update(kw)
-    return sysid.fit(MLPRHS(hidden=8), data, **options)
+    return sysid.fit(MLPRHS(hidden=8) if model is None else model, data, **options)
 
 
 def test_bit_reproducible_from_seed():
@@ -632,22 +612,12 @@ def test_a_checkpoint_of_other_options_data_or_model_is_refused(tmp_path):
         (name,) = changed
         with pytest.raises(InputValidationError, match=f"differing: {name}"):
             _small_run(**{**options, "epochs": 4, **changed})
-    resume = dict(
-        method="adam",
-        horizon=10,
-        batch_size=8,
-        epochs=4,
-        steps_per_epoch=3,
-        lr=1e-2,
-        x0="estimate",
-        seed=5,
-        checkpoint=path,
-    )
-    _small_run(**{**options, "epochs": 4})  # the same options resume
+    resume = {**options, "epochs": 4}
+    _small_run(**resume)  # the same options resume
     with pytest.raises(InputValidationError, match="holds the parameters of another model"):
-        sysid.fit(MLPRHS(hidden=8), first_order(100, seed=2), **resume)  # 100 samples, not 120
+        _small_run(data=first_order(100, seed=2), **resume)  # 100 samples, not 120
     with pytest.raises(InputValidationError, match="holds the parameters of another model"):
-        sysid.fit(MLPRHS(hidden=4), first_order(120, seed=2, noise=0.01), **resume)
+        _small_run(model=MLPRHS(hidden=4), **resume)
 
 
 def test_autonomous_data_trains_alike_under_band_limited_and_foh():

@@ -8,6 +8,7 @@ import scipy.linalg
 import scipy.signal
 import scipy.stats
 import torch
+from _shared_models import LinearRHS
 from statsmodels.stats.diagnostic import acorr_ljungbox
 from statsmodels.tsa.stattools import acf, ccf
 
@@ -348,29 +349,6 @@ def test_greybox_result_model_forms_score_the_fitted_free_run():
     np.testing.assert_allclose(float(fpe(result, data)), V * (1 + d / N) / (1 - d / N), rtol=1e-6)
 
 
-class _LinearNeuralRHS(torch.nn.Module):
-    """Neural-model contract stand-in: dx/dt = a x + b u (a, b trainable), y = x."""
-
-    def __init__(self):
-        super().__init__()
-        self.a = torch.nn.Parameter(torch.tensor([-0.8], dtype=DT))
-        self.b = torch.nn.Parameter(torch.tensor([1.2], dtype=DT))
-        self.nx = self.ny = self.nu = 1
-        self.method, self.substeps = "rk4", 1
-
-    def forward(self, t, x, u):
-        return self.a * x + self.b * u
-
-    def output(self, x, u):
-        return x
-
-    def physical_parameters(self):
-        return {}
-
-    def to_physical(self, name, raw):
-        raise KeyError(name)
-
-
 def test_training_result_model_forms_score_the_free_run_after_n_init():
     """A TrainingResult (initial-state encoder, n_init = 3, two experiments): fit_percent
     equals result.validate (default skip n_init) and the numpy fit of result.simulate after
@@ -385,7 +363,7 @@ def test_training_result_model_forms_score_the_free_run_after_n_init():
         parts.append(IOData(u, y, Ts=0.1))
     data = IOData.experiments(parts)
     result = fit(
-        _LinearNeuralRHS(),
+        LinearRHS([-0.8], [1.2]),
         data,
         method="adam",
         horizon=5,
