@@ -33,6 +33,21 @@ def bounded(**start):
     return {n: Param(v, min=0.0) for n, v in start.items()}
 
 
+def first_order(t, x, u, p):
+    """dx/dt = -a x + b u."""
+    return (-p["a"] * x[..., 0] + p["b"] * u[..., 0]).unsqueeze(-1)
+
+
+def noisy_first_order_data(N, Ts, hold, seed, a, b):
+    """A PRBS (levels held ``hold`` samples) through :func:`first_order` from rest, plus
+    white output noise of standard deviation 0.05."""
+    gen = torch.Generator().manual_seed(seed)
+    u = input_signal("prbs", N, hold=hold, generator=gen)
+    true = GreyBoxModel(first_order, {"a": a, "b": b}, nx=1, x0=torch.zeros(1))
+    y = true.simulate(IOData(u, torch.zeros_like(u), Ts=Ts))
+    return IOData(u, y + 0.05 * torch.randn(y.shape, generator=gen, dtype=y.dtype), Ts=Ts)
+
+
 def simulated_data(trials, N, noise, seed, Ts=0.1, params=TRUE, noise_kind="gauss", substeps=2):
     """``trials`` records of the oscillator's position under a binary input held 3 samples,
     simulated by RK4 with ``substeps`` steps per sample, plus white noise (Gaussian, or
@@ -579,19 +594,12 @@ def test_an_identifiable_parameter_beside_an_unidentifiable_pair_keeps_its_stand
     def split(t, x, u, p):
         return (-(p["a1"] + p["a2"]) * x[..., 0] + p["b"] * u[..., 0]).unsqueeze(-1)
 
-    def joined(t, x, u, p):
-        return (-p["a"] * x[..., 0] + p["b"] * u[..., 0]).unsqueeze(-1)
-
-    gen = torch.Generator().manual_seed(2)
-    u = input_signal("prbs", 200, hold=3, generator=gen)
-    true = GreyBoxModel(joined, {"a": 1.5, "b": 1.0}, nx=1, x0=torch.zeros(1))
-    y = true.simulate(IOData(u, torch.zeros_like(u), Ts=0.1))
-    data = IOData(u, y + 0.05 * torch.randn(y.shape, generator=gen, dtype=y.dtype), Ts=0.1)
+    data = noisy_first_order_data(200, 0.1, hold=3, seed=2, a=1.5, b=1.0)
     with pytest.warns(Warning, match="enter the data only in a combination"):
         res = fit(
             GreyBoxModel(split, {"b": 0.5, "a1": 1.0, "a2": 1.0}, nx=1, x0=torch.zeros(1)), data
         )
-    one = fit(GreyBoxModel(joined, {"b": 0.5, "a": 2.0}, nx=1, x0=torch.zeros(1)), data)
+    one = fit(GreyBoxModel(first_order, {"b": 0.5, "a": 2.0}, nx=1, x0=torch.zeros(1)), data)
     assert bool(torch.isinf(res.standard_errors[1:]).all())
     torch.testing.assert_close(res.theta[0], one.theta[0], rtol=1e-6, atol=0)
     torch.testing.assert_close(res.theta[1] + res.theta[2], one.theta[1], rtol=1e-6, atol=0)
@@ -678,19 +686,13 @@ def test_residuals_are_the_prediction_errors_y_minus_yhat():
     were yhat - y): checked against the exact zero-order-hold simulation of the fitted
     first-order plant (scipy's matrix exponential), sample by sample."""
 
-    def plant(t, x, u, p):
-        return (-p["a"] * x[..., 0] + p["b"] * u[..., 0]).unsqueeze(-1)
-
-    gen = torch.Generator().manual_seed(5)
-    u = input_signal("prbs", 80, hold=2, generator=gen)
-    true = GreyBoxModel(plant, {"a": 1.2, "b": 0.8}, nx=1, x0=torch.zeros(1))
-    y = true.simulate(IOData(u, torch.zeros_like(u), Ts=0.2))
-    data = IOData(u, y + 0.05 * torch.randn(y.shape, generator=gen, dtype=y.dtype), Ts=0.2)
-    res = fit(GreyBoxModel(plant, {"a": 1.0, "b": 1.0}, nx=1, x0=torch.zeros(1), substeps=4), data)
+    data = noisy_first_order_data(80, 0.2, hold=2, seed=5, a=1.2, b=0.8)
+    model = GreyBoxModel(first_order, {"a": 1.0, "b": 1.0}, nx=1, x0=torch.zeros(1), substeps=4)
+    res = fit(model, data)
     a, b = res.theta.tolist()
     Phi = scipy.linalg.expm(np.array([[-a, b], [0.0, 0.0]]) * 0.2)
     x, yhat = 0.0, []
-    for uk in u[:, 0].tolist():
+    for uk in data.u[:, 0].tolist():
         yhat.append(x)
         x = Phi[0, 0] * x + Phi[0, 1] * uk
     expected = data.y[:, 0].numpy() - np.array(yhat)
