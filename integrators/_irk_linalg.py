@@ -45,13 +45,14 @@ class StageLinearSolver:
     def __init__(self, A: np.ndarray, dtype, device, mode: str = "auto"):
         self.s = A.shape[0]
         self.dtype, self.device = dtype, device
-        self._A_np = np.array(A, dtype=np.float64)
-        self._full_gamma = None  # lazily, see _full_real_eigenvalue
         self.A = torch.as_tensor(np.array(A), dtype=dtype, device=device)
         transform = _eigen_transform(A) if mode in ("auto", "transformed") else None
         if mode == "transformed" and transform is None:
             raise ValueError("the tableau's A is singular or not diagonalisable")
         self.mode = "full" if transform is None else "transformed"
+        # the real block of the Radau IIA error filter, for the full factorisation
+        invertible = mode == "full" and abs(np.linalg.det(np.array(A, dtype=np.float64))) > 1e-14
+        self._full_gamma = real_eigenvalue_of_inverse(A) if invertible else None
         if transform is not None:
             cdtype = torch.complex128 if dtype == torch.float64 else torch.complex64
             lam_r, lam_c, P_r, P_c, V_r, V_c = transform
@@ -97,7 +98,7 @@ class StageLinearSolver:
             singular = info != 0
             real_lu = real_piv = None
             if self.want_real_block:
-                gamma = self._full_real_eigenvalue()
+                gamma = self._full_gamma
                 real_lu, real_piv, info_r = torch.linalg.lu_factor_ex((gamma / hb[..., 0]) * E + G)
                 singular = singular | (info_r != 0)
             return ("full", lu, piv, real_lu, real_piv), singular
@@ -121,17 +122,6 @@ class StageLinearSolver:
         else:
             factors += [None, None, None]
         return tuple(factors), singular
-
-    def _full_real_eigenvalue(self) -> float:
-        """The first real eigenvalue of ``A^{-1}`` (the Radau IIA error filter's ``gamma``) for
-        the full factorisation, which has no eigen-decomposition of its own."""
-        if self._full_gamma is None:
-            lam = np.linalg.eigvals(np.linalg.inv(self._A_np))
-            real = lam[np.abs(lam.imag) <= 1e-12 * np.abs(lam).max()].real
-            if not len(real):
-                raise ValueError("the tableau's A^{-1} has no real eigenvalue")
-            self._full_gamma = float(real[0])
-        return self._full_gamma
 
     def dense(self, p: int) -> bool:
         """Whether systems with ``p`` unknowns per stage take the explicit-inverse path."""
@@ -245,6 +235,14 @@ class StageLinearSolver:
 
 
 _DENSE_MAX = 24  # s p up to this size: explicit inverse of J, one matmul per Newton iteration
+
+
+def real_eigenvalue_of_inverse(A) -> float | None:
+    """The first real eigenvalue of ``A^{-1}`` (Radau IIA's ``gamma``, the block of its
+    embedded error estimate), None where ``A^{-1}`` has none (an even number of stages)."""
+    lam = np.linalg.eigvals(np.linalg.inv(np.array(A, dtype=np.float64)))
+    real = lam[np.abs(lam.imag) <= 1e-12 * np.abs(lam).max()].real
+    return float(real[0]) if len(real) else None
 
 
 def _factor_blocks(mats: torch.Tensor):

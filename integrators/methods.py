@@ -134,7 +134,7 @@ def _default_adaptive(tab: ButcherTableau) -> bool:
 
 def run_kind(tab: ButcherTableau, adaptive: bool | None) -> str:
     """The kind of a run of ``tab`` (a method's tableau) with the ``adaptive`` flag
-    (None: :func:`default_adaptive`).
+    (None: :func:`_default_adaptive`).
 
     Raises:
         TableauError: ``adaptive=True`` for an explicit tableau without ``b_err``.

@@ -48,6 +48,7 @@ import torch
 from ._irk_core import IRKCore, IterationMatrix, host_shape, masked_update, to_device, to_host
 from ._irk_dense import StepRecords, extrapolation_matrix, nan_beyond, stop_times
 from ._irk_fixed import _flag_high_index
+from ._irk_linalg import real_eigenvalue_of_inverse
 from ._per_sample import ArrayOps, ScalarOps
 from .controllers import GustafssonController, initial_step
 from .solution import Status
@@ -56,10 +57,7 @@ from .solution import Status
 def embedded_weights(tab) -> tuple[float, np.ndarray]:
     """``(gamma, e)`` of the Radau IIA error estimate (see module docstring)."""
     s = tab.stages
-    Ainv = np.linalg.inv(np.array(tab.A))
-    lam = np.linalg.eigvals(Ainv)
-    real = lam[np.abs(lam.imag) <= 1e-12 * np.abs(lam).max()].real
-    gamma = float(real[0])
+    gamma = real_eigenvalue_of_inverse(tab.A)
     c = np.array(tab.c)
     V = np.vander(c, s, increasing=True).T  # V[q, i] = c_i^q
     rhs = np.zeros(s)
