@@ -161,14 +161,14 @@ def _check_real(name: str, x) -> None:
         )
 
 
-def _check_finite(name: str, x: torch.Tensor) -> None:
+def _check_finite(name: str, x: torch.Tensor, where: str = "lls") -> None:
     if bool(torch.isfinite(x.sum())):  # one cheap reduction; locate only on failure
         return
     bad = ~torch.isfinite(x)
     if bool(bad.any()):
         idx = _first_index(bad)
         raise InputValidationError(
-            f"lls: {name} contains a non-finite value at index {idx}; remove or impute the "
+            f"{where}: {name} contains a non-finite value at index {idx}; remove or impute the "
             "offending samples before fitting."
         )
 
@@ -183,6 +183,26 @@ def _batch_shape(where: str, x: torch.Tensor, x_name: str, x_core: int, y: torch
             f"{where}: the batch shapes of {x_name} {tuple(x.shape)} and y {tuple(y.shape)} do "
             "not broadcast; give them equal (or size-1) leading batch dimensions."
         ) from None
+
+
+def _extra_batch(name: str, x, kind: str, batch: torch.Size, others: str) -> torch.Size:
+    """The batch shape of ``A``, ``y`` (and ``W``) with ``x``'s (``W`` or ``sigma`` of the
+    given kind) broadcast in; ``sigma`` may not widen it, as the estimate does not depend on
+    it. InputValidationError naming the shapes otherwise."""
+    if kind in ("none", "scalar"):
+        return batch
+    x_batch = x.shape[: x.dim() - (2 if kind == "full" else 1)]
+    try:
+        widened = torch.broadcast_shapes(batch, x_batch)
+    except RuntimeError:
+        widened = None
+    if widened is None or (name == "sigma" and widened != batch):
+        raise InputValidationError(
+            f"lls: {name} has batch shape {tuple(x_batch)}, which does not broadcast to the "
+            f"batch shape {tuple(batch)} of {others}; give {name} equal (or size-1) leading "
+            "batch dimensions."
+        )
+    return widened
 
 
 def _prepare_weights(W: torch.Tensor | None, M: int, like: torch.Tensor, y_dim: int):
@@ -334,11 +354,13 @@ def lls(
         )
     if method not in ("qr", "cholesky"):
         raise InputValidationError(f"lls: method must be 'qr' or 'cholesky', got {method!r}.")
-    _batch_shape("lls", A, "A", 2, y)
+    batch = _batch_shape("lls", A, "A", 2, y)
     _check_finite("A", A)
     _check_finite("y", y)
     wkind, Wt = _prepare_weights(W, M, A, y.dim())
     skind, S = _prepare_sigma(sigma, M, A, y.dim())
+    batch = _extra_batch("W", Wt, wkind, batch, "A and y")
+    _extra_batch("sigma", S, skind, batch, "A, y and W")
 
     # Whitened problem: ||y - A theta||_W^2 = ||yw - Aw theta||^2.
     if wkind == "diag":
@@ -766,8 +788,8 @@ def fir_lls(
     # a non-finite sample makes w'w (u's last nk samples are not in w) or y'y non-finite:
     # one reduction each instead of extra passes; locate the sample only on failure
     if not bool(torch.isfinite(r[..., 0].sum() + yy.sum() + u[..., N - nk :].sum())):
-        _check_finite("u", u)
-        _check_finite("y", y)
+        _check_finite("u", u, "fir_lls")
+        _check_finite("y", y, "fir_lls")
     # Toeplitz part R[i, j] = r_|i-j|, minus the products past the end of the record:
     # C = E'E with E[k, i] = w_{N+k-i} for k < i (nb - 1 rows, built from the last samples).
     s_ = torch.cat([r.flip(-1), r[..., 1:]], dim=-1)  # s_[nb-1+j-i] = r_|i-j|

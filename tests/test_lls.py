@@ -344,7 +344,7 @@ def test_fir_lls_singular_member_and_non_finite_samples_are_named():
         bad[index] = float("inf")
         args = (bad, y) if name == "u" else (u, bad)
         with pytest.raises(
-            InputValidationError, match=rf"{name} contains .* {re.escape(str(index))}"
+            InputValidationError, match=rf"^fir_lls: {name} contains .* {re.escape(str(index))}"
         ):
             fir_lls(*args, 4, 2)
 
@@ -370,6 +370,30 @@ def test_batch_shapes_that_do_not_broadcast_are_named():
         lls(torch.randn(3, 10, 2, dtype=DT), torch.randn(2, 10, dtype=DT))
     with pytest.raises(InputValidationError, match=r"u \(3, 10\) and y \(2, 10\)"):
         fir_lls(torch.randn(3, 10, dtype=DT), torch.randn(2, 10, dtype=DT), 2)
+
+
+def test_weight_and_noise_batches_that_do_not_broadcast_are_named():
+    """W and sigma must broadcast to the batch of A and y (W may widen it: one estimate per
+    weighting; sigma may not, as the estimate does not depend on it); the estimate and its
+    standard errors then share one batch shape, each member equal to its own fit."""
+    g = torch.Generator().manual_seed(8)
+    A = torch.randn(3, 40, 2, generator=g, dtype=DT)
+    y = torch.randn(3, 40, generator=g, dtype=DT)
+    with pytest.raises(InputValidationError, match=r"W has batch shape \(4,\).* \(3,\) of A and y"):
+        lls(A, y, W=torch.rand(4, 40, generator=g, dtype=DT))
+    with pytest.raises(InputValidationError, match=r"sigma has batch shape \(2, 1\)"):
+        lls(A, y, W=torch.rand(3, 40, generator=g, dtype=DT), sigma=torch.ones(2, 1, 40, dtype=DT))
+    with pytest.raises(InputValidationError, match=r"sigma has batch shape \(4,\)"):
+        lls(A, y, sigma=torch.eye(40, dtype=DT).expand(4, 40, 40))
+    W = torch.rand(2, 3, 40, generator=g, dtype=DT) + 0.1
+    sigma = torch.rand(2, 1, 40, generator=g, dtype=DT) + 0.1
+    res = lls(A, y, W=W, sigma=sigma)
+    assert res.theta.shape == res.standard_errors.shape == (2, 3, 2)
+    for i in range(2):
+        for j in range(3):
+            one = lls(A[j], y[j], W=W[i, j], sigma=sigma[i, 0])
+            torch.testing.assert_close(res.theta[i, j], one.theta)
+            torch.testing.assert_close(res.standard_errors[i, j], one.standard_errors)
 
 
 @pytest.mark.parametrize(
