@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -662,3 +663,20 @@ def test_a_diverging_free_run_is_not_converged_and_warns():
     assert not bool(result.converged) and not bool(result.stable)
     assert any("diverges" in m for m in result.messages)
     result.summary()
+
+
+def test_a_finite_but_exploding_free_run_is_not_converged():
+    """x' = x + u barely trained: the free run grows as e^t to about 1e13 over 30 s, finite,
+    with residuals 1e12 times the outputs in norm. It was "completed", converged and
+    stable; now not converged and not stable, with an UnstableModelWarning. The trained
+    x' = -x + u model of the same data stays stable."""
+    data = first_order(300, seed=0)
+    options = dict(horizon=5, batch_size=4, epochs=1, steps_per_epoch=1, x0="zero")
+    with pytest.warns(sysid.UnstableModelWarning, match="free run .* diverges"):
+        result = sysid.fit(LinearRHS([1.0], [1.0]), data, lr=1e-12, **options)
+    assert math.isfinite(float(result.sigma2))
+    assert not bool(result.converged) and not bool(result.stable)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", sysid.UnstableModelWarning)
+        result = sysid.fit(LinearRHS([-1.0], [1.0]), data, lr=1e-12, **options)
+    assert bool(result.converged) and bool(result.stable)

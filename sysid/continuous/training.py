@@ -272,7 +272,8 @@ class TrainingResult(FitResult):
             ``"stopped"`` (the callback asked to stop).
         converged: status ``"completed"`` or ``"early_stopped"`` and ``stable``.
         stable: whether the free run of the trained model over the training records stays
-            finite (its residuals and their sum of squares); where it diverges, ``sigma2``,
+            finite (its residuals and their sum of squares) and its residuals within 1000
+            times the outputs in norm (a fit above -99 900 %); where it diverges, ``sigma2``,
             the standard errors and fit percentages are meaningless, a message says so and
             :class:`~sysid.errors.UnstableModelWarning` is issued.
         train_loss: (epochs_run,) training loss of every epoch: ``"adam"``, the mean of its
@@ -1047,16 +1048,23 @@ def _physical_statistics(net: _Trainable, records: _Records):
     return names, torch.cat(values), cov, sigma2, r
 
 
+#: a free run whose residuals exceed this many times the outputs in norm (fit below
+#: -99 900 %) counts as diverged, even where it stays finite
+_DIVERGED = 1e3
+
+
 def _result(net: _Trainable, records: _Records, data: IOData, method: str, state):
     names, theta, cov, sigma2, r = _physical_statistics(net, records)
     se = torch.diagonal(cov).clamp_min(0).sqrt()
     status = state["status"]
     messages = list(state["messages"])
-    stable = bool(torch.isfinite(r).all()) and bool(torch.isfinite(sigma2))
+    rss, yss = float((r * r).sum()), float((records.y * records.y).sum())
+    stable = math.isfinite(rss) and bool(torch.isfinite(sigma2))
+    stable = stable and not (yss > 0 and rss > _DIVERGED**2 * yss)
     if not stable:
         messages.append(
             f"the free run of the trained model over the training records diverges (residual "
-            f"sum of squares {float((r * r).sum()):.6g}): sigma2, the standard errors and fit "
+            f"sum of squares {rss:.6g}, outputs' {yss:.6g}): sigma2, the standard errors and fit "
             "percentages are meaningless; train longer, lengthen the horizon (short windows do "
             "not constrain the long free run) or start from a stable model."
         )
