@@ -116,6 +116,20 @@ def check_tolerances(rtol, atol, dtype) -> None:
         )
 
 
+def broadcast_tolerance(value, name: str, shape, like: torch.Tensor, hint: str = ""):
+    """``value`` (``rtol`` or ``atol``, checked by :func:`check_tolerances`) as a float, or a
+    tensor detached and broadcast to ``shape`` in ``like``'s dtype and device; a tensor that
+    does not broadcast raises, naming both shapes, with ``hint`` appended."""
+    if not isinstance(value, torch.Tensor):
+        return float(value)
+    try:
+        return value.detach().to(dtype=like.dtype, device=like.device).expand(shape)
+    except RuntimeError as exc:
+        raise InputValidationError(
+            f"{name} of shape {tuple(value.shape)} does not broadcast to {tuple(shape)}{hint}"
+        ) from exc
+
+
 def refuse_time_gradient(t, method: str) -> None:
     """Raise when the output times ``t`` require grad (and autograd is on): ``method`` does
     not differentiate with respect to them, and the gradient would silently be None."""

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from ._options import (
+    broadcast_tolerance,
     check_int,
     check_state_dtype,
     check_tolerances,
@@ -49,21 +50,6 @@ from .solution import Solution, SolverStats, Status
 from .tableau import ButcherTableau, tableau
 
 _DEFAULT_CHECK_EVERY = 8  # host synchronisations ("is every sample done?") every N steps
-
-
-def _as_tolerance(value, name, batch_shape, nx, dtype, device):
-    """A float, or a tensor broadcast to the flat (B, nx) layout used inside the solver
-    (values checked by :func:`integrators._options.check_tolerances`)."""
-    if isinstance(value, torch.Tensor):
-        try:
-            full = value.to(dtype=dtype, device=device).expand(*batch_shape, nx)
-        except RuntimeError as exc:
-            raise InputValidationError(
-                f"{name} of shape {tuple(value.shape)} does not broadcast to the states "
-                f"{(*batch_shape, nx)}."
-            ) from exc
-        return full.reshape(-1, nx)
-    return float(value)
 
 
 def _as_dt0(dt0, batch_shape, dtype, device):
@@ -216,8 +202,11 @@ def solve_adaptive(
     batch_shape = tuple(x0.shape[:-1])
     nx = x0.shape[-1]
     B = int(np.prod(batch_shape)) if batch_shape else 1
-    rtol = _as_tolerance(rtol, "rtol", batch_shape, nx, dtype, device)
-    atol = _as_tolerance(atol, "atol", batch_shape, nx, dtype, device)
+    hint = ", the states' shape."
+    rtol = broadcast_tolerance(rtol, "rtol", x0.shape, x0, hint)
+    atol = broadcast_tolerance(atol, "atol", x0.shape, x0, hint)
+    # tensors in the flat (B, nx) layout of the solver
+    rtol, atol = (v if isinstance(v, float) else v.reshape(-1, nx) for v in (rtol, atol))
 
     t_out = t.detach().to(dtype=dtype, device=device)
     t0, t_end = float(t_out[0]), float(t_out[-1])

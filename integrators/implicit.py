@@ -35,6 +35,7 @@ from ._irk_fixed import integrate_fixed
 from ._irk_system import StageSystem, rank_ratio
 from ._options import (
     LINEAR_SOLVERS,
+    broadcast_tolerance,
     check_flag,
     check_int,
     check_positive,
@@ -126,25 +127,6 @@ class _Settings:
     options: dict
 
 
-def _tolerance(value, name: str, x0: torch.Tensor, algebraic: bool):
-    """A number, or a tensor broadcast to the states (*batch, nx), or with ``algebraic``
-    states beside them to one value per sample (*batch, 1)."""
-    if not isinstance(value, torch.Tensor):
-        return float(value)
-    shape = (*x0.shape[:-1], 1) if algebraic else x0.shape
-    try:
-        return value.detach().to(dtype=x0.dtype, device=x0.device).expand(shape)
-    except RuntimeError as exc:
-        raise InputValidationError(
-            f"{name} of shape {tuple(value.shape)} does not broadcast to {tuple(shape)}"
-            + (
-                ": a problem with algebraic states takes one tolerance per sample."
-                if algebraic
-                else ", the states' shape."
-            )
-        ) from exc
-
-
 def _entry(x0, t, method, stages, adaptive, controller, newton_options, run, algebraic=False):
     """The entry checks shared by :func:`solve_implicit_ode` and :func:`daeint`: the state
     (:func:`check_state`), the method, the controller, the solver options, ``run`` (``rtol``,
@@ -155,10 +137,17 @@ def _entry(x0, t, method, stages, adaptive, controller, newton_options, run, alg
     check_controller(controller, tab.name, adaptive)
     options = _split_options(newton_options, adaptive)
     check_tolerances(run["rtol"], run["atol"], x0.dtype)
+    # tensor tolerances: per state (*batch, nx), or per sample (*batch, 1) beside algebraic states
+    shape = (*x0.shape[:-1], 1) if algebraic else x0.shape
+    hint = (
+        ": a problem with algebraic states takes one tolerance per sample."
+        if algebraic
+        else ", the states' shape."
+    )
     run = dict(
         run,
-        rtol=_tolerance(run["rtol"], "rtol", x0, algebraic),
-        atol=_tolerance(run["atol"], "atol", x0, algebraic),
+        rtol=broadcast_tolerance(run["rtol"], "rtol", shape, x0, hint),
+        atol=broadcast_tolerance(run["atol"], "atol", shape, x0, hint),
         substeps=check_int(run["substeps"], "substeps"),
         max_steps=check_int(run["max_steps"], "max_steps"),
     )

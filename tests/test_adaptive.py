@@ -197,6 +197,32 @@ def test_multi_dimensional_batch_shape():
     torch.testing.assert_close(sol.x.reshape(6, 5, 2), flat.x, rtol=0.0, atol=1e-12)
 
 
+def test_tensor_tolerances_per_component_and_per_sample():
+    """Tensor rtol/atol broadcast to the states (*batch, nx): per component (nx,) and per
+    sample (*batch, 1) tolerances whose entries all equal the scalar give exactly the scalar
+    run; a shape that does not broadcast raises naming both shapes."""
+    mu = torch.tensor([[0.5, 2.0, 4.0], [1.0, 3.0, 8.0]])[..., None]  # (2, 3, 1)
+    x0 = torch.tensor([2.0, 0.0]).expand(2, 3, 2)
+    t = torch.linspace(0.0, 2.0, 5)
+    scalar = solve_adaptive(VanDerPol(mu), x0, t, rtol=1e-6, atol=1e-8)
+    for rtol, atol in (
+        (1e-6, torch.full((2,), 1e-8)),
+        (torch.full((2, 3, 1), 1e-6), torch.full((2, 3, 1), 1e-8)),
+        (torch.full((3, 2), 1e-6), torch.full((2, 3, 2), 1e-8)),
+    ):
+        sol = solve_adaptive(VanDerPol(mu), x0, t, rtol=rtol, atol=atol)
+        assert torch.equal(sol.x, scalar.x)
+        assert torch.equal(sol.stats.n_steps, scalar.stats.n_steps)
+    with pytest.raises(
+        InputValidationError, match=r"atol of shape \(3,\) does not broadcast to \(2, 3, 2\)"
+    ):
+        solve_adaptive(VanDerPol(mu), x0, t, atol=torch.full((3,), 1e-8))
+    with pytest.raises(
+        InputValidationError, match=r"rtol of shape \(2, 1, 2, 2\) does not broadcast"
+    ):
+        solve_adaptive(VanDerPol(mu), x0, t, rtol=torch.full((2, 1, 2, 2), 1e-6))
+
+
 # ----------------------------------------------------------------------- failures
 def test_max_steps_status_message_and_nan_tail():
     mu = torch.tensor([[0.2], [20.0]])
