@@ -55,7 +55,8 @@ def _number(value, name: str) -> float:
     return float(value)
 
 
-def _check_factors(safety, min_factor, max_factor) -> None:
+def _check_factors(safety, min_factor, max_factor) -> tuple[float, float, float]:
+    """The factors as floats, checked: 0 < safety <= 1 and 0 < min_factor < 1 < max_factor."""
     safety, min_factor, max_factor = (
         _number(v, n)
         for v, n in ((safety, "safety"), (min_factor, "min_factor"), (max_factor, "max_factor"))
@@ -67,6 +68,7 @@ def _check_factors(safety, min_factor, max_factor) -> None:
             f"need 0 < min_factor < 1 < max_factor, got min_factor={min_factor}, "
             f"max_factor={max_factor}."
         )
+    return safety, min_factor, max_factor
 
 
 def _sanitise(err_norm: torch.Tensor) -> torch.Tensor:
@@ -84,10 +86,9 @@ class IController:
     """
 
     def __init__(self, safety: float = 0.9, min_factor: float = 0.2, max_factor: float = 10.0):
-        _check_factors(safety, min_factor, max_factor)
-        self.safety = float(safety)
-        self.min_factor = float(min_factor)
-        self.max_factor = float(max_factor)
+        self.safety, self.min_factor, self.max_factor = _check_factors(
+            safety, min_factor, max_factor
+        )
 
     def _grow_factor(self, err, err_prev, shrink, k) -> torch.Tensor:
         """The factor after an accepted step (the I controller reuses ``shrink``)."""
@@ -211,9 +212,7 @@ class GustafssonController:
     """
 
     def __init__(self, min_factor: float = 0.2, max_factor: float = 10.0):
-        _check_factors(1.0, min_factor, max_factor)
-        self.min_factor = float(min_factor)
-        self.max_factor = float(max_factor)
+        _, self.min_factor, self.max_factor = _check_factors(1.0, min_factor, max_factor)
 
     def radau_step_sizes(self, h, err, finite, err_old, h_old, first, iters, theta, max_iter, expo):
         """The rule above, per sample: on host arrays (*batch,), or on Python floats and bools
