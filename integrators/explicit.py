@@ -278,10 +278,6 @@ def _graph_nodes(tensor: torch.Tensor) -> set:
     return seen
 
 
-def _unpack(tensor):
-    return tensor
-
-
 def _segment_steps(checkpoint, n_steps: int, chunk_steps: int) -> int | None:
     """Steps per checkpointed segment: None (no checkpointing) for ``False``, the integer
     itself, or for ``True`` about ``sqrt(n_steps)`` (rounded up to whole chunks of
@@ -591,7 +587,7 @@ def solve_explicit(
                 saved: dict = {}
                 s_end = min(n_steps, s + min(n_out_chunk * m, CHUNK_STEPS))
                 s0 = s
-                with torch.autograd.graph.saved_tensors_hooks(_count_saved(saved), _unpack):
+                with torch.autograd.graph.saved_tensors_hooks(_count_saved(saved), lambda t: t):
                     x, s, ys = step_chunk(x, s, s_end)
                 nodes = _graph_nodes(x) if x.requires_grad else set()
                 probes.append((saved, nodes))
