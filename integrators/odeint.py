@@ -29,6 +29,7 @@ from ._options import (
     check_state,
     check_times,
     check_tolerances,
+    first_nonfinite,
 )
 from .errors import InputValidationError
 from .explicit import solve_explicit
@@ -294,9 +295,8 @@ def _probe_rhs(rhs, x0, t, with_input) -> torch.Tensor:
             f"{signature} returned dtype {dx.dtype} for x0 of dtype {x0.dtype}; create the "
             "model's tensors (parameters) in the state's dtype."
         )
-    bad = ~torch.isfinite(dx)
-    if bool(bad.any()):
-        first = tuple(torch.nonzero(bad)[0].tolist())
+    first = first_nonfinite(dx)
+    if first is not None:
         raise InputValidationError(
             f"{signature} is non-finite at the initial time t = {float(t[0])} for sample "
             f"{first[:-1]}, state {first[-1]}; check the model and x0."
