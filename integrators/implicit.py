@@ -46,7 +46,7 @@ from ._options import (
     refuse_time_gradient,
 )
 from .controllers import GustafssonController, check_controller
-from .errors import HighIndexError, InputValidationError, TableauError
+from .errors import ConvergenceError, HighIndexError, InputValidationError, TableauError
 from .methods import IMPLICIT_ADAPTIVE, resolve_method, run_kind
 from .problems import ImplicitDAE, ImplicitODE, SemiExplicitDAE
 from .solution import Solution, SolverStats
@@ -558,8 +558,6 @@ def _check_index(system, t0, xdot, x, z, u, index_tol):
 
 
 def _raise_unconverged(res, what):
-    from .errors import ConvergenceError
-
     if bool(res.converged.all()):
         return
     idx = [tuple(i) for i in torch.nonzero(~res.converged).tolist()][:10]
