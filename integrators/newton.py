@@ -296,7 +296,7 @@ def _second_order_root(ctx, LU, pivots, grad_x, wanted):
         x = root_with_derivatives(
             lambda x: ctx.phi(x, *args),
             ctx.x_star,
-            lambda r: torch.linalg.lu_solve(LU, pivots, r.unsqueeze(-1)).squeeze(-1),
+            lambda r: _lu_solve(LU, pivots, r),
         )
         return torch.autograd.grad(x, targets, grad_x, create_graph=True, allow_unused=True)
 
