@@ -171,6 +171,13 @@ def first_nonfinite(value: torch.Tensor) -> tuple[int, ...] | None:
     return tuple(torch.nonzero(bad)[0].tolist())
 
 
+def sample_indices(mask: torch.Tensor, limit: int) -> tuple[list[tuple[int, ...]], int]:
+    """The first ``limit`` indices where ``mask`` (*batch,) holds, for messages, and how many
+    there are in all; a 0-d mask (one unbatched sample) is sample ``(0,)``."""
+    idx = torch.nonzero(mask.reshape(mask.shape or (1,)))
+    return [tuple(i) for i in idx[:limit].tolist()], idx.shape[0]
+
+
 def check_finite(
     value: torch.Tensor,
     label: str,

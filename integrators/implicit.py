@@ -44,6 +44,7 @@ from ._options import (
     check_tolerances,
     raise_shape_change,
     refuse_time_gradient,
+    sample_indices,
 )
 from .controllers import GustafssonController, check_controller
 from .errors import ConvergenceError, HighIndexError, InputValidationError, TableauError
@@ -512,11 +513,11 @@ def consistent_start(system: StageSystem, signal: InputSignal, t0, x0, z0, index
     correction = (z_new - z0).detach().abs().amax(-1) if m else x0.new_zeros(x0.shape[:-1])
     msgs = []
     if m and bool((correction > 0).any()):
-        changed = torch.nonzero(correction.reshape(correction.shape or (1,)) > 0).tolist()
+        changed, n_changed = sample_indices(correction > 0, 10)
         worst = tuple(torch.nonzero(correction == correction.max())[0].tolist())
         msgs.append(
-            f"initial algebraic states z0 were inconsistent (g != 0) for {len(changed)} "
-            f"sample(s) {[tuple(i) for i in changed[:10]]}; corrected by Newton, largest "
+            f"initial algebraic states z0 were inconsistent (g != 0) for {n_changed} "
+            f"sample(s) {changed}; corrected by Newton, largest "
             f"change {float(correction.max()):.3g} (max-norm) at sample {worst} (see "
             "stats.extra['z0_correction'])."
         )
@@ -531,7 +532,7 @@ def _check_index(system, t0, xdot, x, z, u, index_tol):
     bad = ratio <= index_tol
     if not bool(bad.any()):
         return
-    idx = [tuple(i) for i in torch.nonzero(bad).tolist()][:10]
+    idx, _ = sample_indices(bad, 10)
     which = "dg/dz" if system.kind == "semi" else ("[dF/dx', dF/dz]" if system.m else "dF/dx'")
     found = (
         f"{which} is rank deficient at t0 for samples {idx} (smallest singular value / "
@@ -560,7 +561,7 @@ def _check_index(system, t0, xdot, x, z, u, index_tol):
 def _raise_unconverged(res, what):
     if bool(res.converged.all()):
         return
-    idx = [tuple(i) for i in torch.nonzero(~res.converged).tolist()][:10]
+    idx, _ = sample_indices(~res.converged, 10)
     raise ConvergenceError(
         f"consistent initialisation failed: Newton on {what} did not converge for samples "
         f"{idx}. Give a better z0 guess, or check that the DAE has a solution at t0."

@@ -88,6 +88,7 @@ from torch.func import jvp, vmap
 from ._fast import compiled_stepper
 from ._irk_core import StageInputs, stacked_call_agrees
 from ._irk_dense import extrapolation_matrix
+from ._options import sample_indices
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
 from .inputs import CollocationInput
 from .jacobians import batch_jacobian
@@ -350,8 +351,8 @@ def _stage_inputs(inputs, u, t, tab: ButcherTableau, substeps: int, like) -> tor
 
 def _samples(mask: torch.Tensor) -> str:
     """The batch indices where ``mask`` holds (at most five), for messages."""
-    idx = [tuple(i) for i in torch.nonzero(mask.reshape(mask.shape or (1,))).tolist()]
-    return f"{idx[:5]}" + (f" and {len(idx) - 5} more" if len(idx) > 5 else "")
+    idx, n = sample_indices(mask, 5)
+    return f"{idx}" + (f" and {n - 5} more" if n > 5 else "")
 
 
 class _ImplicitStages:

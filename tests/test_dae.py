@@ -145,10 +145,13 @@ def test_index3_dae_548_raises_high_index_error():
 
 
 def test_index2_semi_explicit_dae_raises():
-    """x' = z, 0 = x - sin t: dg/dz = 0 (Corollary 1 fails; index 2)."""
+    """x' = z, 0 = x - sin t: dg/dz = 0 (Corollary 1 fails; index 2). The message lists the
+    samples; an unbatched problem is sample (0,)."""
     prob = SemiExplicitDAE(lambda t, x, z: z, lambda t, x, z: x - torch.sin(t))
-    with pytest.raises(HighIndexError, match="dg/dz"):
+    with pytest.raises(HighIndexError, match=r"dg/dz .* for samples \[\(0,\), \(1,\)\]"):
         daeint(prob, torch.zeros(2, 1), torch.ones(2, 1), torch.linspace(0, 1, 3))
+    with pytest.raises(HighIndexError, match=r"for samples \[\(0,\)\]"):
+        daeint(prob, torch.zeros(1), torch.ones(1), torch.linspace(0, 1, 3))
 
 
 def test_implicit_ode_with_an_algebraic_state_points_to_implicit_dae():
