@@ -88,7 +88,7 @@ from torch.func import jvp, vmap
 from ._fast import compiled_stepper
 from ._irk_core import StageInputs, stacked_call_agrees
 from ._irk_dense import extrapolation_matrix
-from ._options import sample_indices
+from ._options import check_int, sample_indices
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
 from .inputs import CollocationInput
 from .jacobians import batch_jacobian
@@ -595,11 +595,7 @@ def sensitivities(
     """
     x0, t, p, u = _prepare(x0, t, p, u)
     tab = resolve_method(method).tableau(stages)
-    if isinstance(substeps, bool) or int(substeps) != substeps or substeps < 1:
-        raise InputValidationError(
-            f"sensitivities: substeps must be an integer >= 1, got {substeps!r}."
-        )
-    substeps = int(substeps)
+    substeps = check_int(substeps, "sensitivities: substeps")
     inputs = _InputParameters(u, tab, substeps, differentiated=bool(input_sensitivities))
     g = _model(f, u is not None, p is not None)
     nx, n_p = x0.shape[-1], (0 if p is None else p.shape[-1])

@@ -225,6 +225,13 @@ def test_errors():
         sensitivities(lambda t, x: x / 0.25, X0, T_GRID, method="implicit_euler")
 
 
+@pytest.mark.parametrize("substeps", [2.0, 0, True, "2"])
+def test_substeps_must_be_a_positive_integer(substeps):
+    """substeps is checked as odeint checks it: an int >= 1, not a float, bool or string."""
+    with pytest.raises(InputValidationError, match="sensitivities: substeps must be an integer"):
+        sensitivities(pendulum_free, X0, T_GRID, P, substeps=substeps)
+
+
 # ------------------------------------------------- inputs by collocation (eq. 8.32-8.33)
 GEN = torch.Generator().manual_seed(8)
 P_IN = {q: torch.randn(len(T_GRID) - 1, q, 1, generator=GEN, dtype=F64) for q in (1, 2, 3)}
