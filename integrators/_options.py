@@ -242,27 +242,27 @@ def check_state(
     return x
 
 
-def check_times(t, like: torch.Tensor) -> torch.Tensor:
+def check_times(t, like: torch.Tensor, label: str = "t") -> torch.Tensor:
     """Output times: a finite, strictly increasing ``(T,)`` tensor, ``T >= 2``, in ``like``'s
     dtype and device (a tensor keeps its graph; :func:`refuse_time_gradient` decides whether
-    that is allowed)."""
+    that is allowed). Messages name the times ``label``."""
     if isinstance(t, torch.Tensor):
         t = t.to(dtype=like.dtype, device=like.device)
     else:
         try:
             t = torch.as_tensor(t, dtype=like.dtype, device=like.device)
         except (TypeError, ValueError, RuntimeError) as exc:
-            raise InputValidationError(f"t is not numeric: {exc}") from exc
+            raise InputValidationError(f"{label} is not numeric: {exc}") from exc
     if t.dim() != 1 or t.shape[0] < 2:
         raise InputValidationError(
-            f"t must be a 1-D tensor of T >= 2 output times, got shape {tuple(t.shape)}."
+            f"{label} must be a 1-D tensor of T >= 2 output times, got shape {tuple(t.shape)}."
         )
-    check_finite(t, "t", advice="output times must be finite")
+    check_finite(t, label, advice="output times must be finite")
     steps = (t[1:] - t[:-1]).detach()
     if bool((steps <= 0).any()):
         k = int(torch.nonzero(steps <= 0)[0])
         raise InputValidationError(
-            f"t must be strictly increasing, but t[{k + 1}] = {float(t[k + 1])} <= t[{k}] = "
+            f"{label} must be strictly increasing, but t[{k + 1}] = {float(t[k + 1])} <= t[{k}] = "
             f"{float(t[k])}. To integrate backwards in time, substitute s = -t "
             "(x'(s) = -f(-s, x))."
         )

@@ -88,7 +88,7 @@ from torch.func import jvp, vmap
 from ._fast import compiled_stepper
 from ._irk_core import StageInputs, stacked_call_agrees
 from ._irk_dense import extrapolation_matrix
-from ._options import check_int, sample_indices
+from ._options import check_int, check_state, check_times, sample_indices
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
 from .inputs import CollocationInput
 from .jacobians import batch_jacobian
@@ -154,19 +154,8 @@ def _as_tensor(value, like: torch.Tensor, name: str) -> torch.Tensor:
 
 
 def _prepare(x0, t, p, u):
-    if not isinstance(x0, torch.Tensor):
-        x0 = torch.as_tensor(x0, dtype=torch.float64)
-    x0 = x0.detach()
-    if not x0.is_floating_point():
-        x0 = x0.to(torch.float64)
-    if x0.dim() == 0:
-        raise InputValidationError("sensitivities: x0 must have shape (*batch, nx).")
-    t = _as_tensor(t, x0, "t")
-    if t.dim() != 1 or t.shape[0] < 2 or not bool(torch.all(t[1:] > t[:-1])):
-        raise InputValidationError(
-            f"sensitivities: t must be a strictly increasing (T,) grid with T >= 2, got shape "
-            f"{tuple(t.shape)}."
-        )
+    x0 = check_state(x0, "sensitivities: x0").detach()
+    t = check_times(t, x0, "sensitivities: t").detach()
     if p is not None:
         p = _as_tensor(p, x0, "p")
         if p.dim() == 0:

@@ -225,6 +225,21 @@ def test_errors():
         sensitivities(lambda t, x: x / 0.25, X0, T_GRID, method="implicit_euler")
 
 
+def test_x0_and_t_are_checked_as_odeint_checks_them():
+    """x0 and t go through odeint's state and time checks, the messages naming
+    sensitivities: a non-finite x0 and a float16 x0 are refused, as are non-finite times."""
+    bad = X0.clone()
+    bad[..., -1] = math.nan
+    with pytest.raises(InputValidationError, match="sensitivities: x0 contains a non-finite"):
+        sensitivities(pendulum_free, bad, T_GRID, P)
+    with pytest.raises(InputValidationError, match="sensitivities: x0 has dtype torch.float16"):
+        sensitivities(pendulum_free, X0.half(), T_GRID, P)
+    t = T_GRID.clone()
+    t[1] = math.inf
+    with pytest.raises(InputValidationError, match="sensitivities: t contains a non-finite"):
+        sensitivities(pendulum_free, X0, t, P)
+
+
 @pytest.mark.parametrize("substeps", [2.0, 0, True, "2"])
 def test_substeps_must_be_a_positive_integer(substeps):
     """substeps is checked as odeint checks it: an int >= 1, not a float, bool or string."""
