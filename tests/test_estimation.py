@@ -623,6 +623,27 @@ def test_huber_mle_matches_scipy_least_squares_huber(alpha):
         assert err.max() < 1e-3
 
 
+def test_robust_loss_history_is_the_reported_criterion():
+    """An OE fit with loss="huber" runs Gaussian start iterations, then Huber ones:
+    ``iterations`` counts both, ``loss_history`` holds the Huber stage (its last row is Huber's
+    criterion sum rho(r) at the estimate, by hand), and the Gaussian fit's rows match its
+    iterations."""
+    model = OE(2, 2, 1)
+    u = input_signal("white", 300, generator=gen(42))
+    th = torch.tensor([0.5, 0.3, -1.2, 0.5], dtype=DT)
+    data = simulate_data(
+        model, u, theta=th, noise_std=0.3, noise_kind="student_t", df=2, generator=gen(43)
+    )
+    gauss = fit(model, data)
+    assert gauss.loss_history.shape[0] == int(gauss.iterations) + 1
+    res = fit(model, data, loss="huber", alpha=0.4)
+    assert 2 <= res.loss_history.shape[0] <= int(res.iterations)
+    r = (data.y[:, 0] - res.model.simulate(data.u)[:, 0]).detach().numpy()
+    a = np.abs(r)
+    huber = np.where(a <= 0.4, 0.5 * r * r, 0.4 * a - 0.5 * 0.4**2).sum()
+    assert float(res.loss_history[-1]) == pytest.approx(huber, rel=1e-10)
+
+
 def test_huber_sandwich_covariance_matches_monte_carlo():
     """Student-t (3 dof) noise: the sandwich E[psi^2]/E[psi']^2 (J'J)^{-1} gives the spread of
     400 Huber estimates to within 10 %, and Huber beats least squares."""

@@ -21,8 +21,9 @@ On the fair loss (checked): the density (4.71) ``p(x) ∝ exp(-x^2 / (2 sigma^2 
 gives, by ``-log``, the criterion (4.73) ``sum r_k^2 / (1 + alpha |r_k|) / (2 sigma^2)``
 (correct). Eq. (4.74) then drops a square: with ``||x||_Fair`` defined as the square root in
 (4.75), the criterion is ``||r||_Fair^2 / (2 sigma^2)`` (typo in the notes). The minimiser does
-not depend on ``sigma`` but does on ``alpha`` (units 1/output). ``rho(r) = r^2 / (1 + alpha|r|)``
-is convex (``rho'' = 2 / (1 + alpha|r|)^3 > 0``) and grows like ``|r| / alpha``: Gaussian near 0,
+not depend on ``sigma`` but does on ``alpha`` (units 1/output). ``rho(r) = r^2 / (2 (1 +
+alpha|r|))`` (the Gaussian loss's ``r^2 / 2`` at ``alpha = 0``) is convex (``rho'' = 1 / (1 +
+alpha|r|)^3 > 0``) and grows like ``|r| / (2 alpha)``: Gaussian near 0,
 Laplace-like tails, so a Newton iteration with line search finds the unique minimiser of the
 linear-in-theta problem. (It is not the "Fair" function of robust statistics,
 ``c^2 (|r|/c - log(1 + |r|/c))``, although both are quadratic near 0 and linear in the tails.)

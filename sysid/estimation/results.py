@@ -49,7 +49,10 @@ class FitResult:
         sigma2: noise variance estimate ``sum r^2 / (N - p)``, ``(*batch,)`` (iterative fits:
             ``N - rank J``, which is ``p`` unless some parameters are not identifiable).
         loss_history: criterion value per iteration, ``(n_iter + 1, *batch)`` (the value
-            ``sum rho(r_k)``, e.g. ``1/2 ||r||^2`` for the Gaussian loss).
+            ``sum rho(r_k)``, e.g. ``1/2 ||r||^2`` for the Gaussian loss). An iterative fit
+            with another loss starts with Gaussian iterations: ``iterations`` counts both
+            stages, ``loss_history`` holds the stage of the reported loss only (the start's
+            Gaussian criterion is another function).
         iterations: iterations used per data set, ``(*batch,)`` int64.
         converged: per data set, ``(*batch,)`` bool: for the iterative methods, whether the
             estimate is a stationary point of the criterion to within
