@@ -281,24 +281,40 @@ def _second_order_root(ctx, LU, pivots, grad_x, wanted):
     """Vector-Jacobian product ``grad_x^T dx*/d(inputs[wanted])`` as a differentiable graph:
     the gradient, taken with ``create_graph``, of :func:`root_with_derivatives`. Each argument
     enters as ``a + delta`` with a zero leaf ``delta``: its gradient is the partial derivative
-    through this solve only, while the graph still reaches ``a``."""
+    through this solve only, while the graph still reaches ``a``. A closure parameter's
+    gradient through ``x`` also follows the arguments computed from it; that path, which
+    autograd adds again through the arguments' own gradients, is subtracted, leaving the
+    partial derivative through the closure."""
     inputs = list(ctx.inputs)
     args = list(inputs[: ctx.n_args])
     with torch.enable_grad():
-        targets = []
-        for i in wanted:
-            if i < ctx.n_args:
-                delta = torch.zeros_like(args[i], requires_grad=True)
-                args[i] = args[i] + delta
-                targets.append(delta)
-            else:  # closure params are used as they are
-                targets.append(inputs[i])
+        deltas, arg_ids = [], [i for i in wanted if i < ctx.n_args]
+        for i in arg_ids:
+            deltas.append(torch.zeros_like(args[i], requires_grad=True))
+            args[i] = args[i] + deltas[-1]
+        params = [inputs[i] for i in wanted if i >= ctx.n_args]
         x = root_with_derivatives(
             lambda x: ctx.phi(x, *args),
             ctx.x_star,
             lambda r: _lu_solve(LU, pivots, r),
         )
-        return torch.autograd.grad(x, targets, grad_x, create_graph=True, allow_unused=True)
+        grads = torch.autograd.grad(
+            x, deltas + params, grad_x, create_graph=True, allow_unused=True
+        )
+        arg_grads, param_grads = list(grads[: len(deltas)]), list(grads[len(deltas) :])
+        through_args = [
+            (inputs[i], g) for i, g in zip(arg_ids, arg_grads, strict=True) if g is not None
+        ]
+        if params and through_args:
+            outputs, vectors = zip(*through_args, strict=True)
+            counted = torch.autograd.grad(
+                outputs, params, vectors, create_graph=True, allow_unused=True
+            )
+            param_grads = [
+                g if c is None or g is None else g - c
+                for g, c in zip(param_grads, counted, strict=True)
+            ]
+    return arg_grads + param_grads
 
 
 def root_with_derivatives(residual: Callable, x_star: torch.Tensor, solve: Callable, r_star=None):

@@ -253,6 +253,39 @@ def test_ift_gradient_reaches_closure_parameters_and_not_x0():
     assert torch.autograd.grad(res.x.sum(), x0, allow_unused=True)[0] is None
 
 
+@pytest.mark.parametrize("argument", ["derived", "same tensor"])
+def test_second_order_ift_with_arguments_computed_from_closure_parameters(argument):
+    """x^3 + a x - p^2 - 1 = 0 with a = 2p (or a = p) passed as an argument and p also read
+    from the closure (params=[p]): dx/dp under create_graph=True counted the path through a
+    twice (-0.429 for 0.0269). First and second derivatives against implicit
+    differentiation of the root from numpy.roots: dx/dp = -F_p / F_x and its total
+    derivative along the root."""
+    c = 2.0 if argument == "derived" else 1.0
+    pv = 0.8
+    p = torch.tensor(pv, dtype=F64, requires_grad=True)
+
+    def phi(x, a):
+        return x**3 + a * x - p * p - 1.0
+
+    def root():
+        a = (c * p).reshape(1, 1) if argument == "derived" else p.reshape(1, 1)
+        return newton(phi, torch.ones(1, 1, dtype=F64), a, params=[p], tol=1e-14).x.sum()
+
+    (g,) = torch.autograd.grad(root(), p, create_graph=True)
+    (h,) = torch.autograd.grad(g, p)
+    (gp,) = torch.autograd.grad(root(), p)  # first order alone
+
+    roots = np.roots([1.0, 0.0, c * pv, -(pv * pv + 1.0)])
+    xs = float(roots[np.abs(roots.imag) < 1e-12].real[0])
+    pt = torch.tensor(pv, dtype=F64, requires_grad=True)
+    xt = torch.tensor(xs, dtype=F64, requires_grad=True)
+    slope = -(c * xt - 2 * pt) / (3 * xt**2 + c * pt)  # -F_p / F_x
+    dp, dx = torch.autograd.grad(slope, (pt, xt))
+    torch.testing.assert_close(g.detach(), slope.detach(), rtol=1e-10, atol=0)
+    torch.testing.assert_close(gp, slope.detach(), rtol=1e-10, atol=0)
+    torch.testing.assert_close(h, dp + dx * slope.detach(), rtol=1e-10, atol=0)
+
+
 def count_graph_nodes(t):
     seen, stack = set(), [t.grad_fn]
     while stack:
