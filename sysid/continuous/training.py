@@ -273,9 +273,9 @@ class TrainingResult(FitResult):
         converged: status ``"completed"`` or ``"early_stopped"`` and ``stable``.
         stable: whether the free run of the trained model over the training records stays
             finite (its residuals and their sum of squares) and its residuals within 1000
-            times the outputs in norm (a fit above -99 900 %); where it diverges, ``sigma2``,
-            the standard errors and fit percentages are meaningless, a message says so and
-            :class:`~sysid.errors.UnstableModelWarning` is issued.
+            times the outputs in norm (beyond, the fit is below -99 900 %); where it diverges,
+            ``sigma2``, the standard errors and fit percentages are meaningless, a message
+            says so and :class:`~sysid.errors.UnstableModelWarning` is issued.
         train_loss: (epochs_run,) training loss of every epoch: ``"adam"``, the mean of its
             minibatch losses (each before its update); ``"lbfgs"``, the criterion on the
             fixed windows after the epoch's step.
@@ -1048,8 +1048,8 @@ def _physical_statistics(net: _Trainable, records: _Records):
     return names, torch.cat(values), cov, sigma2, r
 
 
-#: a free run whose residuals exceed this many times the outputs in norm (fit below
-#: -99 900 %) counts as diverged, even where it stays finite
+#: a free run whose residuals exceed this many times the outputs in norm (so that its fit is
+#: below -99 900 %) counts as diverged, even where it stays finite
 _DIVERGED = 1e3
 
 
