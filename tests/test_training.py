@@ -668,7 +668,7 @@ def test_a_diverging_free_run_is_not_converged_and_warns():
 def test_a_finite_but_exploding_free_run_is_not_converged():
     """x' = x + u barely trained: the free run grows as e^t to about 1e13 over 30 s, finite,
     with residuals 1e12 times the outputs in norm. It was "completed", converged and
-    stable; now not converged and not stable, with an UnstableModelWarning. The trained
+    stable; now not converged and not stable, with an UnstableModelWarning. The true
     x' = -x + u model of the same data stays stable."""
     data = first_order(300, seed=0)
     options = dict(horizon=5, batch_size=4, epochs=1, steps_per_epoch=1, x0="zero")
