@@ -139,9 +139,10 @@ def input_signal(
         return amplitude * _multisine(N, band, period, batch_shape, n_inputs, g, dtype, device)
     if kind == "step":
         return torch.full(shape, float(amplitude), **to)
-    phase = 2 * math.pi * torch.rand((*batch_shape, 1, n_inputs), generator=g, **to)
-    k = torch.arange(N, **to).reshape(N, 1)
-    return amplitude * torch.sin(omega * k + phase)
+    # the angle in float64: omega k in float32 loses the phase on long records
+    phase = 2 * math.pi * torch.rand((*batch_shape, 1, n_inputs), generator=g, **to).double()
+    k = torch.arange(N, dtype=torch.float64, device=device).reshape(N, 1)
+    return amplitude * torch.sin(omega * k + phase).to(dtype)
 
 
 def _mls(N, hold, order, batch_shape, n_inputs, g, dtype, device) -> torch.Tensor:
@@ -182,13 +183,16 @@ def _multisine(N, band, period, batch_shape, n_inputs, g, dtype, device) -> torc
             f"no frequency k / period (k = 1, 2, ...) of period {P} lies in the band {band!r}; "
             "widen the band or lengthen the period."
         )
-    k = torch.tensor(lines, dtype=dtype, device=device)  # (K,)
+    k = torch.tensor(lines, device=device)  # (K,) int64
     phase = 2 * math.pi * torch.rand((*batch_shape, 1, n_inputs, len(lines)), generator=g,
-                                     dtype=dtype, device=device)  # fmt: skip
-    j = torch.arange(N, dtype=dtype, device=device).reshape(N, 1, 1)
+                                     dtype=dtype, device=device).double()  # fmt: skip
+    j = torch.arange(N, device=device).reshape(N, 1, 1)
+    # the angle in float64 from the exact integer k j mod P (k j passes 2^24, float32's
+    # integer range, on records of a few thousand samples)
+    angle = 2 * math.pi * ((k * j) % P).double() / P
     # a line at the Nyquist frequency (k = P / 2) has power cos^2(phi), the others 1/2
     power = torch.where(2 * k == P, torch.cos(phase) ** 2, 0.5).sum(-1)
-    return torch.cos(2 * math.pi * k * j / P + phase).sum(-1) / power.sqrt()
+    return (torch.cos(angle + phase).sum(-1) / power.sqrt()).to(dtype)
 
 
 def noise_signal(

@@ -59,6 +59,30 @@ def test_multisine_has_flat_lines_only_in_its_band(N, band):
     assert not np.allclose(u[0], u[1])
 
 
+def test_float32_signals_keep_their_phase_on_long_records():
+    """On a record of 16 384 samples (k j passes 2^24, float32's integer range) the float32
+    multisine and sinusoid equal the definitions evaluated in float64 with the same phases
+    (float32 draws) to float32 rounding, and the multisine keeps its DFT in the band (leakage below
+    -140 dB, float32's floor)."""
+    N, band = 16384, (0.1, 0.12)
+    u = input_signal("multisine", N, band=band, seed=3, dtype=torch.float32)[:, 0]
+    assert u.dtype == torch.float32
+    lines = np.array([k for k in range(1, N // 2) if band[0] < k / N <= band[1]])
+    generator = torch.Generator().manual_seed(3)
+    phase = 2 * np.pi * torch.rand(lines.size, generator=generator).double().numpy()
+    angle = 2 * np.pi * ((lines[None, :] * np.arange(N)[:, None]) % N) / N
+    exact = np.cos(angle + phase).sum(-1) / np.sqrt(0.5 * lines.size)
+    np.testing.assert_allclose(u.double().numpy(), exact, atol=2 * np.finfo(np.float32).eps)
+    power = np.abs(np.fft.rfft(u.double().numpy())) ** 2
+    k = np.arange(power.size)
+    inside = (k / N > band[0]) & (k / N <= band[1])
+    assert 10 * np.log10(power[~inside].sum() / power[inside].sum()) < -140.0
+    s = input_signal("sinusoid", N, omega=0.3, seed=5, dtype=torch.float32)[:, 0]
+    phase = 2 * np.pi * torch.rand(1, generator=torch.Generator().manual_seed(5)).item()
+    exact = np.sin(0.3 * np.arange(N) + phase)
+    np.testing.assert_allclose(s.double().numpy(), exact, atol=np.finfo(np.float32).eps)
+
+
 def test_bad_signal_options_are_named():
     with pytest.raises(InputValidationError, match="order"):
         input_signal("mls", 10, order=40)
