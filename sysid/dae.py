@@ -87,6 +87,24 @@ def _input(u, x, name):
         ) from None
 
 
+def _points(name, *states):
+    """The state tensors (each (*batch_i, n_i)) expanded to their common batch, so that every
+    point has its own copy (a leaf shared by the batch would sum the points' Jacobians).
+
+    Raises:
+        InputValidationError: the batches do not broadcast.
+    """
+    try:
+        batch = torch.broadcast_shapes(*(s.shape[:-1] for s in states))
+    except RuntimeError:
+        shapes = ", ".join(str(tuple(s.shape)) for s in states)
+        raise InputValidationError(
+            f"{name}: the batches of the states {shapes} do not broadcast; give them one "
+            "batch (*batch, n)."
+        ) from None
+    return [s.expand(*batch, s.shape[-1]) for s in states]
+
+
 def _leaf(x):
     return x.detach().requires_grad_(True)
 
@@ -98,6 +116,7 @@ def is_dae(F, xdot, x, z=None, u=None, *, t=None, rtol=1e-10):
     DAE; for z None or of width 0 the test is det(dF/dxdot) = 0 (e.g. eq. 5.3 / 5.11).
     """
     z = _zeros_like_width(x) if z is None else z
+    xdot, x, z = _points("is_dae", xdot, x, z)
     with torch.enable_grad():
         xd = _leaf(xdot)
         res = _call(F, _as_time(t, x), xd, x, z, u=u)
@@ -108,6 +127,7 @@ def is_dae(F, xdot, x, z=None, u=None, *, t=None, rtol=1e-10):
 
 def is_index1(F, xdot, x, z, u=None, *, t=None, rtol=1e-10):
     """Theorem 9: [dF/dxdot, dF/dz] (eq. 5.53) full rank at the points, (*batch,) bool."""
+    xdot, x, z = _points("is_index1", xdot, x, z)
     with torch.enable_grad():
         xd, zz = _leaf(xdot), _leaf(z)
         res = _call(F, _as_time(t, x), xd, x, zz, u=u)
@@ -118,6 +138,7 @@ def is_index1(F, xdot, x, z, u=None, *, t=None, rtol=1e-10):
 
 def is_index1_semi_explicit(g, x, z, u=None, *, t=None, rtol=1e-10):
     """Corollary 1: dg/dz (eq. 5.56) full rank at the points, (*batch,) bool."""
+    x, z = _points("is_index1_semi_explicit", x, z)
     with torch.enable_grad():
         zz = _leaf(z)
         res = _call(g, _as_time(t, x), x, zz, u=u)
@@ -175,6 +196,7 @@ def differential_index(F, xdot, x, z, u=None, *, t=None, max_index=5, rtol=1e-8,
     HighIndexError where the index exceeds ``max_index``, InputValidationError for a scalar
     u or one whose batch does not broadcast.
     """
+    xdot, x, z = _points("differential_index", xdot, x, z)
     batch = x.shape[:-1]
     rows = batch.numel()  # explicit: a reshape cannot infer it from a width-0 z
     x2, z2 = x.reshape(rows, x.shape[-1]).detach(), z.reshape(rows, z.shape[-1]).detach()
@@ -255,6 +277,7 @@ def reduce_index(f, g, x, z, u=None, *, t=None, max_steps=5, rtol=1e-8):
 
     Returns :class:`ReducedDAE` with index = differentiations + 1 (eq. 5.81 -> 5.86: 2).
     """
+    x, z = _points("reduce_index", x, z)
     tt = _as_time(t, x)
     g_current, conditions, steps = g, [], []
     for step in range(max_steps + 1):
@@ -364,8 +387,10 @@ def linearize_dae(f, g, x, z, u=None, *, t=None):
     (*batch, rows, cols) (the u blocks have 0 columns without u); the linearised DAE has the
     form (5.29) and :func:`eliminate_linear` reduces it when gz is invertible.
 
-    x (*batch, nx), z (*batch, nz), u None or (*batch, nu) (a batch that broadcasts; a scalar
-    u raises InputValidationError: one input is a vector of width 1)."""
+    x (*batch, nx), z (*batch, nz) (batches that broadcast: each point its own Jacobians), u
+    None or (*batch, nu) (a batch that broadcasts; a scalar u raises InputValidationError: one
+    input is a vector of width 1)."""
+    x, z = _points("linearize_dae", x, z)
     tt = _as_time(t, x)
     with torch.enable_grad():
         xx, zz = _leaf(x), _leaf(z)
@@ -387,6 +412,7 @@ def linearize_implicit_dae(F, xdot, x, z, u=None, *, t=None):
 
     xdot, x (*batch, nx), z (*batch, nz), u None or (*batch, nu) (a batch that broadcasts; a
     scalar u raises InputValidationError: one input is a vector of width 1)."""
+    xdot, x, z = _points("linearize_implicit_dae", xdot, x, z)
     tt = _as_time(t, x)
     with torch.enable_grad():
         leaves = [_leaf(xdot), _leaf(x), _leaf(z)]

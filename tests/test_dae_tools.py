@@ -197,6 +197,43 @@ def test_dae_helpers_refuse_a_scalar_input_and_take_a_width_one_vector():
     assert dae.reduce_index(f, g, x, z, torch.tensor([0.7], dtype=DT)).index == 1
 
 
+def test_dae_helpers_give_each_point_its_own_jacobians_for_a_shared_state():
+    """A z (or x, xdot) without the batch of the other states is broadcast: each point gets
+    the Jacobians of x' = (x1 z, x2), 0 = z x1 - 1 at its own x (dg/dz = x1 per point, not
+    their sum over the batch), as with z expanded by hand; batches that do not broadcast are
+    refused by name."""
+
+    def f(t, x, z):
+        return torch.stack([x[..., 0] * z[..., 0], x[..., 1]], -1)
+
+    def g(t, x, z):
+        return z[..., :1] * x[..., :1] - 1
+
+    def F(t, xdot, x, z):
+        return torch.cat([xdot - f(t, x, z), g(t, x, z)], -1)
+
+    x = torch.tensor([[1.0, 2.0], [-1.0, 4.0], [5.0, 6.0]], dtype=DT)
+    z, x1 = torch.tensor([0.5], dtype=DT), x[:, :1, None]
+    jac = dae.linearize_dae(f, g, x, z)
+    torch.testing.assert_close(jac["gz"], x1)
+    torch.testing.assert_close(jac["fz"], torch.cat([x1, torch.zeros_like(x1)], -2))
+    torch.testing.assert_close(jac["gx"], torch.tensor([[[0.5, 0.0]]] * 3, dtype=DT))
+    imp = dae.linearize_implicit_dae(F, x[0], x, z)
+    torch.testing.assert_close(imp["Fz"][:, 2:], x1)
+    torch.testing.assert_close(imp["Fxdot"], torch.eye(3, 2, dtype=DT).expand(3, 3, 2))
+    assert dae.is_index1_semi_explicit(g, x[:2], z).tolist() == [True, True]
+    assert dae.is_index1(F, x[0], x[:2], z).tolist() == [True, True]
+    singular_at_second = torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=DT)  # dg/dz = 1, 0
+    assert dae.is_index1_semi_explicit(g, singular_at_second, z).tolist() == [True, False]
+    assert dae.is_dae(F, x[0], x, z).tolist() == [True] * 3
+    assert dae.differential_index(F, x[0], x, z).tolist() == [1, 1, 1]
+    assert dae.reduce_index(f, g, x, z).index == 1
+    conditions = dae.SingularPerturbation(f, g, nx=2).tikhonov_conditions(x, z)
+    assert [c.tolist() for c in conditions] == [[True] * 3, [False, True, False]]
+    with pytest.raises(InputValidationError, match=r"linearize_dae: the batches of the states"):
+        dae.linearize_dae(f, g, x, torch.zeros(2, 1, dtype=DT))
+
+
 def test_tikhonov_eq_5_36_converges_to_dae_limit_eq_5_38():
     """Theorem 8 on eq. (5.36), a = 2, x(0) = (1, 1), u = -1: x1 of the ODE approaches the
     solution of the reduced ODE (5.38) as eps -> 0, the error shrinking like eps."""
