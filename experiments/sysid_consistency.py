@@ -43,14 +43,19 @@ NAME = "sysid_consistency"
 def build_parser() -> argparse.ArgumentParser:
     """The command line (``--help`` lists it); built without importing torch."""
     parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--trials", type=int, default=200, help="Monte-Carlo data sets per N")
+    parser.add_argument(
+        "--trials",
+        type=int,
+        default=None,
+        help="Monte-Carlo data sets per N (default 200, 60 with --quick)",
+    )
     parser.add_argument("--sigma", type=float, default=0.5, help="noise standard deviation")
     parser.add_argument(
         "--ns",
         type=int,
         nargs="+",
-        default=[250, 500, 1000, 2000, 4000, 8000],
-        help="data lengths N",
+        default=None,
+        help="data lengths N (default 250 500 1000 2000 4000 8000; 200 800 with --quick)",
     )
     return parser
 
@@ -156,8 +161,8 @@ def loglog_slope(ns, values) -> float:
 def main(argv=None):
     args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
-    trials = 60 if args.quick else args.trials
-    ns = [200, 800] if args.quick else args.ns
+    trials = args.trials or (60 if args.quick else TRIALS)
+    ns = args.ns or ([200, 800] if args.quick else GRID["N"])
     rows = []
     for noise in ("equation", "output"):
         grid = {"N": ns, "sigma": [args.sigma]}

@@ -35,9 +35,14 @@ def build_parser() -> argparse.ArgumentParser:
     """The command line (``--help`` lists it); built without importing torch."""
     parser = experiment_parser(NAME, __doc__.splitlines()[0])
     parser.add_argument(
-        "--trials", type=int, default=500, help="Monte-Carlo data sets per noise law"
+        "--trials",
+        type=int,
+        default=None,
+        help="Monte-Carlo data sets per noise law (default 500, 100 with --quick)",
     )
-    parser.add_argument("--n", type=int, default=500, help="samples per data set")
+    parser.add_argument(
+        "--n", type=int, default=None, help="samples per data set (default 500, 200 with --quick)"
+    )
     parser.add_argument("--sigma", type=float, default=0.2, help="noise scale")
     return parser
 
@@ -140,8 +145,8 @@ def rows_of(done: Study) -> list[dict]:
 def main(argv=None):
     args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
-    trials = 100 if args.quick else args.trials
-    N = 200 if args.quick else args.n
+    trials = args.trials or (100 if args.quick else TRIALS)
+    N = args.n or (200 if args.quick else GRID["N"][0])
     done = declare({**GRID, "N": [N], "sigma": [args.sigma]}, trials).run(out / "study")
     done.report(out / "report")
     rows = rows_of(done)

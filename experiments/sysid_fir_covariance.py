@@ -32,8 +32,15 @@ NAME = "sysid_fir_covariance"
 def build_parser() -> argparse.ArgumentParser:
     """The command line (``--help`` lists it); built without importing torch."""
     parser = experiment_parser(NAME, __doc__.splitlines()[0])
-    parser.add_argument("--trials", type=int, default=20_000, help="Monte-Carlo data sets")
-    parser.add_argument("--n", type=int, default=1000, help="samples per data set")
+    parser.add_argument(
+        "--trials",
+        type=int,
+        default=None,
+        help="Monte-Carlo data sets (default 20000, 2000 with --quick)",
+    )
+    parser.add_argument(
+        "--n", type=int, default=None, help="samples per data set (default 1000, 300 with --quick)"
+    )
     parser.add_argument("--sigma", type=float, default=0.5, help="noise standard deviation")
     return parser
 
@@ -148,8 +155,8 @@ def rows_of(done: Study) -> list[dict]:
 def main(argv=None):
     args = build_parser().parse_args(argv)
     out = output_dir(args, NAME)
-    trials = 2000 if args.quick else args.trials
-    N = 300 if args.quick else args.n
+    trials = args.trials or (2000 if args.quick else TRIALS)
+    N = args.n or (300 if args.quick else GRID["N"][0])
     grid = {**GRID, "N": [N], "sigma": [args.sigma]}
     done = declare(grid, trials).run(out / "study")
     done.report(out / "report")

@@ -11,7 +11,7 @@ problems:
 
 With N fixed steps of an s-stage method the cost is n = N s evaluations and the error is
 c dt^o, so log(error) falls with slope -o against log(n) (eq. 6.37); the table reports the
-fitted slope (over the 4 cheapest-to-finest points above round-off) and, per method, the
+fitted slope (over the 4 most expensive points above round-off) and, per method, the
 evaluations needed to reach 1e-6 and 1e-10 (interpolated in log-log). ``n_f_evals`` is the
 solver's own count (the fixed-step solver skips stages that b does not use, e.g. the 7th
 stage of Dormand-Prince). Wall times are the best of ``--repeats`` runs on this machine, in

@@ -54,6 +54,14 @@ def test_fir_covariance_eq_4_101(tmp_path, saved_figures):
     assert (tmp_path / "fir_covariance.png").exists()
 
 
+def test_given_trials_and_lengths_win_over_the_quick_defaults(tmp_path, saved_figures):
+    """``--quick`` sets defaults only: a given ``--trials`` / ``--n`` is the one run."""
+    rows = sysid_fir_covariance.main(
+        ["--quick", "--trials", "300", "--n", "120", "--out", str(tmp_path)]
+    )
+    assert [(r["N"], r["trials"]) for r in rows] == [(120, 300), (120, 300)]
+
+
 def test_consistency_arx_biased_oe_consistent_and_resumes(tmp_path, saved_figures):
     summary = sysid_consistency.main(["--quick", "--out", str(tmp_path)])
     fig = saved_figures["consistency.png"]
