@@ -22,7 +22,7 @@ from integrators.errors import InputValidationError
 from integrators.jacobians import batch_jacobian
 from integrators.newton import minimize
 from sysid.data import IOData
-from sysid.errors import PoorExcitationWarning
+from sysid.errors import ConvergenceWarning, PoorExcitationWarning
 from sysid.estimation import fit, uniform_noise_mle_set
 from sysid.estimation.prediction_error import _OutputError
 from sysid.estimation.results import inverse_normal_matrix_and_rank
@@ -468,6 +468,77 @@ def test_uniform_noise_set_bad_inputs_are_named():
         uniform_noise_mle_set(A, y_nan, 0.1)
     with pytest.raises(InputValidationError, match="a number"):
         uniform_noise_mle_set(A, y, torch.tensor([0.1, 0.2]))
+
+
+def test_uniform_noise_set_scales_with_the_data_in_any_units():
+    """S(A, c y, c a) = c S(A, y, a) and S(A / c, y, a) = c S(A, y, a) exactly (eq. 4.58 is
+    homogeneous), so the bounds at c = 1e-8 .. 1e6 equal scipy HiGHS' bounds of the unit
+    problem; an empty set stays empty in small units, the centre stays inside, a residual of
+    50 a is outside for a = 1e-11, and integer regressors give the float regressors' set."""
+    g = gen(31)
+    A = torch.randn(30, 3, generator=g, dtype=DT)
+    y = A @ torch.tensor([1.0, -2.0, 0.5], dtype=DT) + 0.3 * (
+        2 * torch.rand(30, generator=g, dtype=DT) - 1
+    )
+    G = torch.cat([A, -A]).numpy()
+    h = torch.cat([y + 0.3, 0.3 - y]).numpy()
+    bound = [
+        scipy.optimize.linprog(sign * np.eye(3)[j], A_ub=G, b_ub=h, bounds=[(None, None)] * 3).x[j]
+        for sign in (1.0, -1.0)
+        for j in range(3)
+    ]
+    truth = torch.tensor(bound, dtype=DT).reshape(2, 3)
+    for c in (1e-8, 1e-6, 1e6):
+        for scaled in (
+            uniform_noise_mle_set(A, c * y, c * 0.3),
+            uniform_noise_mle_set(A / c, y, 0.3),
+        ):
+            assert bool(scaled.solved) and scaled.message == ""
+            np.testing.assert_allclose(
+                torch.stack([scaled.lower, scaled.upper]) / c, truth, rtol=1e-9
+            )
+            assert bool(scaled.contains(scaled.center)) and scaled.radius > 0
+        outlier = c * y.clone()
+        outlier[0] += c * 1.5
+        assert not bool(uniform_noise_mle_set(A, outlier, c * 0.3).feasible)
+    tiny = uniform_noise_mle_set(torch.ones(2, 1, dtype=DT), torch.zeros(2, dtype=DT), 1e-11)
+    assert not bool(tiny.contains(torch.tensor([5e-10], dtype=DT)))
+    assert bool(tiny.contains(torch.tensor([1e-11], dtype=DT)))
+    integer = uniform_noise_mle_set(
+        torch.tensor([[1, 0], [0, 1], [1, 1]]), torch.tensor([1, 2, 2]), 0.5
+    )
+    real = uniform_noise_mle_set(
+        torch.tensor([[1.0, 0], [0, 1], [1, 1]], dtype=DT), torch.tensor([1.0, 2, 2], dtype=DT), 0.5
+    )
+    assert integer.lower.dtype == DT
+    torch.testing.assert_close(integer.lower, real.lower)
+    torch.testing.assert_close(integer.center, real.center)
+
+
+def test_uniform_noise_set_names_a_data_set_whose_programs_fail(monkeypatch):
+    """A linear program that ends without an answer (HiGHS status 4, numerical difficulties)
+    makes its data set nan with solved False, named in the message and a ConvergenceWarning;
+    the other data sets keep their answers."""
+    from sysid.estimation import uniform_noise
+
+    solve = uniform_noise._linprog
+    calls = []
+
+    def failing_second_set(c, G, h, bounds):
+        calls.append(None)
+        result = solve(c, G, h, bounds)
+        if len(calls) > 7:  # the 7 programs of data set 0 (centre + 2 x 3 bounds) pass
+            result.status, result.x, result.message = 4, None, "numerical difficulties"
+        return result
+
+    monkeypatch.setattr(uniform_noise, "_linprog", failing_second_set)
+    A = torch.randn(20, 3, generator=gen(32), dtype=DT)
+    y = torch.stack([A @ torch.ones(3, dtype=DT)] * 2)
+    with pytest.warns(ConvergenceWarning, match=r"data sets \[1\].*numerical difficulties"):
+        s = uniform_noise_mle_set(A, y, 0.1)
+    assert s.solved.tolist() == [True, False] and "data sets [1]" in s.message
+    assert bool(torch.isfinite(s.lower[0]).all()) and bool(torch.isnan(s.lower[1]).all())
+    assert bool(torch.isnan(s.center[1]).all()) and bool(torch.isnan(s.radius[1]))
 
 
 def _unstable_batch():
