@@ -303,3 +303,43 @@ def test_output_offset_is_an_ordinary_parameter():
     assert abs(float(res.theta[j]) - 0.7) < 3 * float(res.standard_errors[j])
     assert float(res.standard_errors[j]) < 0.02
     assert math.isfinite(float(res.quality.fit_percent))
+
+
+def test_a_fitted_model_prints_and_fits_again_from_each_data_sets_estimate():
+    """``result.model`` holds the estimates (one per data set of a batch, per experiment
+    where so declared): it prints, and fitting it again to the same data starts each data set
+    at its own optimum, so the estimates and standard errors stay (at most one step, 1e-8),
+    also for a per-experiment parameter of two experiments; data of another batch are refused
+    by name."""
+    truth = {"a": torch.tensor([2.0, 5.0], dtype=torch.float64), "b": torch.tensor(3.0)}
+
+    def batch_of_two(N, seed):
+        g = torch.Generator().manual_seed(seed)
+        u = input_signal("prbs", N, (2,), hold=3, generator=g)
+        y = GreyBoxModel(first_order, {"a": 1.0, "b": 1.0}, nx=1, output=[0]).simulate(
+            IOData(u, u, Ts=0.1), params=truth
+        )
+        return IOData(u, y + 0.01 * torch.randn(y.shape, generator=g, dtype=y.dtype), Ts=0.1)
+
+    data = batch_of_two(60, seed=11)
+    model = GreyBoxModel(
+        first_order, {"a": Param(1.0, min=0), "b": Param(1.0, min=0)}, nx=1, output=[0]
+    )
+    first = fit(model, data, progress=False)
+    assert "Param([" in repr(first.model)
+    again = fit(first.model, data, progress=False)
+    assert again.iterations.max() <= 1
+    torch.testing.assert_close(again.theta, first.theta, rtol=1e-8, atol=0)
+    torch.testing.assert_close(again.standard_errors, first.standard_errors, rtol=1e-6, atol=0)
+    single = fit(model, data[0], progress=False)
+    assert "Param(" in repr(single.model)
+    assert fit(single.model, data[0], progress=False).iterations <= 1
+    with pytest.raises(InputValidationError, match=r"parameter 'a' has values of batch \(2,\)"):
+        fit(first.model, record(first_order, {"a": 2.0, "b": 3.0}, 1, 60, seed=12, batch=(3,)))
+    two = IOData.experiments([data, batch_of_two(40, seed=13)])
+    offset = {"a": Param(1.0, min=0), "b": Param([1.0, 1.0], per_experiment=True)}
+    per_experiment = fit(GreyBoxModel(first_order, offset, nx=1, output=[0]), two, progress=False)
+    assert per_experiment.model.params["b"].values.shape == (2, 2)
+    refit = fit(per_experiment.model, two, progress=False)
+    assert refit.iterations.max() <= 1
+    torch.testing.assert_close(refit.theta, per_experiment.theta, rtol=1e-8, atol=0)

@@ -107,11 +107,11 @@ class _Problem:
         shared = {}
         for n in model.names:
             p = model.params[n]
-            start = p.start(E)
             if p.free and not p.per_experiment:
+                start = self._start(n, E, 0)
                 shared[n] = col
-                self.scales[(n, 0)] = p.scale(start[0])
-                self.starts_z.append(p.to_unconstrained(start[0], self.scales[(n, 0)]).reshape(1))
+                self.scales[(n, 0)] = p.scale(start)
+                self.starts_z.append(p.to_unconstrained(start, self.scales[(n, 0)])[..., None])
                 self.column_names.append(n)
                 self.reported.append(col)
                 col += 1
@@ -134,14 +134,14 @@ class _Problem:
             for n in model.names:
                 p = model.params[n]
                 if not p.free:
-                    self.fixed[(n, e)] = p.start(E)[e if p.per_experiment else 0]
+                    self.fixed[(n, e)] = self._start(n, E, e)
                     cols.append(None)
                 elif not p.per_experiment:
                     cols.append(shared[n])
                 else:
-                    start = p.start(E)[e]
+                    start = self._start(n, E, e)
                     self.scales[(n, e)] = p.scale(start)
-                    self.starts_z.append(p.to_unconstrained(start, self.scales[(n, e)]).reshape(1))
+                    self.starts_z.append(p.to_unconstrained(start, self.scales[(n, e)])[..., None])
                     self.column_names.append(f"{n}[{e}]" if E > 1 else n)
                     self.reported.append(col)
                     cols.append(col)
@@ -213,11 +213,7 @@ class _Problem:
         nx = self.model.nx
         if value is None or isinstance(value, str):
             return torch.zeros(nx, dtype=self.dtype, device=self.device)
-        try:
-            fits = torch.broadcast_shapes(value.shape[:-1], self.batch) == self.batch
-        except RuntimeError:
-            fits = False
-        if not fits:
+        if not _within_batch(value.shape[:-1], self.batch):
             raise InputValidationError(
                 f"fit: the known initial state x0 {tuple(value.shape)} does not match the data's "
                 f"batch {tuple(self.batch)}; x0 must be ({nx},) or (*data batch, {nx}) = "
@@ -236,6 +232,18 @@ class _Problem:
         if self.idx_out is not None:
             guess[..., self.idx_out] = part.y[..., at, :]
         return guess
+
+    def _start(self, name: str, n_experiments: int, experiment: int) -> torch.Tensor:
+        """Parameter ``name``'s (starting) value in ``experiment``: () or, from a fitted
+        model, one per data set (its batch must broadcast to the data's)."""
+        start = self.model.params[name].start(n_experiments, experiment)
+        if not _within_batch(start.shape, self.batch):
+            raise InputValidationError(
+                f"fit: parameter {name!r} has values of batch {tuple(start.shape)} (a model "
+                f"fitted to that many data sets) for data of batch {tuple(self.batch)}; fit "
+                "data of the model's batch, or give the parameter one value (Param)."
+            )
+        return start
 
     def initial_z(self) -> torch.Tensor:
         """(*batch, n_columns) start of the minimiser."""
@@ -591,7 +599,7 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
                 phys[..., c] = P[..., j]
                 name = problem.model.names[j]
                 p = problem.model.params[name]
-                start = p.start(len(problem.parts))[e if p.per_experiment else 0]
+                start = p.start(len(problem.parts), e)
                 at_bound[..., c], inside = _at_bound(P[..., j], start, p)
                 scale = problem.scales[(name, e if p.per_experiment else 0)].to(z)
                 z_inside[..., c] = p.to_unconstrained(inside, scale)
@@ -744,16 +752,25 @@ def simulation_quality(
     return quality
 
 
+def _within_batch(shape, batch) -> bool:
+    """Whether ``shape`` broadcasts to ``batch`` without widening it."""
+    try:
+        return torch.broadcast_shapes(shape, batch) == batch
+    except RuntimeError:
+        return False
+
+
 def _at_bound(value: torch.Tensor, start: torch.Tensor, param):
     """Whether the estimate ``value`` (*batch,) of a bounded parameter ended at a bound: closer
     to it than :data:`_AT_BOUND` times the start's distance to it (the bounded coordinates
     only approach a bound as the unconstrained one goes to infinity); and a value inside,
     a tenth of that distance away from the bound it is at (``value`` elsewhere)."""
     out, inside = torch.zeros_like(value, dtype=torch.bool), value.clone()
+    start = start.to(value)
     for bound in (param.min, param.max):
         if bound is not None:
-            near = (value - bound).abs() <= _AT_BOUND * abs(float(start) - bound)
-            inside = torch.where(near, bound + 0.1 * (float(start) - bound), inside)
+            near = (value - bound).abs() <= _AT_BOUND * (start - bound).abs()
+            inside = torch.where(near, bound + 0.1 * (start - bound), inside)
             out |= near
     return out, inside
 

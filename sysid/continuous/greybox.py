@@ -542,13 +542,16 @@ class GreyBoxModel:
     def with_values(self, values: dict, x0=None) -> GreyBoxModel:
         """A copy whose parameters take ``values`` (name -> float or (*batch,) tensor) and, if
         given, whose known initial state is ``x0`` (a tensor, or a list with one per
-        experiment)."""
+        experiment). A single value is stored as :class:`Param` keeps it, shape (1,), so the
+        copy prints and fits again like the original."""
         out = copy.copy(self)
         out.params = dict(self.params)
         for n, v in values.items():
             old = self.params[n]
             new = copy.copy(old)
             new.values = torch.as_tensor(v, dtype=torch.float64).detach()
+            if new.values.dim() == 0:
+                new.values = new.values.reshape(1)
             out.params[n] = new
         if x0 is not None:
             x0 = _check_x0(x0, self.nx)

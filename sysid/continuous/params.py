@@ -88,16 +88,20 @@ class Param:
         extra = ", per_experiment=True" if self.per_experiment else ""
         return f"Param({value}, free={self.free}{bounds}{extra})"
 
-    def start(self, n_experiments: int) -> torch.Tensor:
-        """The starting values, (n_experiments,) for a per-experiment parameter, else (1,)."""
-        if not self.per_experiment:
-            return self.values
-        if self.values.numel() not in (1, n_experiments):
-            raise InputValidationError(
-                f"Param: {self.values.numel()} values for {n_experiments} experiments; give "
-                "one value or one per experiment."
-            )
-        return self.values.expand(n_experiments).clone()
+    def start(self, n_experiments: int, experiment: int = 0) -> torch.Tensor:
+        """The (starting) value in ``experiment`` of ``n_experiments``: ``()``, or
+        ``(*batch,)`` where the values are a fitted model's, one per data set of its batch
+        (``GreyBoxModel.with_values``: ``(*batch,)`` shared, ``(*batch, n_experiments)`` per
+        experiment)."""
+        value = self.values
+        if self.per_experiment:
+            if value.shape[-1] not in (1, n_experiments):
+                raise InputValidationError(
+                    f"Param: {value.shape[-1]} values for {n_experiments} experiments; give "
+                    "one value or one per experiment."
+                )
+            value = value[..., experiment if value.shape[-1] > 1 else 0]
+        return value.reshape(()) if value.numel() == 1 else value
 
     def scale(self, start: torch.Tensor) -> torch.Tensor:
         """The scale ``s`` of an unbounded parameter (see the module docstring)."""
