@@ -68,6 +68,31 @@ RESERVED_COLUMNS = (
     "loss",
     "time",
     "covariance_row",
+    # columns of the summaries (and their intermediate ones)
+    "truth",
+    "error2",
+    "inside",
+    "trials",
+    "estimated",
+    "mean",
+    "bias",
+    "bias_se",
+    "std",
+    "mse",
+    "rmse",
+    "mean_se",
+    "se_over_std",
+    "coverage",
+    "rel_frobenius_reported",
+    "rel_frobenius_theory",
+    "rel_frobenius_reported_vs_theory",
+    "points",
+    "bias_slope",
+    "std_slope",
+    "rmse_slope",
+    "z",
+    "ks_statistic",
+    "ks_pvalue",
 )
 
 
@@ -226,12 +251,19 @@ class Study:
         for factor, values in grid.items():
             if not isinstance(factor, str) or factor in RESERVED_COLUMNS:
                 raise InputValidationError(
-                    f"grid factor {factor!r} must be a string other than {RESERVED_COLUMNS}."
+                    f"grid factor {factor!r} must be a string other than the column names "
+                    f"of the results and summaries {RESERVED_COLUMNS}."
                 )
             values = list(values) if isinstance(values, (list, tuple, np.ndarray)) else [values]
             if not values:
                 raise InputValidationError(f"grid factor {factor!r} has no values.")
             clean[factor] = [_plain(v, f"grid[{factor!r}][{i}]") for i, v in enumerate(values)]
+            repeated = sorted({repr(v) for v in clean[factor] if clean[factor].count(v) > 1})
+            if repeated:
+                raise InputValidationError(
+                    f"grid factor {factor!r} repeats the values {', '.join(repeated)}; give each "
+                    "value once (more trials come from trials=)."
+                )
         for label, value, low in (
             ("trials", trials, 2),
             ("seed", seed, 0),
@@ -261,11 +293,13 @@ class Study:
     # ------------------------------------------------------------------ declaration
     @property
     def declaration(self) -> dict:
-        """What identifies the study's results: grid, trials, seed, chunk, block, estimator
-        names, version (stored in ``manifest.json``)."""
+        """What identifies the study's results: grid, the order of its factors (it numbers the
+        grid points, and so their seeds and chunk files), trials, seed, chunk, block,
+        estimator names, version (stored in ``manifest.json``)."""
         return {
             "format": FORMAT_VERSION,
             "grid": self.grid,
+            "factors": list(self.grid),
             "trials": self.trials,
             "seed": self.seed,
             "chunk": self.chunk,
@@ -537,11 +571,16 @@ class Study:
         """Statistics per grid point x estimator x parameter.
 
         Columns: the factors, ``estimator``, ``parameter``, ``trials``, ``truth``, ``mean``,
-        ``bias`` (mean - truth), ``bias_se`` (std / sqrt(trials): is the bias significant?),
-        ``std`` (sample standard deviation), ``rmse`` (sqrt of the mean squared error),
-        ``mean_se`` (mean reported standard error), ``se_over_std``, ``coverage`` (fraction
-        of trials with ``|estimate - truth| <= z se``, ``z`` the normal quantile of
-        ``level``), ``converged`` (fraction). Without truth: NaN in bias, rmse, coverage.
+        ``estimated`` (trials with a finite estimate), ``bias`` (mean - truth), ``bias_se``
+        (std / sqrt(estimated): is the bias significant?), ``std`` (sample standard
+        deviation), ``rmse`` (sqrt of the mean squared error), ``mean_se`` (mean reported
+        standard error), ``se_over_std``, ``coverage`` (fraction of trials with
+        ``|estimate - truth| <= z se``, ``z`` the normal quantile of ``level``),
+        ``converged`` (fraction of all trials). Without truth: NaN in bias, rmse, coverage.
+
+        A trial whose estimate is not finite (a failed fit) counts in ``trials`` and
+        ``converged`` only; ``mean_se`` and ``coverage`` take the trials with a finite
+        estimate and a finite standard error.
         """
         from scipy.stats import norm
 
@@ -551,13 +590,17 @@ class Study:
         frame = self.results.drop(columns="covariance_row").merge(
             self._truth_table(), on=[*self.factors, "parameter"], how="left"
         )
+        finite = np.isfinite(frame["estimate"])
+        frame["estimate"] = frame["estimate"].where(finite)
+        frame["se"] = frame["se"].where(finite & np.isfinite(frame["se"]))
         frame["error2"] = (frame["estimate"] - frame["truth"]) ** 2
         frame["inside"] = ((frame["estimate"] - frame["truth"]).abs() <= z * frame["se"]).where(
-            frame["truth"].notna()
+            frame["truth"].notna() & frame["se"].notna()
         )
         grouped = frame.groupby(keys, sort=False)
         out = grouped.agg(
             trials=("trial", "size"),
+            estimated=("estimate", "count"),
             truth=("truth", "first"),
             mean=("estimate", "mean"),
             std=("estimate", "std"),
@@ -566,9 +609,9 @@ class Study:
             coverage=("inside", "mean"),
             converged=("converged", "mean"),
         ).reset_index()
-        out.insert(len(keys) + 3, "bias", out["mean"] - out["truth"])
-        out.insert(len(keys) + 4, "bias_se", out["std"] / np.sqrt(out["trials"]))
-        out.insert(len(keys) + 6, "rmse", np.sqrt(out.pop("mse")))
+        out.insert(len(keys) + 4, "bias", out["mean"] - out["truth"])
+        out.insert(len(keys) + 5, "bias_se", out["std"] / np.sqrt(out["estimated"]))
+        out.insert(len(keys) + 7, "rmse", np.sqrt(out.pop("mse")))
         out.insert(out.columns.get_loc("mean_se") + 1, "se_over_std", out["mean_se"] / out["std"])
         return pd.DataFrame(out)
 
@@ -681,14 +724,15 @@ class Study:
         Gaussian noise and an estimated noise variance, eq. 4.92-4.93).
 
         Returns:
-            One row per grid point x estimator x parameter x trial with a declared truth and a
-            positive standard error: the factors, ``estimator``, ``parameter``, ``trial``, ``z``.
+            One row per grid point x estimator x parameter x trial with a declared truth, a
+            finite estimate and a positive standard error: the factors, ``estimator``,
+            ``parameter``, ``trial``, ``z``.
         """
         keys = [*self.factors, "estimator", "parameter", "trial"]
         frame = self.results[[*keys, "estimate", "se"]].merge(
             self._truth_table(), on=[*self.factors, "parameter"], how="inner"
         )
-        frame = frame[frame["se"] > 0]
+        frame = frame[(frame["se"] > 0) & np.isfinite(frame["estimate"])]
         frame = frame.assign(z=(frame["estimate"] - frame["truth"]) / frame["se"])
         return frame[[*keys, "z"]].reset_index(drop=True)
 

@@ -331,6 +331,62 @@ def test_invalid_declarations_are_refused():
         _ = small_study().results
 
 
+def test_reordered_factors_repeated_values_and_summary_names_are_refused(tmp_path):
+    """The order of the grid's factors numbers its points (their seeds and chunk files): a
+    study with the same factors in another order is another declaration. A value given twice
+    and a factor named like a summary column would be counted twice or overwritten."""
+    grid = {"N": [40, 80], "sigma": [0.5, 1.0]}
+    Study(simulate_white, {"fir_ls": fir_ls}, grid, trials=4, chunk=4).run(tmp_path)
+    swapped = {"sigma": [0.5, 1.0], "N": [40, 80]}
+    with pytest.raises(StudyDeclarationError, match=r"factors: stored \['N', 'sigma'\]"):
+        Study(simulate_white, {"fir_ls": fir_ls}, swapped, trials=4, chunk=4).run(tmp_path)
+    with pytest.raises(InputValidationError, match="repeats the values 40"):
+        Study(simulate_white, {"fir_ls": fir_ls}, {"N": [40, 40, 80]})
+    for name in ("inside", "error2", "points", "mean", "z"):
+        with pytest.raises(InputValidationError, match=f"grid factor '{name}'"):
+            Study(simulate_white, {"fir_ls": fir_ls}, {"N": [40], name: [1, 2]})
+
+
+def test_failed_trials_leave_every_statistic_but_their_count(tmp_path):
+    """Trials whose estimate is NaN (a failed fit) count in trials and converged only; trials
+    with a finite estimate but a NaN standard error leave mean_se and coverage. Against
+    numpy over the remaining trials."""
+
+    def failing(data):
+        result = fit(FIR(3, 1), data)
+        bad = data.u[:, 0, 0] > 1.0  # about 16 % of the trials
+        result.theta[bad] = math.nan
+        result.converged[bad] = False
+        return result
+
+    def no_se(data):
+        result = fit(FIR(3, 1), data)
+        result.standard_errors[::2] = math.nan
+        return result
+
+    study = small_study(trials=60, chunk=20, estimators={"failing": failing, "no_se": no_se})
+    summary = study.run(tmp_path, progress=False).summary()
+    rows = study.results
+    z = 1.959963984540054
+    for (N, name, parameter), group in rows.groupby(["N", "estimator", "parameter"]):
+        row = summary[
+            (summary["N"] == N)
+            & (summary["estimator"] == name)
+            & (summary["parameter"] == parameter)
+        ].iloc[0]
+        estimate, se = group["estimate"].to_numpy(), group["se"].to_numpy()
+        ok = np.isfinite(estimate)
+        both = ok & np.isfinite(se)
+        error = estimate - FIR_TRUTH[parameter]
+        assert row["trials"] == 60 and row["estimated"] == ok.sum()
+        assert row["converged"] == pytest.approx(group["converged"].mean())
+        assert row["bias_se"] == pytest.approx(estimate[ok].std(ddof=1) / np.sqrt(ok.sum()))
+        assert row["mean_se"] == pytest.approx(se[both].mean())
+        assert row["coverage"] == pytest.approx(np.mean(np.abs(error[both]) <= z * se[both]))
+        assert row["rmse"] == pytest.approx(np.sqrt(np.mean(error[ok] ** 2)))
+    assert (summary[summary["estimator"] == "failing"]["estimated"] < 60).all()
+
+
 def test_simulate_with_the_wrong_batch_is_named(tmp_path):
     study = Study(
         lambda point, n, g: simulate_white(point, n + 1, g), {"fir_ls": fir_ls}, {"N": [40]}, 4
