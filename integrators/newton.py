@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 
 import torch
+from torch.autograd import forward_ad
 
 from ._options import check_state
 from .block_jacobian import BlockJacobian
@@ -177,6 +178,21 @@ def _informative_tail(norms: torch.Tensor, iterations: torch.Tensor, k: int) -> 
 
 def _detach(args):
     return tuple(a.detach() if isinstance(a, torch.Tensor) else a for a in args)
+
+
+def _refuse_forward_mode(tensors) -> None:
+    """Refuse dual tensors: the solve's derivatives are attached for reverse mode only."""
+    if any(
+        isinstance(a, torch.Tensor) and forward_ad.unpack_dual(a).tangent is not None
+        for a in tensors
+    ):
+        raise InputValidationError(
+            "newton: forward-mode derivatives (dual tensors of torch.autograd.forward_ad, "
+            "batch_jacobian(strategy='forward')) do not pass through the solve, whose "
+            "derivatives come from the implicit function theorem in reverse mode; "
+            "differentiate with backward, torch.autograd.grad or batch_jacobian(strategy="
+            "'vmap' or 'rows')."
+        )
 
 
 def _default_tol(dtype) -> float:
@@ -410,7 +426,8 @@ def newton(
         and ``status`` say why each stopped.
 
     Raises:
-        InputValidationError: bad shapes, non-finite ``x0``, unknown method.
+        InputValidationError: bad shapes, non-finite ``x0``, unknown method, forward-mode
+            (dual) tensors among ``x0``, ``args`` and ``params``.
         ConvergenceError: with ``raise_on_failure=True`` when any member failed.
     """
     if method not in ("full", "damped", "simplified"):
@@ -419,9 +436,10 @@ def newton(
         )
     if factorization is not None and method != "simplified":
         raise InputValidationError("newton: factorization= is only used by method='simplified'.")
+    params = tuple(params)
+    _refuse_forward_mode((x0, *args, *params))
     x = check_state(x0, "newton: x0").detach()
     frozen = _detach(args)
-    params = tuple(params)
     # the autograd Jacobian at x0 (the first one any method takes) comes from the graph of
     # this first evaluation: one evaluation of phi fewer per solve
     start_graph = jacobian is None and factorization is None

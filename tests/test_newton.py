@@ -591,3 +591,23 @@ def test_levenberg_marquardt_reports_no_minimum_where_damping_stalls_at_a_bounda
     assert not bool(res.converged[0]) and not bool(res.converged[2])
     assert bool(res.converged[1])  # its minimum (rate 0.4) is admissible
     assert float(res.grad[1].abs().max()) < 1e-6
+
+
+def test_forward_mode_derivatives_are_refused_not_dropped():
+    """newton's derivatives are implicit-function-theorem gradients for reverse mode: a dual
+    tensor (forward mode, batch_jacobian(strategy='forward')) is refused by name instead of
+    leaving the root without a tangent (a derivative of 0 where d sqrt(a)/da = 1/(2 sqrt a));
+    reverse-mode strategies give the closed form."""
+    from torch.autograd import forward_ad
+
+    def root(a):
+        return newton(lambda x, aa: x**2 - aa, torch.ones_like(a), a).x
+
+    a = torch.tensor([[4.0], [9.0]], dtype=torch.float64)
+    with forward_ad.dual_level(), pytest.raises(InputValidationError, match="forward-mode"):
+        root(forward_ad.make_dual(a, torch.ones_like(a)))
+    with pytest.raises(InputValidationError, match="forward-mode"):
+        batch_jacobian(root, a, strategy="forward")
+    for strategy in ("vmap", "rows"):
+        _, J = batch_jacobian(root, a, strategy=strategy)
+        torch.testing.assert_close(J.flatten(), 0.5 / a.sqrt().flatten(), rtol=1e-12, atol=0)
