@@ -670,7 +670,7 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
             f"the estimate by {float(zstat[key]):.3g} standard errors (converged means <= "
             f"{STATIONARY_TOL}). "
             + (
-                "Run the fit again from it (Param values from result.params) to finish."
+                "Run the fit again from it (fit(result.model, data)) to finish."
                 if bool(interrupted[key])
                 else "Start closer (or further from the bounds), raise max_iter, or use "
                 "criterion='multiple_shooting'."
