@@ -570,8 +570,8 @@ class Study:
     def summary(self, level: float = 0.95):
         """Statistics per grid point x estimator x parameter.
 
-        Columns: the factors, ``estimator``, ``parameter``, ``trials``, ``truth``, ``mean``,
-        ``estimated`` (trials with a finite estimate), ``bias`` (mean - truth), ``bias_se``
+        Columns: the factors, ``estimator``, ``parameter``, ``trials``, ``estimated`` (trials
+        with a finite estimate), ``truth``, ``mean``, ``bias`` (mean - truth), ``bias_se``
         (std / sqrt(estimated): is the bias significant?), ``std`` (sample standard
         deviation), ``rmse`` (sqrt of the mean squared error), ``mean_se`` (mean reported
         standard error), ``se_over_std``, ``coverage`` (fraction of trials with
