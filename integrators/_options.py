@@ -245,12 +245,13 @@ def check_state(
 def check_times(t, like: torch.Tensor, label: str = "t") -> torch.Tensor:
     """Output times: a finite, strictly increasing ``(T,)`` tensor, ``T >= 2``, in ``like``'s
     dtype and device (a tensor keeps its graph; :func:`refuse_time_gradient` decides whether
-    that is allowed). Messages name the times ``label``."""
+    that is allowed). Always a copy, so a solution keeps its times whatever the caller later
+    does to the tensor or array passed. Messages name the times ``label``."""
     if isinstance(t, torch.Tensor):
-        t = t.to(dtype=like.dtype, device=like.device)
+        t = t.to(dtype=like.dtype, device=like.device, copy=True)
     else:
         try:
-            t = torch.as_tensor(t, dtype=like.dtype, device=like.device)
+            t = torch.as_tensor(t, dtype=like.dtype, device=like.device).clone()
         except (TypeError, ValueError, RuntimeError) as exc:
             raise InputValidationError(f"{label} is not numeric: {exc}") from exc
     if t.dim() != 1 or t.shape[0] < 2:

@@ -9,6 +9,7 @@ import torch
 
 from integrators import (
     InputValidationError,
+    ODELayer,
     SemiExplicitDAE,
     TableauError,
     daeint,
@@ -494,3 +495,30 @@ def test_one_initial_state_per_record_of_a_sampled_input():
 
     with pytest.raises(InputValidationError, match=r"x0.expand\(B, nx\)"):
         odeint(per_member, x0[:2], t, method="rk4")
+
+
+@pytest.mark.parametrize("method", ["rk4", "dopri5", "radau_iia", "dae"])
+@pytest.mark.parametrize("kind", ["tensor", "numpy"])
+def test_a_solution_keeps_its_times_when_the_callers_times_change(method, kind):
+    """The solution holds a copy of the output times: changing the tensor or array passed
+    (in place, or a layer's buffer by load_state_dict) leaves sol.t and the range sol.at
+    accepts as integrated (before: sol.t read the new times, and sol.at(1.5) on [0, 1]
+    returned the state at 1)."""
+    t = np.array([0.0, 0.5, 1.0]) if kind == "numpy" else torch.tensor([0.0, 0.5, 1.0])
+    x0 = torch.ones(2, 1, dtype=torch.float64)
+    if method == "dae":
+        sol = daeint(DAE, x0, torch.zeros(2, 1, dtype=torch.float64), t)
+    else:
+        sol = odeint(decay, x0, t, method=method)
+    t *= 4.0
+    assert sol.t.tolist() == [0.0, 0.5, 1.0]
+    if method != "rk4":  # fixed-step rk4 has no dense output
+        with pytest.raises(InputValidationError, match="covers"):
+            sol.at(torch.tensor([1.5], dtype=torch.float64))
+
+
+def test_a_layer_solution_keeps_its_times_after_load_state_dict():
+    layer = ODELayer(decay, [0.0, 0.5, 1.0], method="rk4")
+    sol = layer(torch.ones(1, 2, dtype=torch.float64))
+    layer.load_state_dict({"t": torch.tensor([0.0, 2.0, 4.0], dtype=torch.float64)})
+    assert layer.t.tolist() == [0.0, 2.0, 4.0] and sol.t.tolist() == [0.0, 0.5, 1.0]
