@@ -196,15 +196,20 @@ class ButcherTableau:
     def _refuted_claim(self, claimed: int, exact: bool) -> str:
         if exact:
             nxt = self._order + 1
-            if nxt > self.simplifying_assumptions()[0]:  # B(nxt) fails: a bushy tree
-                worst = abs(float(self._simplifying_residuals(self.b, nxt)[0][-1]))
+            if nxt > self.simplifying_assumptions()[0]:  # B(nxt) fails: the bushy tree
+                monomial = abs(float(self.b @ self.c ** (nxt - 1)) - 1.0 / nxt)
+                legendre = abs(float(self._simplifying_residuals(self.b, nxt)[0][-1]))
+                miss = (
+                    f"its quadrature condition sum_i b_i c_i^{nxt - 1} = 1/{nxt} misses by "
+                    f"{monomial:.2e}, in the shifted-Legendre form that decides by {legendre:.2e}"
+                )
             else:
                 worst = float(np.max(np.abs(self.order_residuals(nxt))))
+                miss = f"an order-{nxt} condition misses by {worst:.2e}"
             return (
                 f"tableau {self.name!r} claims order {claimed} but its order conditions hold "
-                f"only up to order {self._order} (an order-{nxt} condition misses by {worst:.2e}, "
-                f"tolerance {self.tol:.0e}). Check the coefficients, or pass order=None to "
-                "have the order computed."
+                f"only up to order {self._order} ({miss}, tolerance {self.tol:.0e}). Check the "
+                "coefficients, or pass order=None to have the order computed."
             )
         p, q, r = self.simplifying_assumptions()
         return (

@@ -343,12 +343,17 @@ def test_wrong_claimed_order_raises():
     with pytest.raises(TableauError, match="claims order 3 .* only up to order 2 "):
         ButcherTableau(heun.A, heun.b, order=3)
     rk4 = tableau("rk4")
-    with pytest.raises(TableauError, match="claims order 5 .* only up to order 4 "):
+    # the message quotes the failing condition's own residual: sum b c^4 - 1/5 = 5/24 - 1/5
+    with pytest.raises(
+        TableauError, match=r"claims order 5 .* only up to order 4 .*misses by 8\.33e-03"
+    ):
         ButcherTableau(rk4.A, rk4.b, order=5)
-    # one perturbed coefficient breaks order 4 (a_32 = 1/2 -> 0.51)
+    # one perturbed coefficient breaks order 4 (a_32 = 1/2 -> 0.51: sum b c = 0.5 + 0.01 / 3)
     A = rk4.A.copy()
     A[2, 1] = 0.51
-    with pytest.raises(TableauError, match="claims order 4 .* only up to order 1 "):
+    with pytest.raises(
+        TableauError, match=r"claims order 4 .* only up to order 1 .*misses by 3\.33e-03"
+    ):
         ButcherTableau(A, rk4.b, order=4)
     assert ButcherTableau(rk4.A, rk4.b, order=4).order == 4
     assert ButcherTableau(rk4.A, rk4.b, order=3).order == 3  # a weaker claim is accepted
