@@ -193,3 +193,18 @@ def test_float32_states_work_with_float64_parameters():
         torch.testing.assert_close(out.double(), ref, rtol=1e-5, atol=1e-5)
     xs = StiffLinear().exact(torch.linspace(0, 0.01, 3), torch.ones(2, 4))
     assert xs.dtype == torch.float32 and torch.isfinite(xs).all()
+
+
+def test_per_member_parameters_are_columns_and_a_flat_vector_is_refused():
+    """A per-member scalar parameter has shape (*batch, 1): mu = [1, 2, 3] as a column gives
+    each Van der Pol plant its own x1' = mu (1 - x2^2) x1 - x2 (eq. 6.43); the flat (3,)
+    vector, which gave every plant mu = 1, is refused by name, as is a flat eps of
+    StiffLinear's matrix."""
+    x = torch.tensor([[0.5, 1.5]] * 3, dtype=torch.float64)
+    mu = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    rhs = VanDerPol(mu[:, None])(0.0, x)
+    torch.testing.assert_close(rhs[:, 0], mu * (1 - 1.5**2) * 0.5 - 1.5)
+    with pytest.raises(InputValidationError, match=r"shape \(\*batch, 1\), got \(3,\)"):
+        VanDerPol(mu)(0.0, x)
+    with pytest.raises(InputValidationError, match=r"got \(3,\)"):
+        StiffLinear(torch.tensor([1e-3, 1e-2, 1e-1])).matrix()

@@ -35,11 +35,28 @@ def like(param: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return param.to(dtype=x.dtype, device=x.device)
 
 
+def per_member(param: torch.Tensor) -> torch.Tensor:
+    """A scalar parameter without its trailing broadcast axis: ``(*batch, 1)`` as
+    ``(*batch,)``, a 0-dim one unchanged.
+
+    Raises:
+        InputValidationError: a trailing axis longer than 1 (e.g. ``(B,)`` for ``B`` plants,
+            which would otherwise give every member the first entry).
+    """
+    if param.dim() == 0:
+        return param
+    if param.shape[-1] != 1:
+        raise InputValidationError(
+            f"a per-member scalar parameter has shape (*batch, 1), got {tuple(param.shape)}; "
+            "give one value per plant as a column, e.g. torch.tensor([1.0, 2.0])[:, None]."
+        )
+    return param[..., 0]
+
+
 def like_component(param: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """``like(param, x)`` without its trailing broadcast axis: a scalar or ``(*batch,)`` tensor
-    that multiplies single state components ``x[..., i]`` (shape ``(*batch,)``)."""
-    param = like(param, x)
-    return param[..., 0] if param.dim() > 0 else param
+    """``like(param, x)`` without its trailing broadcast axis (:func:`per_member`): a scalar
+    or ``(*batch,)`` tensor that multiplies single state components ``x[..., i]``."""
+    return per_member(like(param, x))
 
 
 def stack_last(*params: torch.Tensor) -> torch.Tensor:

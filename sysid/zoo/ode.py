@@ -20,6 +20,7 @@ from ._params import (
     input_or_zero,
     like,
     like_component,
+    per_member,
     stack_components,
 )
 
@@ -31,11 +32,6 @@ def _time_grid(t, x0: torch.Tensor) -> torch.Tensor:
             f"exact(): t must be a 1-D time grid, got shape {tuple(t.shape)}"
         )
     return t
-
-
-def _squeeze_channel(p: torch.Tensor) -> torch.Tensor:
-    """A parameter of shape (*pb, 1) as (*pb,), a scalar unchanged (for building matrices)."""
-    return p[..., 0] if p.dim() >= 1 else p
 
 
 class VanDerPol(nn.Module):
@@ -139,7 +135,7 @@ class StiffLinear(nn.Module):
     def matrix(self, like_tensor: torch.Tensor | None = None) -> torch.Tensor:
         """A(eps), shape (*pb, 4, 4) for a tensor eps of shape (*pb, 1), (4, 4) for a scalar."""
         eps = self.eps if like_tensor is None else like(self.eps, like_tensor)
-        e = 1.0 / _squeeze_channel(eps)
+        e = 1.0 / per_member(eps)
         zero, one = torch.zeros_like(e), torch.ones_like(e)
         rows = [
             [zero, 5 * one, one, zero],
