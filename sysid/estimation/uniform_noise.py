@@ -63,9 +63,10 @@ def _linprog(c, G, h, bounds):
 
 
 def _polytope(A: np.ndarray, y: np.ndarray, a: float):
-    """Bounds, Chebyshev centre and radius of ``{theta : |y - A theta| <= a}`` for one data
-    set (A (M, p), y (M,)), and the solver's failure message (``None`` when every program
-    ended with an answer).
+    """``(feasible, lower, upper, center, radius, failure)`` of the set
+    ``{theta : |y - A theta| <= a}`` of one data set (A (M, p), y (M,)): bounds and centre
+    (p,), radius a float, ``failure`` the solver's message where a program ended without an
+    answer (then everything else is NaN and ``feasible`` False), else None.
 
     The programs are posed in units of the set: about the least-squares estimate ``theta0``
     (residuals ``r0`` of the order of ``a``), constraints divided by ``a``, and parameter
