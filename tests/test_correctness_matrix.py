@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import importlib
+import inspect
 import warnings
 from dataclasses import dataclass, field
 
@@ -24,7 +25,7 @@ import torch
 from scipy.integrate import solve_ivp
 
 import sysid.zoo
-from integrators import HighIndexError, ImplicitDAE, Status, daeint, odeint
+from integrators import HighIndexError, ImplicitDAE, InputValidationError, Status, daeint, odeint
 from integrators._irk_linalg import _DENSE_MAX as HOST_MAX_ROWS
 from sysid.mechanics import LagrangianSystem
 from sysid.zoo import scenarios as zoo_scenarios
@@ -494,6 +495,33 @@ def test_per_member_parameters_broadcast_against_a_shared_state(name):
             one.get_parameter(param).data = v.reshape(one.get_parameter(param).shape)
             expected.append(one(*args))
         torch.testing.assert_close(batched(*args), torch.stack(expected), rtol=1e-12, atol=1e-12)
+
+
+# Constructor arguments of the zoo with a last axis of their own: lam of shape (n,) gives the
+# test equation n components (a scalar one acts on every component).
+VECTOR_PARAMETERS = {("LinearTestEquation", "lam")}
+
+
+def _scalar_constructor_arguments():
+    for name in sysid.zoo.__all__:
+        signature = inspect.signature(getattr(sysid.zoo, name).__init__)
+        for arg, p in signature.parameters.items():
+            default = p.default
+            if isinstance(default, float) and (name, arg) not in VECTOR_PARAMETERS:
+                yield name, arg, default
+
+
+@pytest.mark.parametrize("plant,arg,default", list(_scalar_constructor_arguments()))
+def test_a_flat_vector_of_per_member_scalars_is_refused_at_construction(plant, arg, default):
+    """Every scalar parameter of every plant given as a flat (3,) vector, meant as one value
+    per plant of a batch, is refused by name: it broadcast against the state's components
+    instead (SpringMassDamper K = [4, 5, 6] gave x2' = -7.6 to all three plants for -2.1,
+    -2.6, -3.1). The column (3, 1) builds the batch (see the test above)."""
+    cls = getattr(sysid.zoo, plant)
+    values = default * torch.tensor([1.0, 1.1, 0.9], dtype=DT) + 0.1
+    with pytest.raises(InputValidationError, match=rf"parameter '{arg}' has shape \(\*batch, 1\)"):
+        cls(**{arg: values})
+    assert getattr(cls(**{arg: values[:, None]}), arg).shape == (3, 1)
 
 
 def test_every_zoo_plant_has_a_scenario():

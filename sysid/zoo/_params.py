@@ -12,11 +12,19 @@ from torch import nn
 from integrators.errors import InputValidationError
 
 
-def as_parameter(value, name: str, positive: bool = False) -> nn.Parameter:
+def as_parameter(value, name: str, positive: bool = False, vector: bool = False) -> nn.Parameter:
     """Wrap a float, array or tensor as a float ``nn.Parameter`` (float64 unless a float tensor).
 
     ``positive``: also require every entry > 0 (masses, lengths). Checked here only: a fit
-    that drives the parameter to zero or below is not stopped (see the plant's docstring)."""
+    that drives the parameter to zero or below is not stopped (see the plant's docstring).
+    ``vector``: the parameter has a last axis of its own (a matrix ``A``, an end point); a
+    scalar parameter (the default) has shape ``()`` or ``(*batch, 1)``, one value per plant.
+
+    Raises:
+        InputValidationError: a non-finite or non-positive entry; a scalar parameter with a
+            last axis longer than 1 (``(B,)`` for ``B`` plants would broadcast against the
+            state's components instead of the batch).
+    """
     if isinstance(value, torch.Tensor):
         tensor = value.detach().clone()
         if not tensor.is_floating_point():
@@ -27,6 +35,8 @@ def as_parameter(value, name: str, positive: bool = False) -> nn.Parameter:
         raise InputValidationError(f"parameter {name!r} must be finite, got {value!r}")
     if positive and not bool((tensor > 0).all()):
         raise InputValidationError(f"parameter {name!r} must be > 0, got {value!r}")
+    if not vector:
+        per_member(tensor, f"parameter {name!r}")
     return nn.Parameter(tensor)
 
 
@@ -35,7 +45,7 @@ def like(param: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return param.to(dtype=x.dtype, device=x.device)
 
 
-def per_member(param: torch.Tensor) -> torch.Tensor:
+def per_member(param: torch.Tensor, name: str = "a per-member scalar parameter") -> torch.Tensor:
     """A scalar parameter without its trailing broadcast axis: ``(*batch, 1)`` as
     ``(*batch,)``, a 0-dim one unchanged.
 
@@ -47,8 +57,8 @@ def per_member(param: torch.Tensor) -> torch.Tensor:
         return param
     if param.shape[-1] != 1:
         raise InputValidationError(
-            f"a per-member scalar parameter has shape (*batch, 1), got {tuple(param.shape)}; "
-            "give one value per plant as a column, e.g. torch.tensor([1.0, 2.0])[:, None]."
+            f"{name} has shape (*batch, 1), got {tuple(param.shape)}; give one value per "
+            "plant as a column, e.g. torch.tensor([1.0, 2.0])[:, None]."
         )
     return param[..., 0]
 

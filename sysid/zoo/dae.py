@@ -115,7 +115,8 @@ class UnitSphereDAE(nn.Module):
 
     def __init__(self, A=((0.0, 1.0), (-1.0, -0.5)), b=(1.0, 0.5)):
         super().__init__()
-        self.A, self.b = as_parameter(A, "A"), as_parameter(b, "b")
+        self.A = as_parameter(A, "A", vector=True)
+        self.b = as_parameter(b, "b", vector=True)
         self.nx = self.A.shape[-1]
         self.state_names = tuple(f"x{i + 1}" for i in range(self.nx))
 

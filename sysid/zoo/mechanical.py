@@ -498,7 +498,8 @@ class HangingChain(LagrangianSystem):
             as_parameter(K, "K"),
             as_parameter(g, "g"),
         )
-        self.p_start, self.p_end = as_parameter(p_start, "p_start"), as_parameter(p_end, "p_end")
+        self.p_start = as_parameter(p_start, "p_start", vector=True)
+        self.p_end = as_parameter(p_end, "p_end", vector=True)
 
     def diagonal_mass(self):
         return self.m * torch.ones(self.nq, dtype=self.m.dtype)

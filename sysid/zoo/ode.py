@@ -168,7 +168,7 @@ class LinearTestEquation(nn.Module):
 
     def __init__(self, lam=-1.0):
         super().__init__()
-        self.lam = as_parameter(lam, "lam")
+        self.lam = as_parameter(lam, "lam", vector=True)
 
     @property
     def nx(self) -> int:
