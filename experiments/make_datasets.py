@@ -377,8 +377,9 @@ def compare(name: str, fresh: dict[str, np.ndarray], stored: dict[str, np.ndarra
         ``{"file", "column", "max_difference", "tolerance", "ok"}`` for the column that
         exceeds its tolerance by the largest factor (or the one closest to it when all
         pass), plus ``"detail"`` when the header or the number of rows differ. Differences
-        of non-exact columns are relative to the stored column's largest magnitude;
-        ``EXACT_COLUMNS`` must agree bit for bit (tolerance 0).
+        of non-exact columns are relative to the stored column's largest finite magnitude;
+        ``EXACT_COLUMNS`` must agree bit for bit (tolerance 0). A NaN or infinity in one of
+        the two files where the other has a different value is an infinite difference.
     """
     row = {"file": f"{name}.csv", "max_difference": np.inf, "tolerance": 0.0, "ok": False}
     if list(fresh) != list(stored):
@@ -391,8 +392,15 @@ def compare(name: str, fresh: dict[str, np.ndarray], stored: dict[str, np.ndarra
             detail = f"{len(old)} stored rows, {len(new)} generated"
             return {**row, "column": column, "detail": detail}
         exact = column in EXACT_COLUMNS
-        scale = 1.0 if exact else max(float(np.abs(old).max()), np.finfo(np.float64).tiny)
-        difference = float(np.abs(new - old).max()) / scale
+        finite = np.abs(old[np.isfinite(old)])
+        largest = float(finite.max()) if finite.size else 0.0
+        scale = 1.0 if exact else max(largest, np.finfo(np.float64).tiny)
+        if np.array_equal(new, old, equal_nan=True):
+            difference = 0.0
+        else:  # a NaN or infinity in only one of them is an infinite difference
+            difference = (
+                float(np.nan_to_num(np.abs(new - old), nan=np.inf, posinf=np.inf).max()) / scale
+            )
         tolerance = 0.0 if exact else CHECK_RTOL
         score = difference / tolerance if tolerance else (np.inf if difference else 0.0)
         if worst is None or score > worst[0]:

@@ -55,6 +55,23 @@ def test_check_names_the_file_and_the_difference(tmp_path):
     assert "msd_identification" not in message  # the untouched files pass
 
 
+@pytest.mark.parametrize("bad", ["nan", "inf"])
+def test_check_fails_on_a_stored_nan_or_infinity(tmp_path, bad):
+    """A stored NaN or infinity is a difference the check must report: a NaN difference
+    never exceeded the worst column's score, so a corrupted file passed as ok."""
+    shutil.copytree(DATASETS_DIR, tmp_path, dirs_exist_ok=True)
+    path = tmp_path / "vdp_reference.csv"
+    lines = path.read_text().splitlines()
+    fields = lines[7].split(",")
+    fields[1] = bad
+    lines[7] = ",".join(fields)
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(SystemExit) as failure:
+        make_datasets.main(["--check", "--quick", "--out", str(tmp_path)])
+    message = str(failure.value)
+    assert "vdp_reference.csv" in message and "largest difference inf" in message
+
+
 def test_unknown_name_lists_the_available_sets():
     with pytest.raises(InputValidationError, match="available: .*msd_identification"):
         load_csv("msd_identificaton")
