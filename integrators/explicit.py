@@ -128,9 +128,7 @@ def _lincomb(x, h, terms):
     """``x + h * sum(coef * K)`` with Python-float coefficients.
 
     With a float ``h`` (eager chunks) one ``add(..., alpha=)`` per term. With a tensor ``h``
-    (compiled chunks) plain products and sums: inductor (torch 2.13) silently drops the
-    ``alpha`` of ``add(a, b, alpha=c)`` when ``b`` is a matrix product (it rewrites the pair
-    into ``addmm`` without the coefficient), which made compiled steps of linear models wrong.
+    (compiled chunks, where ``alpha`` cannot hold it) plain products and sums.
     """
     if not terms:
         return x

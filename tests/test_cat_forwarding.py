@@ -13,6 +13,7 @@ from torch._inductor.decomposition import select_decomp_table
 from torch.fx.experimental.proxy_tensor import make_fx
 
 from integrators._fast.cat_forwarding import forward_cat_reads, reads_only_components
+from integrators._fast.passes import scale_alpha_operands
 
 DT = torch.float64
 
@@ -172,3 +173,23 @@ def test_random_component_wise_models(model, batch, seed):
     _, left = _rewritten_equals_original(_rk2_step(f), *x.unbind(-1))
     assert left == 0
     assert reads_only_components(lambda z: f(0.0, z), x)
+
+
+def test_alpha_of_add_and_sub_becomes_a_product():
+    """``add(a, b, alpha=c)`` and ``sub(a, b, alpha=c)`` (inductor drops c when ``b`` is a
+    matrix product) are rewritten into ``a + b * c`` and ``a - b * c`` with the same values;
+    ``alpha = 1`` is left alone."""
+    W = torch.tensor([[0.0, 2.0], [-2.0, 0.5]], dtype=DT)
+    x = torch.tensor([[1.0, 0.5], [0.25, -1.0]], dtype=DT)
+
+    def model(x):
+        y = torch.add(-x, x @ W.T, alpha=0.5)
+        return torch.sub(y, torch.nn.functional.linear(x, W), alpha=-3.0) + torch.add(x, y)
+
+    gm = _traced(model, x)
+    expected = gm(x)
+    assert scale_alpha_operands(gm.graph) == 2
+    gm.recompile()
+    assert not any("alpha" in node.kwargs for node in gm.graph.nodes)
+    torch.testing.assert_close(gm(x), expected, rtol=1e-15, atol=1e-15)
+    torch.testing.assert_close(gm(x), model(x), rtol=1e-15, atol=1e-15)

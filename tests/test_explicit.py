@@ -594,6 +594,41 @@ def test_compiled_linear_model_matches_matrix_exponential(grad, monkeypatch):
     assert float((sol_x - exact).abs().max()) < 4e-6  # RK4 at h = 0.05: 2.2e-6
 
 
+class _HalfCoupled(torch.nn.Module):
+    """x' = -x + 0.5 W x written with ``add(..., alpha=0.5)`` on a matrix product: the form
+    inductor compiles without its coefficient unless the chunk's graph pass rewrites it."""
+
+    def __init__(self):
+        super().__init__()
+        self.W = torch.nn.Parameter(torch.zeros(2, 2, dtype=torch.float64))
+
+    def forward(self, t, x):
+        return torch.add(-x, x @ self.W.T, alpha=0.5)
+
+
+def test_a_model_with_alpha_on_a_matrix_product_compiles_right_after_a_zero_first_call(
+    monkeypatch,
+):
+    """A zero-initialised layer passed the first call's eager check (its product is zero), then
+    trained weights ran through a graph without the alpha: x(1) = [0.0955, -0.4001] for
+    expm(-I + W/2) x0 = [0.3535, -0.2102]. Every compiled chunk rewrites alpha into a product."""
+    from integrators import explicit
+
+    monkeypatch.setattr(explicit, "CHUNK_STEPS", 1)  # small graphs: quick compiles
+    model = _HalfCoupled()
+    x0 = torch.tensor([[1.0, 0.5]], dtype=torch.float64)
+    t = torch.linspace(0, 1, 11, dtype=torch.float64)
+    with torch.no_grad():
+        odeint(model, x0, t, method="rk4", compile=True)  # compiled and checked with W = 0
+        model.W.copy_(torch.tensor([[0.0, 2.0], [-2.0, 0.0]]))
+        sol = odeint(model, x0, t, method="rk4", compile=True)
+        eager = odeint(model, x0, t, method="rk4", compile=False)
+    assert sol.stats.extra["compiled"]
+    torch.testing.assert_close(sol.x, eager.x, rtol=1e-13, atol=1e-13)
+    exact = torch.linalg.matrix_exp(-torch.eye(2, dtype=torch.float64) + 0.5 * model.W.detach())
+    assert float((sol.x[0, -1] - exact @ x0[0]).abs().max()) < 1e-5  # RK4 at h = 0.1: 2e-6
+
+
 def test_every_model_gets_its_own_compiled_chunk(monkeypatch):
     """Dynamo stops compiling a code object after ``recompile_limit`` graphs (8 by default,
     2 here) and then runs it eagerly without an error; each model's (and state shape's) chunk

@@ -2,7 +2,8 @@
 
 * :func:`compiled_stepper` (``compiled``): the entry point, a cached ``torch.compile`` of the
   solver's chunk function with its eager fallbacks;
-* ``cat_forwarding``: the inductor graph pass behind component-major compiled chunks;
+* ``passes``: the inductor graph passes of every compiled chunk, ``cat_forwarding`` the one
+  behind component-major chunks;
 * ``buffers``: output buffers on huge pages and the memory still available on a device.
 """
 

@@ -19,8 +19,8 @@ piece that holds them, so the buffer is no longer needed and is removed as dead 
 Every rewrite only removes data movement (the same values, dtype and shape are read), so the
 compiled function's results are unchanged. Together with a component-major state layout
 (``explicit.py``) the stages of a step of a component-wise model fuse into one vectorised loop.
-The pass runs on inductor's post-grad ATen graph (``post_grad_custom_pre_pass``) of the
-compiled explicit Runge-Kutta chunk only.
+The pass runs on inductor's post-grad ATen graph (``post_grad_custom_pre_pass``, see
+``passes``) of the compiled component-major chunk only.
 """
 
 from __future__ import annotations
@@ -28,7 +28,6 @@ from __future__ import annotations
 import operator
 
 import torch
-from torch._inductor.custom_graph_pass import CustomGraphPass, get_hash_for_files
 
 _aten = torch.ops.aten
 
@@ -175,16 +174,6 @@ def forward_cat_reads(graph: torch.fx.Graph) -> int:
                 total += 1
         graph.eliminate_dead_code()
     return total
-
-
-class CatForwardingPass(CustomGraphPass):
-    """:func:`forward_cat_reads` as an inductor ``CustomGraphPass`` (cache key: this file)."""
-
-    def __call__(self, graph: torch.fx.Graph) -> None:
-        forward_cat_reads(graph)
-
-    def uuid(self):
-        return get_hash_for_files((__file__,))
 
 
 def reads_only_components(call, x: torch.Tensor) -> bool:

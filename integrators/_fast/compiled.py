@@ -9,8 +9,10 @@ gives other numbers than the eager chunk (a compiler fault: the compiled graph o
 takes second derivatives inside ``f`` can silently drop them), or when the compiled graph
 cannot be differentiated (a model that calls autograd inside ``f``); the reason is reported.
 
-Component-wise models (``cat_forwarding.reads_only_components``) run without autograd get a
-component-major chunk compiled with the cat-forwarding graph pass (``cat_forwarding``).
+Every chunk is compiled with the graph passes of ``passes`` (a known inductor fault in
+``add``/``sub`` with ``alpha`` is rewritten away); component-wise models
+(``cat_forwarding.reads_only_components``) run without autograd get a component-major chunk
+whose graph also goes through the cat-forwarding pass (``cat_forwarding``).
 """
 
 from __future__ import annotations
@@ -291,13 +293,13 @@ def compiled_stepper(
     key = (n_out, component_major, *state)
     if active and key not in entry.compiled:
         tic = time.perf_counter()  # the first torch.compile imports dynamo/inductor (seconds)
-        from .cat_forwarding import CatForwardingPass
+        from .passes import ChunkGraphPass
 
         entry.reference[key] = make_chunk(n_out, component_major)
         entry.compiled[key] = torch.compile(
             _with_own_code(entry.reference[key]),
             dynamic=False,
-            options={"post_grad_custom_pre_pass": CatForwardingPass()} if component_major else {},
+            options={"post_grad_custom_pre_pass": ChunkGraphPass(forward_cats=component_major)},
         )
         compile_s += time.perf_counter() - tic
     return Stepper(f, entry, want, active, key, compile_s, threshold)
