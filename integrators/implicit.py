@@ -80,7 +80,7 @@ def _implicit_tableau(method, stages, adaptive) -> tuple[ButcherTableau, bool]:
     return tab, kind == IMPLICIT_ADAPTIVE
 
 
-def _split_options(options: dict, adaptive: bool) -> dict:
+def check_solver_options(options: dict, adaptive: bool) -> dict:
     """Check the solver options (``**newton_options``) of an integration with or without
     step-size control (``adaptive``) and return them."""
     unknown = set(options) - _NEWTON_KEYS
@@ -136,7 +136,7 @@ def _entry(x0, t, method, stages, adaptive, controller, newton_options, run, alg
     x0 = check_state(x0, "x0", min_width=0 if algebraic else 1)
     tab, adaptive = _implicit_tableau(method, stages, adaptive)
     check_controller(controller, tab.name, adaptive)
-    options = _split_options(newton_options, adaptive)
+    options = check_solver_options(newton_options, adaptive)
     check_tolerances(run["rtol"], run["atol"], x0.dtype)
     # tensor tolerances: per state (*batch, nx), or per sample (*batch, 1) beside algebraic states
     shape = (*x0.shape[:-1], 1) if algebraic else x0.shape

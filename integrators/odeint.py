@@ -115,7 +115,9 @@ def odeint(
         **kwargs: ``adaptive`` (``True``, ``False`` or ``None``: the method's default);
             ``adaptive=False`` runs an embedded pair (e.g. dopri5) at fixed step; other
             keywords go to the implicit solver (Newton options, see
-            :func:`integrators.implicit.solve_implicit_ode`).
+            :func:`integrators.implicit.solve_implicit_ode`). With ``method="auto"`` they
+            are checked whatever is picked and left unused when dopri5 is (listed in
+            ``stats.extra["auto"]["unused_options"]``).
 
     Gradients reach ``x0`` and the model's parameters with every method. Gradients with
     respect to the output times ``t`` are supported by the fixed-step explicit methods (the
@@ -182,13 +184,17 @@ def odeint(
     )
     if chosen.kind == AUTO:
         from .auto import choose_method
+        from .implicit import check_solver_options
 
         if stages is not None:
             chosen.tableau(stages)  # raises: "auto" takes no stages
         chosen.check_options(AUTO, **options)
+        check_solver_options(kwargs, adaptive=True)  # Radau's: refused now whatever is picked
         name, info = choose_method(rhs, x0, t)
+        unused = sorted(kwargs) if name == "dopri5" else []
+        kwargs = {} if unused else kwargs
         sol = _dispatch(rhs, x0, t, resolve_method(name), stages, adaptive, options, kwargs)
-        sol.stats.extra["auto"] = {"method": name, **dict(info)}
+        sol.stats.extra["auto"] = {"method": name, **dict(info), "unused_options": unused}
         return sol
     return _dispatch(rhs, x0, t, chosen, stages, adaptive, options, kwargs)
 

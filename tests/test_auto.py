@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from integrators import odeint
+from integrators import InputValidationError, odeint
 from integrators.auto import choose_method
 from sysid.zoo import StiffLinear
 
@@ -41,3 +41,33 @@ def test_odeint_auto_records_choice_and_solves_stiff_problem():
     particular = c * (torch.cos(t) - torch.sin(t) / lam)
     exact = particular + (x0 - c) * torch.exp(lam * t)
     assert float((sol.x[..., 0] - exact).abs().max()) < 1e-6
+
+
+@pytest.mark.parametrize("lam,expected", [(-1.0, "dopri5"), (-2.0e3, "radau_iia")])
+def test_implicit_solver_options_are_accepted_whichever_method_is_picked(lam, expected):
+    """A call with Radau's options (host_loop, max_iter) is valid or not regardless of the
+    stiffness estimate: dopri5 leaves them unused and says so, Radau IIA uses them; a
+    misspelt option is refused for both. Before, the same call raised when dopri5 was picked.
+    The closed form of x' = lam x checks both runs."""
+    t = torch.linspace(0, 1, 101)
+    x0 = torch.ones(2, 1)
+    sol = odeint(
+        lambda t, x: lam * x,
+        x0,
+        t,
+        method="auto",
+        rtol=1e-9,
+        atol=1e-12,
+        host_loop=False,
+        max_iter=10,
+    )
+    auto = sol.stats.extra["auto"]
+    assert auto["method"] == expected
+    assert auto["unused_options"] == (["host_loop", "max_iter"] if expected == "dopri5" else [])
+    if expected == "radau_iia":
+        assert sol.stats.extra["driver"] == "torch"  # host_loop=False was applied
+    torch.testing.assert_close(
+        sol.x[..., 0], torch.exp(lam * t).expand(2, -1), rtol=1e-6, atol=1e-9
+    )
+    with pytest.raises(InputValidationError, match="unknown option.*max_iters"):
+        odeint(lambda t, x: lam * x, x0, t, method="auto", max_iters=10)
