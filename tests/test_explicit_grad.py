@@ -222,13 +222,23 @@ def test_checkpoint_argument_is_validated():
     assert odeint(f, x0, t, method="dopri5", adaptive=False, checkpoint=2).success
 
 
-def test_compiled_gradient_of_a_model_calling_autograd_inside_f_runs_eagerly():
+def test_compiled_gradient_of_a_model_calling_autograd_inside_f_runs_eagerly(monkeypatch):
     """A Lagrangian plant calls autograd inside f; aot_autograd cannot differentiate the
     double-backward graph of a compiled chunk, so with autograd on the run falls back to eager
     (reported), and its gradient equals the eager one (without the fallback: RuntimeError in
-    the caller's backward)."""
+    the caller's backward). The fallback is decided once: the run's later chunks neither
+    compile-run nor probe again (each chunk repeated the eager reference, the compiled chunk
+    and the backward probe), and no compiled step is reported."""
+    from integrators import explicit
+    from integrators._fast import compiled
     from sysid.zoo import SpringMass
 
+    monkeypatch.setattr(explicit, "CHUNK_STEPS", 2)  # several chunks per run
+    probes = []
+    backward_works = compiled._backward_works
+    monkeypatch.setattr(
+        compiled, "_backward_works", lambda *a: probes.append(1) or backward_works(*a)
+    )
     plant = SpringMass()
     x0 = torch.tensor([[1.5, 0.0], [1.0, 0.2]], dtype=torch.float64)
     t = torch.linspace(0.0, 1.0, 6, dtype=torch.float64)
@@ -241,4 +251,7 @@ def test_compiled_gradient_of_a_model_calling_autograd_inside_f_runs_eagerly():
     # compiled (when dynamo already runs the model's frames eagerly, the probe passes) or an
     # eager fallback reported with its reason
     assert extras[1]["compiled"] != bool(extras[1]["compile_fallback"]), extras[1]
+    assert len(probes) == 1
+    if extras[1]["compile_fallback"]:
+        assert extras[1]["compiled_from_step"] is None
     torch.testing.assert_close(grads[1], grads[0], rtol=1e-13, atol=0)

@@ -172,8 +172,10 @@ class Stepper:
 
     @property
     def active(self) -> bool:
-        """Whether calls may run compiled (wanted, and not given up before)."""
-        return self._active and not self._entry.failed
+        """Whether calls may run compiled (wanted, and not given up before: for this run's
+        grad mode, a compiled graph that cannot be differentiated is given up too)."""
+        entry = self._entry
+        return self._active and not entry.failed and not (self._grad_mode and entry.backward_failed)
 
     def __call__(self, x: torch.Tensor, *args):
         """The compiled chunk's ``(x_new, outputs)`` for ``chunk(x, *args)``, or None: nothing
@@ -183,7 +185,7 @@ class Stepper:
         or gives other numbers (beyond ``sqrt(eps)`` of their magnitude) is given up for this
         model and configuration."""
         entry = self._entry
-        if not self._active or entry.failed:
+        if not self.active:
             return None
         signature = (self._key, self._grad_mode, x.requires_grad)
         fresh = signature not in entry.signatures
@@ -218,10 +220,8 @@ class Stepper:
     def stats(self) -> dict:
         """``compiled`` (every compiled chunk of the run ran compiled), ``compile_fallback``
         (why a requested compiled run went eager, else None) and ``compile_s``."""
-        entry = self._entry
-        compiled = self._active and not entry.failed
-        compiled = compiled and not (self._grad_mode and entry.backward_failed)
-        fallback = (entry.failure or None) if self._want and not compiled else None
+        compiled = self.active
+        fallback = (self._entry.failure or None) if self._want and not compiled else None
         return {"compiled": compiled, "compile_fallback": fallback, "compile_s": self.compile_s}
 
 
