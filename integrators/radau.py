@@ -107,6 +107,13 @@ class RadauKernel(Protocol):
         """Move the ``accept`` samples to their step ends and record the steps ``[tcur, tcur
         + h]`` for dense output."""
 
+    def restart(self, mask: np.ndarray, tcur: np.ndarray) -> None:
+        """At an input breakpoint ``tcur`` reached by the ``mask`` samples: ``x'`` consistent
+        with the input from there on, for the next step's error estimate (called for DAEs and
+        implicit ODEs only, whose ``x'`` at a step end is the step's last stage, solved with
+        the input before the breakpoint). The recorded ``z`` stays the step end's: outputs at a
+        sample time hold the input of the interval that ends there, as at fixed steps."""
+
     def escaping(self) -> np.ndarray:
         """:func:`escaping` at the current states (called for DAEs and implicit ODEs only)."""
 
@@ -306,8 +313,15 @@ def adaptive_loop(
             h = ops.steps(where(accept, h_acc, where(reject, h_rej, h)))
             active &= not_(accept & (tcur >= t_end))
             if any_(accept):  # past a stop: the next one; a step cut short there keeps its plan
-                h = where(reached & active, ops.maximum(h, h_planned), h)
-                next_stop = where(reached & active, next_stop + 1, next_stop)
+                restart = reached & active
+                h = where(restart, ops.maximum(h, h_planned), h)
+                next_stop = where(restart, next_stop + 1, next_stop)
+                if any_(restart):  # the input may jump here: no history carried across
+                    if not ode:
+                        kernel.restart(restart, tcur)
+                    h_old = where(restart, 0.0, h_old)
+                    err_old = where(restart, 1.0, err_old)
+                    have_prev &= not_(restart)
 
     records = kernel.records()
     status = np.array(ops.host(status, np.int8))
@@ -486,6 +500,17 @@ class TorchKernel:
         self.z = masked_update(accept, self.Wg[..., -1, n:], self.z) if m else self.z
         self.xdot = masked_update(accept, xdot_new, self.xdot)
         self.prev_W = self.W if self.prev_W is None else masked_update(accept, self.W, self.prev_W)
+
+    def restart(self, mask, tcur):
+        core = self.core
+        t = to_device(np.asarray(tcur, dtype=self.hdt), self.x0, self.dtype, shape=self.batch)
+        t = t[..., None]
+        with torch.no_grad():
+            xdot, _, res = core.system.algebraic_states(
+                t, self.x.detach(), self.z.detach(), core.signal.at(t), self.xdot
+            )
+        solved = mask & to_host(res.converged, self.hshape)  # the others keep their guesses
+        self.xdot = masked_update(solved, xdot, self.xdot)
 
     def escaping(self):
         return escaping(self.x, self.z, self.x0, self.z0, self.hshape)

@@ -302,6 +302,55 @@ def test_sampled_input_and_batch_of_parameters():
     assert math.isclose(float(sol.z[1, 0, 0]), 0.5, abs_tol=1e-12)
 
 
+def _two_mass_544_exact(x0, t, u, m2, K, rho):
+    """Eq. 5.44 (x = (x2, x2'), z = x1, 0 = x2 - 2 z + u/K) with a zero-order-hold u: on each
+    sample interval z = (x2 + u_k/K)/2 and x' = A x + b u_k, A = [[0, 1], [-K/(2 m2),
+    -rho/m2]], b = (0, 1/(2 m2)): exact steps by the matrix exponential of [[A, b], [0, 0]]."""
+    M = torch.zeros(3, 3)
+    M[0, 1], M[1, 0], M[1, 1], M[1, 2] = 1.0, -K / (2 * m2), -rho / m2, 1 / (2 * m2)
+    xs, x = [x0], x0
+    for k in range(len(t) - 1):
+        x = (torch.linalg.matrix_exp(M * (t[k + 1] - t[k])) @ torch.cat([x, u[k]]))[:2]
+        xs.append(x)
+    return torch.stack(xs)
+
+
+@pytest.mark.parametrize("form", ["semi_explicit", "implicit"])
+def test_zoh_input_jumps_restart_the_step_derivative(form):
+    """A zero-order-hold input makes z jump at every sample time. The adaptive loop stops
+    there and must restart with z and x' consistent with the new input: it carried the last
+    stage's x' (old input) into the next error estimate, whose error then fell only like h,
+    and 6 of 9 starts within 2e-5 of each other stopped with STEP_TOO_SMALL at t = 0.8.
+    Truth: the exact ZOH solution of the reduced linear ODE (eq. 5.44); z at the sample times
+    as the fixed-step driver reports it."""
+    from sysid.zoo import TwoMassSystem
+
+    m2, K, rho = 1.3, 20.0, 1.5
+    plant = TwoMassSystem(m2=m2, K=K, rho=rho)
+    if form == "semi_explicit":
+        problem = SemiExplicitDAE(plant.f_544, plant.g_544)
+    else:
+        problem = ImplicitDAE(
+            lambda t, xd, x, z, u: torch.cat(
+                [xd - plant.f_544(t, x, z, u), plant.g_544(t, x, z, u)], -1
+            )
+        )
+    t = torch.linspace(0, 1.0, 6)
+    u = torch.sin(3 * t)[:, None] * 0.7 + 0.2
+    x0 = torch.tensor([0.3, -0.1]) + torch.linspace(0, 2e-5, 9)[:, None] * torch.tensor([0, 1])
+    with torch.no_grad():
+        sol = daeint(problem, x0, torch.zeros(9, 1), t, u=u, rtol=1e-9, atol=1e-11)
+    assert (sol.status == Status.SUCCESS).all(), sol.messages
+    exact = torch.stack([_two_mass_544_exact(x, t, u, m2, K, rho) for x in x0])
+    assert float((sol.x - exact).abs().max()) < 1e-9
+    # z at a sample time holds the input of the interval ending there, as at fixed steps
+    held = torch.cat([u[:1, 0], u[:-1, 0]])
+    torch.testing.assert_close(sol.z[..., 0], (exact[..., 0] + held / K) / 2, rtol=0, atol=1e-9)
+    with torch.no_grad():
+        fixed = daeint(problem, x0, torch.zeros(9, 1), t, u=u, adaptive=False, substeps=40)
+    torch.testing.assert_close(sol.z, fixed.z, rtol=0, atol=1e-7)
+
+
 # ------------------------------------------- fully implicit DAE losing index 1 on the way
 def _crossing_dae(a, rhs_x):
     """Fully implicit DAE F(t, x', x, z) = 0 (eq. 7.53) with one state x and one algebraic z:
