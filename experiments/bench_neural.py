@@ -19,8 +19,9 @@ simulated windows from their measured initial states. Peers:
 Reported: seconds per epoch, the ratio to ours, and the training loss after the same number
 of epochs (ours and ``odeint`` compute the same numbers, so they agree to rounding; the
 adjoint's gradient is that of the discretised adjoint, close but not equal). Memory of one
-long-horizon gradient (a single window of ``long`` intervals): the bytes autograd saves for
-the backward pass during the forward simulation (a ``saved_tensors_hooks`` count: exact and
+long-horizon gradient (a single window of ``long`` intervals): the bytes of the distinct
+storages autograd holds for the backward pass after the forward simulation (a
+``saved_tensors_hooks`` count, each storage once however many stages saved it: exact and
 device-independent; the adjoint saves almost nothing in the forward pass and re-integrates
 backwards instead).
 
@@ -74,6 +75,7 @@ import torch
 import torchdiffeq
 from torch import nn
 
+from experiments._graph_memory import GraphMemory, with_large_stack
 from integrators import odeint as rk_odeint
 
 DT = 0.1
@@ -152,20 +154,21 @@ def train(peer, data, hidden, epochs, T):
 
 
 def saved_bytes(peer, data, hidden, n):
-    """Bytes saved for backward during the forward pass of one window of n intervals."""
+    """Bytes the autograd graph of one window of n intervals holds for its backward pass
+    (:class:`~experiments._graph_memory.GraphMemory`: each storage once, so the weights that
+    every stage saves count once)."""
     f = MLP(hidden)
     t = DT * torch.arange(n + 1, dtype=torch.float64)
-    seen = {"bytes": 0}
 
-    def pack(x):
-        seen["bytes"] += x.numel() * x.element_size()
-        return x
+    def measured():
+        with GraphMemory() as meter:
+            e = simulate(peer, f, data[0], t) - data[: n + 1]
+            loss = (e * e).mean()
+            saved = meter.saved_bytes(loss)
+        loss.backward()
+        return saved
 
-    with torch.autograd.graph.saved_tensors_hooks(pack, lambda x: x):
-        e = simulate(peer, f, data[0], t) - data[: n + 1]
-        loss = (e * e).mean()
-    loss.backward()
-    return seen["bytes"]
+    return with_large_stack(measured)
 
 
 def main(argv=None):

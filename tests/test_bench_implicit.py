@@ -13,7 +13,8 @@ import torch
 from conftest import recorded_figures
 
 from experiments._common import figure_defects
-from experiments.bench_implicit import GraphMemory, main, unrolled_newton
+from experiments._graph_memory import GraphMemory
+from experiments.bench_implicit import main, unrolled_newton
 
 #: the figures the module's quick run saved, by file name
 FIGURES: dict = {}
