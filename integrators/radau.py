@@ -176,9 +176,8 @@ def adaptive_loop(
     if breaks is not None:
         grid = to_host(breaks).astype(hdt)
         stops = np.concatenate([stops[:1], grid[(grid > stops[0]) & (grid < stops[1])], stops[1:]])
-    snaps = stops - 1e-14 * np.abs(stops)  # a step ending this close lands on the stop
     if ops.scalar:
-        stops, snaps = stops.tolist(), snaps.tolist()
+        stops = stops.tolist()
     next_stop = ops.counts() + 1  # index of each sample's next stop
     min_step = 16 * core.eps
 
@@ -212,7 +211,10 @@ def adaptive_loop(
         while any_(active):
             t_stop = stops[next_stop]
             h_planned = h
-            h = where(active & (tcur + h >= t_stop), t_stop - tcur, h)
+            # a step that would reach the stop, or leave less than the smallest step before
+            # it, ends on it (its time is set to the stop: no sliver left by rounding)
+            to_stop = active & (tcur + h + min_step * ops.maximum(ops.abs(tcur), 1.0) >= t_stop)
+            h = where(to_stop, t_stop - tcur, h)
             tiny = active & (h <= min_step * ops.maximum(ops.abs(tcur), 1.0))
             if any_(tiny):
                 escape = tiny & not_(nonfinite_last)
@@ -296,8 +298,7 @@ def adaptive_loop(
             if any_(accept):  # accepted samples advance
                 kernel.advance(accept, tcur, h_step)
                 tcur = pick(accept, tcur + h_step, tcur)
-                snap = snaps[next_stop]
-                reached = accept & (tcur >= snap)
+                reached = accept & to_stop
                 tcur = where(reached, t_stop, tcur)
                 prev_h = pick(accept, h_step, prev_h)
                 have_prev |= accept

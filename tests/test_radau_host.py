@@ -324,6 +324,35 @@ def test_sampled_input_held_per_interval_against_exact_discretisation(evaluation
     assert float(((steps_host - steps_dev).abs() / steps_dev).max()) < 0.05
 
 
+@pytest.mark.parametrize("host_loop", [True, False])
+@pytest.mark.parametrize("x0_shape", [(2,), (3, 2)])
+def test_float32_steps_land_on_the_input_sample_times(host_loop, x0_shape):
+    """A float32 step cut to an input sample time ended one rounding short of it (t_k + (t_s -
+    t_k) != t_s in float32), left a sliver below the smallest step, and the run stopped with
+    STEP_TOO_SMALL at the first sample time; a step cut to a stop now ends on it. Truth: the
+    exact zero-order-hold discretisation of x'' = -4 x - 0.5 x' + u (float64 matrix
+    exponential), to float32's accuracy at rtol 1e-5."""
+    t = 0.05 * torch.arange(21, dtype=torch.float64)
+    u = torch.sin(7 * t)[:, None]
+    x0 = torch.tensor([1.0, 0.0], dtype=torch.float32).expand(*x0_shape).clone()
+
+    def f(t, x, u):
+        return torch.stack([x[..., 1], -4 * x[..., 0] - 0.5 * x[..., 1] + u[..., 0]], -1)
+
+    sol = odeint(f, x0, t, u=u, method="radau_iia", rtol=1e-5, atol=1e-7, host_loop=host_loop)
+    assert sol.success, sol.messages
+    assert sol.x.dtype == torch.float32
+    M = torch.zeros(3, 3, dtype=torch.float64)
+    M[0, 1], M[1, 0], M[1, 1], M[1, 2] = 1.0, -4.0, -0.5, 1.0
+    step = torch.linalg.matrix_exp(0.05 * M)
+    x, exact = x0[..., :].double().reshape(-1, 2)[0], []
+    for k in range(21):
+        exact.append(x)
+        x = (step @ torch.cat([x, u[k]]))[:2]
+    exact = torch.stack(exact)
+    assert float((sol.x.double() - exact).abs().max()) < 1e-4
+
+
 @settings(max_examples=5, deadline=None)
 @given(lam=st.floats(-1e6, -1e-2), x0=st.floats(-3.0, 3.0))
 @example(lam=-3.0, x0=5e-324)  # a subnormal state: the drivers may round it differently
