@@ -27,7 +27,9 @@ from .jacobians import batch_jacobian
 def root_derivatives(phi, v_star):
     """The converged root ``v_star`` of ``phi(v) = 0`` with its first and second derivatives
     with respect to everything ``phi`` uses (``x0``, module parameters, captured tensors;
-    :func:`~integrators.newton.root_with_derivatives`, exact Jacobian at the root)."""
+    :func:`~integrators.newton.root_with_derivatives`, exact Jacobian at the root). A member
+    whose Jacobian is singular there (a stopped sample solved at placeholder values, its
+    result unused) gets non-finite derivatives of its own; the others are unaffected."""
     from .newton import root_with_derivatives
 
     if not torch.is_grad_enabled():
@@ -37,7 +39,7 @@ def root_derivatives(phi, v_star):
     if not r.requires_grad:
         return v_star
     _, J = batch_jacobian(phi, v_star)
-    lu, piv = torch.linalg.lu_factor(J)
+    lu, piv, _ = torch.linalg.lu_factor_ex(J)
     return root_with_derivatives(
         phi, v_star, lambda b: torch.linalg.lu_solve(lu, piv, b[..., None])[..., 0], r_star=r
     )

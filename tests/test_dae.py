@@ -351,6 +351,24 @@ def test_zoh_input_jumps_restart_the_step_derivative(form):
     torch.testing.assert_close(sol.z, fixed.z, rtol=0, atol=1e-7)
 
 
+def test_a_stopped_member_does_not_stop_the_gradient_of_the_others():
+    """0 = z^2 - x with x' = -1: the member from x0 = 1 heads for the impasse x = 0 (dg/dz = 2z
+    singular) at t = 1 and runs out of step attempts on the way; the member from x0 = 4 runs to
+    t = 2 with z = sqrt(4 - t). With autograd on, the output z of the stopped member, solved
+    at placeholder zeros, raised from a singular LU factorisation for the whole batch. Now the
+    statuses are those of a run without autograd and the healthy member's gradient is the
+    closed form d(x + z)(2)/dx0 = 1 + 1 / (2 sqrt 2)."""
+    problem = SemiExplicitDAE(lambda t, x, z: -torch.ones_like(x), lambda t, x, z: z * z - x)
+    t = torch.linspace(0, 2, 9)
+    x0 = torch.tensor([[1.0], [4.0]], requires_grad=True)
+    z0 = torch.tensor([[1.0], [2.0]])
+    sol = daeint(problem, x0, z0, t, rtol=1e-8, atol=1e-10, max_steps=40)
+    assert sol.status.tolist() == [int(Status.MAX_STEPS), int(Status.SUCCESS)]
+    (grad,) = torch.autograd.grad(sol.x[1, -1, 0] + sol.z[1, -1, 0], x0)
+    assert grad[0, 0] == 0.0
+    assert math.isclose(float(grad[1, 0]), 1 + 1 / (2 * math.sqrt(2)), rel_tol=1e-6)
+
+
 # ------------------------------------------- fully implicit DAE losing index 1 on the way
 def _crossing_dae(a, rhs_x):
     """Fully implicit DAE F(t, x', x, z) = 0 (eq. 7.53) with one state x and one algebraic z:
