@@ -90,11 +90,12 @@ from ._irk_core import StageInputs, stacked_call_agrees
 from ._irk_dense import extrapolation_matrix
 from ._options import check_int, check_state, check_times, sample_indices
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
+from .explicit import _failure_messages
 from .inputs import CollocationInput
 from .jacobians import batch_jacobian
 from .methods import EXPLICIT_FIXED, resolve_method
 from .newton import NewtonStatus, _default_tol, newton
-from .solution import SolverStats
+from .solution import SolverStats, Status
 from .tableau import ButcherTableau
 
 __all__ = ["SensitivityResult", "sensitivities", "variational_sensitivities"]
@@ -119,6 +120,11 @@ class SensitivityResult:
             (*batch, T, nx, T, nu) ``dx_k / du_j`` for sampled inputs (eq. 8.34),
             (*batch, T, nx, T-1, q, nu) ``dx_k / dP_{j,i}`` for a
             :class:`~integrators.inputs.CollocationInput` (eq. 8.32); None otherwise.
+        status: (*batch,) int8 :class:`~integrators.solution.Status` per sample: SUCCESS,
+            or NON_FINITE where the states or their sensitivities became inf/nan (an explicit
+            run that escapes to infinity); such a sample's ``x``, ``A``, ``B`` and ``C`` are
+            NaN from the first output time that is not finite on, and ``messages`` name it.
+        messages: one line per failed sample.
         stats: :class:`~integrators.solution.SolverStats`: ``n_steps``, ``n_f_evals`` and
             ``n_jac_evals`` (batched calls of ``f`` and of its stage Jacobian),
             ``n_newton_iters`` and ``n_factorizations`` (LU factorisations of the Newton matrix,
@@ -133,7 +139,19 @@ class SensitivityResult:
     A: torch.Tensor
     B: torch.Tensor | None = None
     C: torch.Tensor | None = None
+    status: torch.Tensor | None = None
+    messages: list[str] = field(default_factory=list)
     stats: SolverStats = field(default_factory=SolverStats)
+
+    def __post_init__(self):
+        if self.status is None:
+            batch = self.x.shape[:-2]
+            self.status = torch.zeros(batch, dtype=torch.int8, device=self.x.device)
+
+    @property
+    def success(self) -> bool:
+        """Whether every sample succeeded."""
+        return bool((self.status == Status.SUCCESS).all())
 
 
 def _model(f: Callable, has_u: bool, has_p: bool) -> Callable:
@@ -752,14 +770,45 @@ def sensitivities(
         stats.n_f_evals, stats.n_jac_evals = solver.n_f, solver.n_jac
         stats.n_newton_iters, stats.n_factorizations = solver.n_iter, solver.n_lu
         stats.extra["stacked_stages"] = bool(solver.stack)
-    return SensitivityResult(
-        t=t,
-        x=torch.stack(xs_out, -2),
-        A=torch.stack(As_out, -3) if derivatives else None,
-        B=None if p is None or not derivatives else torch.stack(Bs_out, -3),
-        C=None if C is None else torch.stack(Cs_out, -3).unflatten(-1, inputs.shape),
-        stats=stats,
+    return _with_failures(
+        SensitivityResult(
+            t=t,
+            x=torch.stack(xs_out, -2),
+            A=torch.stack(As_out, -3) if derivatives else None,
+            B=None if p is None or not derivatives else torch.stack(Bs_out, -3),
+            C=None if C is None else torch.stack(Cs_out, -3).unflatten(-1, inputs.shape),
+            stats=stats,
+        )
     )
+
+
+def _with_failures(res: SensitivityResult) -> SensitivityResult:
+    """``res`` with the samples whose states or sensitivities are not finite at some output
+    time marked NON_FINITE, their outputs NaN from that time on (inf/nan are absorbing in a
+    run), and one message each (the wording of :func:`~integrators.odeint.odeint`)."""
+    T = res.x.shape[-2]
+    bad = ~torch.isfinite(res.x).all(-1)  # (*batch, T)
+    for value in (res.A, res.B, res.C):
+        if value is not None:  # (*batch, T, ...): every entry of an output time
+            tail = tuple(range(res.x.dim() - 1, value.dim()))
+            bad = bad | ~torch.isfinite(value).all(dim=tail)
+    failed = bad.any(-1)
+    if not bool(failed.any()):
+        return res
+    first = torch.where(failed, bad.to(torch.int8).argmax(-1), T)
+    late = torch.arange(T, device=bad.device) >= first.unsqueeze(-1)  # (*batch, T)
+
+    def nan_late(value, dims):
+        mask = late.reshape(*late.shape, *([1] * dims))
+        return torch.where(mask, torch.full_like(value, float("nan")), value)
+
+    for name in ("x", "A", "B", "C"):
+        value = getattr(res, name)
+        if value is not None:
+            setattr(res, name, nan_late(value, value.dim() - late.dim()))
+    res.status = torch.where(failed, Status.NON_FINITE.value, res.status).to(torch.int8)
+    res.messages = _failure_messages(failed, first, res.t)
+    return res
 
 
 def variational_sensitivities(
@@ -825,4 +874,7 @@ def variational_sensitivities(
         x=z[..., :nx],
         A=z[..., nx : nx + nx * nx].unflatten(-1, (nx, nx)),
         B=None if p is None else z[..., nx + nx * nx :].unflatten(-1, (nx, n_p)),
+        status=sol.status,
+        messages=sol.messages,
+        stats=sol.stats,
     )

@@ -15,6 +15,7 @@ from _shared_models import pendulum
 from integrators import (
     InputValidationError,
     SingularMatrixError,
+    Status,
     TableauError,
     gauss_legendre,
     odeint,
@@ -537,3 +538,39 @@ def test_piecewise_linear_input_closed_forms(method, order):
     ]
     assert errors[1] < 1e-5
     assert order - 0.3 < math.log2(errors[0] / errors[1]) < order + 0.6, errors
+
+
+@pytest.mark.parametrize("kind", ["discrete", "variational"])
+def test_a_member_escaping_to_infinity_gets_a_status_a_message_and_nan(kind):
+    """x' = p x^2 escapes to infinity at t = 1 / (p x0): from x0 = 1 within [0, 2], not from
+    x0 = 0.2. The escaping member returned inf / NaN states and sensitivities with no status
+    or message (odeint reports NON_FINITE); now its x, A and B are NaN from the first
+    non-finite output time on, as odeint's x, with status NON_FINITE and one message, and the
+    other member equals its run alone (closed forms x = x0 / (1 - p x0 t), dx/dx0 =
+    1 / (1 - p x0 t)^2 to RK4's accuracy)."""
+    t = torch.linspace(0.0, 2.0, 21, dtype=torch.float64)
+    x0 = torch.tensor([[1.0], [0.2]], dtype=torch.float64)
+    p = torch.tensor([1.0], dtype=torch.float64)
+
+    def f(t, x, p):
+        return p[..., :1] * x * x
+
+    def run(x0):
+        if kind == "discrete":
+            return sensitivities(f, x0, t, p, method="rk4", substeps=4)
+        return variational_sensitivities(f, x0, t, p, method="rk4", substeps=4)
+
+    res = run(x0)
+    assert res.status.tolist() == [int(Status.NON_FINITE), int(Status.SUCCESS)]
+    assert not res.success and len(res.messages) == 1 and "sample 0" in res.messages[0]
+    sim = odeint(lambda t, x: x * x, x0, t, method="rk4", substeps=4)
+    late = torch.isnan(sim.x[0, :, 0])
+    assert late.any() and (torch.isnan(res.x[0, :, 0]) == late).all()
+    assert torch.isnan(res.A[0, late]).all() and torch.isnan(res.B[0, late]).all()
+    assert torch.isfinite(res.A[0, ~late]).all() and torch.isfinite(res.B[0, ~late]).all()
+    alone = run(x0[1:])
+    torch.testing.assert_close(res.x[1:], alone.x, rtol=1e-14, atol=0)
+    torch.testing.assert_close(res.A[1:], alone.A, rtol=1e-14, atol=0)
+    exact = 0.2 / (1 - 0.2 * t)
+    torch.testing.assert_close(res.x[1, :, 0], exact, rtol=1e-6, atol=0)
+    torch.testing.assert_close(res.A[1, :, 0, 0], (exact / 0.2) ** 2, rtol=1e-5, atol=0)
