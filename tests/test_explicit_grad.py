@@ -251,7 +251,7 @@ def test_compiled_gradient_of_a_model_calling_autograd_inside_f_runs_eagerly(mon
     # compiled (when dynamo already runs the model's frames eagerly, the probe passes) or an
     # eager fallback reported with its reason
     assert extras[1]["compiled"] != bool(extras[1]["compile_fallback"]), extras[1]
-    assert len(probes) == 1
+    assert len(probes) <= 1  # none where the compiled chunk was given up before the probe
     if extras[1]["compile_fallback"]:
         assert extras[1]["compiled_from_step"] is None
     torch.testing.assert_close(grads[1], grads[0], rtol=1e-13, atol=0)
