@@ -90,6 +90,9 @@ class LLSResult:
             their thresholds (see ``_screened_condition``).
         dof: residual degrees of freedom ``M - p``.
         normal_inverse: ``(A'WA)^{-1}``, ``(*batch, p, p)``.
+        singular: ``(*batch,)`` bool: the problems whose ``A'WA`` is numerically singular
+            (all False unless ``singular="nan"``); their estimate, standard errors, ``sigma2``,
+            covariance, normal inverse and residuals are NaN and their condition numbers inf.
 
     ``covariance``, ``residuals``, ``condition_number``, ``scaled_condition_number`` and
     ``normal_inverse`` are properties: where the solver deferred them (:func:`fir_lls`;
@@ -100,6 +103,7 @@ class LLSResult:
     standard_errors: torch.Tensor
     sigma2: torch.Tensor
     dof: int
+    singular: torch.Tensor
     _covariance: torch.Tensor | Callable[[], torch.Tensor] = field(repr=False)
     _normal_inverse: torch.Tensor | Callable[[], torch.Tensor] = field(repr=False)
     _scaled_condition_number: torch.Tensor | Callable[[], torch.Tensor] = field(repr=False)
@@ -292,6 +296,7 @@ def lls(
     *,
     method: str = "qr",
     cond_warn: float = DEFAULT_COND_WARN,
+    singular: str = "raise",
 ) -> LLSResult:
     """Weighted linear least squares ``theta = (A'WA)^{-1} A'W y`` (eq. 4.81), batched.
 
@@ -315,14 +320,17 @@ def lls(
             condition number of ``A'WA`` exceeds this (see :data:`DEFAULT_COND_WARN`), or
             ``ROUNDING_WARN / eps`` of the dtype if smaller (see :data:`ROUNDING_WARN`); the
             message gives the number of correct digits left, ``-log10(eps * cond)``.
+        singular: where ``A'WA`` is numerically singular for some batch member: ``"raise"``
+            (:class:`SingularMatrixError`, the default) or ``"nan"`` (that member's results
+            are NaN and flagged in ``result.singular``; the others are as if solved alone).
 
     Returns:
         :class:`LLSResult`.
 
     Raises:
         InputValidationError: wrong shapes, non-finite entries, ``M <= p``, invalid weights.
-        SingularMatrixError: ``A'WA`` is (numerically) singular for some batch member; the
-            message names the first such batch index.
+        SingularMatrixError: with ``singular="raise"``, ``A'WA`` is (numerically) singular
+            for some batch member; the message names the first such batch index.
 
     Warns:
         PoorExcitationWarning: ``A'WA`` is ill-conditioned (e.g. a sinusoidal input for a
@@ -354,6 +362,7 @@ def lls(
         )
     if method not in ("qr", "cholesky"):
         raise InputValidationError(f"lls: method must be 'qr' or 'cholesky', got {method!r}.")
+    _check_singular_option("lls", singular)
     batch = _batch_shape("lls", A, "A", 2, y)
     _check_finite("A", A)
     _check_finite("y", y)
@@ -375,13 +384,19 @@ def lls(
     eps = torch.finfo(A.dtype).eps
     if method == "qr":
         Q, R = torch.linalg.qr(Aw, mode="reduced")
-        s = torch.linalg.svdvals(R)
         col = torch.linalg.vector_norm(R, dim=-2)
-        if bool((col == 0).any()):
-            _raise_if_singular((col == 0).any(dim=-1))
-        s_scaled = torch.linalg.svdvals(R / col.unsqueeze(-2))
-        singular = s_scaled[..., -1] <= s_scaled[..., 0] * eps * max(M, p)
-        _raise_if_singular(singular)
+        zero_column = (col == 0).any(dim=-1)
+        if singular == "raise":
+            _raise_if_singular(zero_column)
+        s_scaled = torch.linalg.svdvals(R / torch.where(col == 0, 1.0, col).unsqueeze(-2))
+        failed = zero_column | (s_scaled[..., -1] <= s_scaled[..., 0] * eps * max(M, p))
+        failed = _singular_members(failed, singular)
+        if failed is not None:  # the identity stands in for their R; results NaN below
+            R = torch.where(
+                failed[..., None, None], torch.eye(p, dtype=R.dtype, device=R.device), R
+            )
+            s_scaled = torch.where(failed.unsqueeze(-1), 1.0, s_scaled)
+        s = torch.linalg.svdvals(R)
         scaled_cond = (s_scaled[..., 0] / s_scaled[..., -1]) ** 2
         qty = (Q.transpose(-1, -2) @ yw.unsqueeze(-1)).squeeze(-1)
         theta = torch.linalg.solve_triangular(R, qty.unsqueeze(-1), upper=True).squeeze(-1)
@@ -393,11 +408,13 @@ def lls(
     else:
         G = Aw.transpose(-1, -2) @ Aw
         rhs = (Aw.transpose(-1, -2) @ yw.unsqueeze(-1)).squeeze(-1)
-        theta, inverse, screened, scaled_cond = _solve_normal_equations(
-            G, rhs, M, _warn_threshold(cond_warn, A.dtype)
+        theta, inverse, screened, scaled_cond, failed = _solve_normal_equations(
+            G, rhs, M, _warn_threshold(cond_warn, A.dtype), singular
         )
         normal_inverse = inverse.inverse()
-        cond = functools.partial(_condition_estimate, G, normal_inverse)
+        cond = _with_members(
+            failed, math.inf, functools.partial(_condition_estimate, G, normal_inverse)
+        )
         _warn_poor_excitation(screened, cond_warn, eps * screened, A.dtype)
 
     residuals = y - (A @ theta.unsqueeze(-1)).squeeze(-1)
@@ -412,6 +429,8 @@ def lls(
         kappa = scaled_cond.sqrt()
         tan_phi = rw.norm(dim=-1) / (yw - rw).norm(dim=-1).clamp_min(torch.finfo(A.dtype).tiny)
         rounding = eps * (kappa + scaled_cond * tan_phi)
+        if failed is not None:  # reported as singular, not as ill-conditioned
+            rounding = _fill_members(failed, 0.0, rounding)
         _warn_poor_excitation(scaled_cond, cond_warn, rounding, A.dtype)
 
     if skind == "none":
@@ -419,11 +438,20 @@ def lls(
     else:
         covariance = _sandwich(A, wkind, Wt, skind, S, normal_inverse)
     standard_errors = torch.diagonal(covariance, dim1=-2, dim2=-1).clamp_min(0).sqrt()
+    if failed is not None and method == "qr":  # the Cholesky route's are NaN already
+        nan = functools.partial(_fill_members, failed, math.nan)
+        theta, standard_errors, sigma2, residuals = map(
+            nan, (theta, standard_errors, sigma2, residuals)
+        )
+        covariance, normal_inverse = nan(covariance), nan(normal_inverse)
+        cond = _fill_members(failed, math.inf, cond)
+        scaled_cond = _fill_members(failed, math.inf, scaled_cond)
     return LLSResult(
         theta=theta,
         standard_errors=standard_errors,
         sigma2=sigma2,
         dof=M - p,
+        singular=_singular_mask(failed, theta),
         _covariance=covariance,
         _normal_inverse=normal_inverse,
         _scaled_condition_number=scaled_cond,
@@ -466,37 +494,52 @@ class _ScaledInverse:
 
 
 def _equilibrated_cholesky(G: torch.Tensor):
-    """Cholesky factor ``L`` of ``S = D G D``, ``D = diag(G)^{-1/2}`` (``G = A'WA``), with
-    ``S``, ``diag(D)`` and ``cholesky_ex``'s ``info``; raises :class:`SingularMatrixError`
-    where a diagonal entry of ``G`` is not positive (an all-zero regressor)."""
-    d = torch.diagonal(G, dim1=-2, dim2=-1)
-    if bool((d <= 0).any()):
-        _raise_if_singular(d.min(dim=-1).values <= 0)
-    dinv = d.rsqrt()
+    """Cholesky factor ``L`` of ``S = D G D``, ``D = diag(G)^{-1/2}`` (``G = A'WA``, its
+    diagonal positive), with ``S``, ``diag(D)`` and ``cholesky_ex``'s ``info``."""
+    dinv = torch.diagonal(G, dim1=-2, dim2=-1).rsqrt()
     S = G * (dinv.unsqueeze(-1) * dinv.unsqueeze(-2))
     L, info = torch.linalg.cholesky_ex(S)
     return L, S, dinv, info
 
 
-def _solve_normal_equations(G: torch.Tensor, rhs: torch.Tensor, M: int, cond_warn: float):
+def _solve_normal_equations(
+    G: torch.Tensor, rhs: torch.Tensor, M: int, cond_warn: float, singular: str = "raise"
+):
     """Solve ``G theta = rhs`` (``G = A'WA``) by Cholesky of ``S = D G D``,
     ``D = diag(G)^{-1/2}``.
 
     Returns ``theta``, the inverse as a :class:`_ScaledInverse`, the screened condition
     numbers of ``S`` (exact estimates where they may exceed ``cond_warn`` or the singularity
-    limit, 0 elsewhere; see :func:`_screened_condition`) and a callable giving the estimates of
-    all of them; raises :class:`SingularMatrixError` where ``S`` is numerically singular.
+    limit, 0 elsewhere; see :func:`_screened_condition`), a callable giving the estimates of
+    all of them, and the mask of the members where ``S`` is numerically singular (None where
+    none is). Those raise :class:`SingularMatrixError` (``singular="raise"``) or, with
+    ``"nan"``, are solved with the identity in place of ``S`` and get NaN ``theta`` and
+    inverse, an infinite condition number and a screened one of 0 (no warning).
     """
     p = G.shape[-1]
     eps = torch.finfo(G.dtype).eps
+    eye = torch.eye(p, dtype=G.dtype, device=G.device)
+    failed = _singular_members((torch.diagonal(G, dim1=-2, dim2=-1) <= 0).any(-1), singular)
+    if failed is not None:  # an all-zero regressor
+        G = torch.where(failed[..., None, None], eye, G)
     L, S, dinv, info = _equilibrated_cholesky(G)
-    _raise_if_singular(info != 0)
+    not_definite = _singular_members(info != 0, singular)
+    if not_definite is not None:
+        S = torch.where(not_definite[..., None, None], eye, S)
+        L = torch.where(not_definite[..., None, None], eye, L)
+        failed = not_definite if failed is None else failed | not_definite
     inverse = _ScaledInverse(L, dinv)
     singular_limit = 1.0 / (eps * max(M, p))
     screened, estimate_all = _screened_condition(S, inverse, min(cond_warn, singular_limit))
-    _raise_if_singular(screened >= singular_limit)
+    ill = _singular_members(screened >= singular_limit, singular)
+    if ill is not None:
+        failed = ill if failed is None else failed | ill
+    if failed is not None:
+        screened = _fill_members(failed, 0.0, screened)
+        estimate_all = _with_members(failed, math.inf, estimate_all)
+        inverse.dinv = dinv = _fill_members(failed, math.nan, dinv)
     theta = torch.cholesky_solve((rhs * dinv).unsqueeze(-1), L).squeeze(-1) * dinv
-    return theta, inverse, screened, estimate_all
+    return theta, inverse, screened, estimate_all, failed
 
 
 def accurate_normal_equations(
@@ -645,6 +688,42 @@ def _warn_poor_excitation(
         )
 
 
+def _check_singular_option(where: str, singular) -> None:
+    if singular not in ("raise", "nan"):
+        raise InputValidationError(f"{where}: singular must be 'raise' or 'nan', got {singular!r}.")
+
+
+def _singular_members(mask: torch.Tensor, singular: str) -> torch.Tensor | None:
+    """``mask`` (``(*batch,)``, True where a problem is numerically singular), or None where it
+    is all False; raises :class:`SingularMatrixError` with ``singular="raise"``."""
+    if not bool(mask.any()):
+        return None
+    if singular == "raise":
+        _raise_if_singular(mask)
+    return mask
+
+
+def _fill_members(failed: torch.Tensor, value: float, x: torch.Tensor) -> torch.Tensor:
+    """``x`` (``(*batch, ...)``) with the entries of the ``failed`` members set to ``value``."""
+    return x.masked_fill(failed.reshape(failed.shape + (1,) * (x.dim() - failed.dim())), value)
+
+
+def _with_members(failed, value: float, x):
+    """:func:`_fill_members` of a tensor, or of what a callable returns (on the call)."""
+    if failed is None:
+        return x
+    if callable(x):
+        return lambda: _fill_members(failed, value, x())
+    return _fill_members(failed, value, x)
+
+
+def _singular_mask(failed: torch.Tensor | None, theta: torch.Tensor) -> torch.Tensor:
+    """The :attr:`LLSResult.singular` mask: ``failed``, or all False."""
+    if failed is None:
+        return torch.zeros(theta.shape[:-1], dtype=torch.bool, device=theta.device)
+    return failed.expand(theta.shape[:-1])
+
+
 def _raise_if_singular(singular: torch.Tensor) -> None:
     if bool(singular.any()):
         idx = _first_index(singular)
@@ -736,7 +815,13 @@ def _fir_residuals(u, y, theta, nk: int) -> torch.Tensor:
 
 
 def fir_lls(
-    u: torch.Tensor, y: torch.Tensor, nb: int, nk: int = 0, *, cond_warn: float = DEFAULT_COND_WARN
+    u: torch.Tensor,
+    y: torch.Tensor,
+    nb: int,
+    nk: int = 0,
+    *,
+    cond_warn: float = DEFAULT_COND_WARN,
+    singular: str = "raise",
 ) -> LLSResult:
     """Least-squares FIR estimate from rest, without forming the regressor (eq. 4.8–4.11).
 
@@ -762,6 +847,7 @@ def fir_lls(
     Args:
         u: inputs ``(*batch, N)``; y: outputs ``(*batch, N)`` (batch shapes broadcast).
         nb: number of taps; nk: input delay.
+        cond_warn, singular: as in :func:`lls`.
 
     Returns:
         :class:`LLSResult` (covariance ``sigma2_hat (U'U)^{-1}``).
@@ -780,6 +866,7 @@ def fir_lls(
         raise InputValidationError(
             f"fir_lls: need nb >= 1, nk >= 0 and N > nb; got {nb}, {nk}, {N}."
         )
+    _check_singular_option("fir_lls", singular)
     batch = _batch_shape("fir_lls", u, "u", 1, y)
     w = F.pad(u, (nk, 0))[..., :N] if nk else u
     r = _lagged_products(w, w, nb)
@@ -798,8 +885,8 @@ def fir_lls(
     E = last.unfold(-1, nb, 1)[..., : nb - 1, :].flip(-1)  # E[k, i] = last[k + nb-1 - i]
     G = (R - E.transpose(-1, -2) @ E).expand(*batch, nb, nb)
     c = c.expand(*batch, nb)
-    theta, inverse, screened, scaled_cond = _solve_normal_equations(
-        G, c, N, _warn_threshold(cond_warn, u.dtype)
+    theta, inverse, screened, scaled_cond, failed = _solve_normal_equations(
+        G, c, N, _warn_threshold(cond_warn, u.dtype), singular
     )
     _warn_poor_excitation(screened, cond_warn, torch.finfo(u.dtype).eps * screened, u.dtype)
     Gtheta = (G @ theta.unsqueeze(-1)).squeeze(-1)
@@ -818,9 +905,12 @@ def fir_lls(
         standard_errors=variances.clamp_min(0).sqrt(),
         sigma2=sigma2,
         dof=N - nb,
+        singular=_singular_mask(failed, theta),
         _covariance=lambda: sigma2[..., None, None] * normal_inverse(),
         _normal_inverse=normal_inverse,
         _scaled_condition_number=scaled_cond,
         _residuals=functools.partial(_fir_residuals, u, y, theta, nk),
-        _condition_number=lambda: _condition_estimate(G, normal_inverse()),
+        _condition_number=_with_members(
+            failed, math.inf, lambda: _condition_estimate(G, normal_inverse())
+        ),
     )

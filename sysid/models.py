@@ -103,16 +103,19 @@ DEFAULT_TS = 1.0
 
 
 def _roots(tail: torch.Tensor) -> torch.Tensor:
-    """Roots in z of ``z^n + t_1 z^(n-1) + ... + t_n`` (batched, via companion eigenvalues)."""
+    """Roots in z of ``z^n + t_1 z^(n-1) + ... + t_n`` (batched, via companion eigenvalues);
+    NaN for a polynomial with a non-finite coefficient (e.g. a failed estimate)."""
     n = tail.shape[-1]
     if n == 0:
         return torch.zeros(*tail.shape[:-1], 0, dtype=torch.complex128, device=tail.device)
+    finite = torch.isfinite(tail).all(dim=-1, keepdim=True)
     comp = torch.zeros(*tail.shape[:-1], n, n, dtype=tail.dtype, device=tail.device)
-    comp[..., 0, :] = -tail
+    comp[..., 0, :] = -torch.where(finite, tail, 0.0)  # LAPACK refuses non-finite entries
     if n > 1:
         idx = torch.arange(n - 1, device=tail.device)
         comp[..., idx + 1, idx] = 1.0
-    return torch.linalg.eigvals(comp)
+    roots = torch.linalg.eigvals(comp)
+    return torch.where(finite, roots, torch.full_like(roots, math.nan))
 
 
 def _monic_from_roots(roots: torch.Tensor) -> torch.Tensor:

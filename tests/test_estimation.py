@@ -971,3 +971,75 @@ def test_robust_scale_is_the_normalised_median_absolute_deviation():
     expected = 1.4826 * np.median(np.abs(r - np.median(r, -1, keepdims=True)), -1)
     np.testing.assert_allclose(robust_scale(torch.tensor(r)).numpy(), expected, rtol=1e-15)
     assert float(robust_scale(torch.tensor([0.0, 1.0, 3.0, 10.0]))) == pytest.approx(2.2239)
+
+
+def _batch_with_a_silent_input(seed=12, N=300):
+    """Three ARX(2, 2) data sets; the middle one's input is zero (its b's are not
+    identifiable, its a's are an AR(2) fit of y)."""
+    g = torch.Generator().manual_seed(seed)
+    u = torch.randn(3, N, 1, generator=g, dtype=DT)
+    u[1] = 0.0
+    e = 0.1 * torch.randn(3, N, 1, generator=g, dtype=DT)
+    b, a = torch.tensor([0.0, 0.5, 0.3], dtype=DT), torch.tensor([-1.2, 0.5], dtype=DT)
+    y = iir_filter(b, a, u[..., 0]).unsqueeze(-1) + e
+    return IOData(u, y, Ts=1.0)
+
+
+@pytest.mark.parametrize("structure", ["FIR", "ARX"])
+def test_least_squares_with_a_non_exciting_member_keeps_the_batch(structure):
+    """A data set with a zero input no longer raises for the whole batch: its estimate is
+    the minimum-norm least-squares solution (b = 0, the a's of statsmodels' OLS on the
+    output lags, with OLS's standard errors), the b's have infinite standard errors, a
+    PoorExcitationWarning names it, and the other data sets equal their own fits."""
+    data = _batch_with_a_silent_input()
+    model = FIR(3, 1) if structure == "FIR" else ARX(2, 2, 1)
+    with pytest.warns(PoorExcitationWarning, match=r"1 of 3 data sets \(batch index \(1,\)\)"):
+        result = fit(model, data)
+    assert result.converged.all() and result.messages == []
+    na = 0 if structure == "FIR" else 2
+    assert (result.theta[1, na:] == 0).all()
+    assert torch.isinf(result.standard_errors[1, na:]).all()
+    if na:
+        Phi, target = model.regression(data[1])
+        ols = sm.OLS(target.numpy(), Phi[:, :na].numpy()).fit()
+        np.testing.assert_allclose(result.theta[1, :na].numpy(), ols.params, rtol=1e-12)
+        np.testing.assert_allclose(result.standard_errors[1, :na].numpy(), ols.bse, rtol=1e-10)
+        np.testing.assert_allclose(float(result.sigma2[1]), ols.scale, rtol=1e-12)
+    for i in (0, 2):
+        alone = fit(model, data[i])
+        torch.testing.assert_close(result.theta[i], alone.theta, rtol=1e-12, atol=1e-14)
+        torch.testing.assert_close(result.covariance[i], alone.covariance, rtol=1e-10, atol=0)
+
+
+def test_instrumental_variables_with_a_non_exciting_member_reports_it():
+    """IV has no estimate where Z'Phi is singular: NaN, not converged, info["singular"] and a
+    message naming the data set; the others equal their own IV fits."""
+    data = _batch_with_a_silent_input(seed=13)
+    with pytest.warns(ConvergenceWarning, match=r"batch index \(1,\): no instrumental"):
+        result = fit(ARX(2, 2, 1), data, method="iv")
+    assert result.converged.tolist() == [True, False, True]
+    assert result.info["singular"].tolist() == [False, True, False]
+    assert torch.isnan(result.theta[1]).all() and torch.isnan(result.covariance[1]).all()
+    assert len(result.messages) == 1 and "Z'Phi" in result.messages[0]
+    for i in (0, 2):
+        alone = fit(ARX(2, 2, 1), data[i], method="iv")
+        torch.testing.assert_close(result.theta[i], alone.theta, rtol=1e-12, atol=1e-14)
+        torch.testing.assert_close(result.covariance[i], alone.covariance, rtol=1e-10, atol=0)
+
+
+@pytest.mark.parametrize("structure", ["OE", "ARMAX", "BJ"])
+def test_iterative_fits_start_with_a_non_exciting_member(structure):
+    """The automatic start of OE, ARMAX and BJ survives a zero-input data set (its start is
+    the minimum-norm least-squares one): the input parameters of that data set have infinite
+    standard errors, the other data sets equal their own fits."""
+    data = _batch_with_a_silent_input(seed=14)
+    model = {"OE": OE(2, 2, 1), "ARMAX": ARMAX(2, 2, 1, 1), "BJ": BJ(2, 1, 1, 2, 1)}[structure]
+    with pytest.warns(PoorExcitationWarning, match=r"batch index \(1,\)"):
+        result = fit(model, data)
+    b = [j for j, name in enumerate(result.parameter_names) if name.startswith("b")]
+    assert torch.isinf(result.standard_errors[1, b]).all()
+    assert torch.isfinite(result.theta[1]).all()
+    for i in (0, 2):
+        alone = fit(model, data[i])
+        torch.testing.assert_close(result.theta[i], alone.theta, rtol=1e-7, atol=1e-9)
+        assert bool(result.converged[i]) and bool(alone.converged)

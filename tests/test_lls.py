@@ -4,6 +4,7 @@ Independent references: statsmodels OLS/WLS/GLS on bundled data sets, numpy.lina
 explicit inverses computed in numpy, and a batched Monte-Carlo study.
 """
 
+import math
 import re
 import warnings
 
@@ -455,3 +456,48 @@ def test_poor_excitation_warning_accounts_for_the_dtype():
     digits64 = int(re.search(r"about (\d+) correct digits", str(rec64[0].message)).group(1))
     digits32 = int(re.search(r"about (\d+) correct digits", message).group(1))
     assert digits64 >= 9 and digits32 <= 1
+
+
+@pytest.mark.parametrize("method", ["qr", "cholesky", "fir_lls"])
+def test_singular_members_are_nan_and_the_others_as_if_solved_alone(method):
+    """singular="nan": a member with a zero regressor, one with dependent columns and (for
+    the FIR route) one with a zero input are NaN, flagged and infinitely ill-conditioned; the
+    healthy members equal their own solve and numpy's lstsq."""
+    from sysid.lls import fir_lls
+    from sysid.montecarlo import fir_regressor
+
+    g = torch.Generator().manual_seed(7)
+    if method == "fir_lls":
+        u = torch.randn(4, 60, generator=g, dtype=DT)
+        u[1] = 0.0
+        y = torch.randn(4, 60, generator=g, dtype=DT)
+        bad = [1]
+        result = fir_lls(u, y, 3, 1, singular="nan")
+        A = fir_regressor(u, 3, 1)
+    else:
+        A = torch.randn(4, 40, 3, generator=g, dtype=DT)
+        A[1, :, 2] = 0.0
+        A[2, :, 2] = 2 * A[2, :, 0]
+        y = torch.randn(4, 40, generator=g, dtype=DT)
+        bad = [1, 2]
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # no ill-conditioning warning for the singular
+            result = lls(A, y, method=method, singular="nan")
+    assert result.singular.tolist() == [i in bad for i in range(4)]
+    for i in range(4):
+        if i in bad:
+            for value in (result.theta[i], result.standard_errors[i], result.sigma2[i]):
+                assert torch.isnan(value).all()
+            assert torch.isnan(result.covariance[i]).all()
+            assert torch.isnan(result.normal_inverse[i]).all()
+            assert torch.isnan(result.residuals[i]).all()
+            assert math.isinf(result.condition_number[i])
+            assert math.isinf(result.scaled_condition_number[i])
+            continue
+        reference = np.linalg.lstsq(A[i].numpy(), y[i].numpy(), rcond=None)[0]
+        np.testing.assert_allclose(result.theta[i].numpy(), reference, rtol=0, atol=1e-13)
+        alone = lls(A[i], y[i])
+        torch.testing.assert_close(result.covariance[i], alone.covariance, rtol=1e-12, atol=0)
+        torch.testing.assert_close(result.residuals[i], alone.residuals, rtol=0, atol=1e-13)
+    with pytest.raises(InputValidationError, match="singular must be 'raise' or 'nan'"):
+        lls(A, y, singular="ignore")

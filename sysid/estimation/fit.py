@@ -228,7 +228,15 @@ def _diagnose(result: FitResult, model: PolynomialModel) -> None:
     result.stable = modulus < 1
     info = result.info
     not_converged, unstable = [], []
-    for idx in _indices(~result.converged):  # only the data sets with a problem
+    singular = info.get("singular", torch.zeros_like(result.converged))
+    for idx in _indices(singular):
+        not_converged.append(
+            f"batch index {idx}: no instrumental-variable estimate (NaN): Z'Phi (instruments "
+            "times regressors) is singular: the input does not excite the model (e.g. a "
+            "constant or zero input) or the orders are too high. Use a persistently exciting "
+            "input, lower the orders, or method='lls'."
+        )
+    for idx in _indices(~result.converged & ~singular):  # the iterative fits' failures
         m = float(modulus[idx])
         if bool(info["line_search_failed"][idx]):
             why = "the line search found no decrease (damping grew past 1e10)"
@@ -252,7 +260,7 @@ def _diagnose(result: FitResult, model: PolynomialModel) -> None:
         else:
             why += "; raise max_iter, start closer (init=...), or use float64"
         not_converged.append(f"batch index {idx}: did not converge: {why}.")
-    for idx in _indices(~result.stable):
+    for idx in _indices(~result.stable & ~singular):
         unstable.append(
             f"batch index {idx}: the estimated model is unstable (largest pole modulus "
             f"{float(modulus[idx]):.6g} >= 1): its free-run simulation diverges, so "

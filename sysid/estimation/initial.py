@@ -12,10 +12,9 @@ import torch
 
 from ..data import IOData
 from ..errors import PoorExcitationWarning
-from ..lls import lls
 from ..models import ARX, PolynomialModel
 from ._data import _copy_model, _groups, _with_outputs
-from .least_squares import _instrumental_variables
+from .least_squares import _instrumental_variables, _least_squares
 
 
 def _aux_arx(model: PolynomialModel, na: int, nb, nk, batch) -> ARX:
@@ -54,7 +53,7 @@ def _initial_estimate(model: PolynomialModel, data: IOData) -> torch.Tensor:
         Phi, target = model.regression(data)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PoorExcitationWarning)
-            return lls(Phi, target).theta
+            return _least_squares(Phi, target)[0]
     nb = [len(ix) for ix in g["b"]]
     if not any(nb):
         return theta0
@@ -76,7 +75,7 @@ def _initial_estimate(model: PolynomialModel, data: IOData) -> torch.Tensor:
         Phi, target = ar.regression(ar_data)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PoorExcitationWarning)
-            theta0[..., g["d"][0]] = lls(Phi, target).theta[..., :nd]
+            theta0[..., g["d"][0]] = _least_squares(Phi, target)[0][..., :nd]
     holder = _copy_model(model, batch)
     holder.set_parameter_vector(theta0)
     holder.stabilize()

@@ -30,10 +30,10 @@ from integrators.newton import NewtonStatus, minimize
 from ..data import IOData
 from ..errors import PoorExcitationWarning
 from ..filters import iir_filter
-from ..lls import lls
 from ..models import PolynomialModel
 from ._data import _check_broadcast, _groups, _regression_rows
 from .initial import _initial_estimate
+from .least_squares import _least_squares
 from .losses import GaussianLoss, make_loss
 from .results import STATIONARY_TOL, FitResult, covariance, remaining_step
 
@@ -183,7 +183,7 @@ def _fit_iterative(
     if init is None and linear:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PoorExcitationWarning)
-            theta0 = lls(Phi, target).theta
+            theta0 = _least_squares(Phi, target)[0]
     elif init is None:
         try:
             theta0 = _initial_estimate(model, data)
