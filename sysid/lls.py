@@ -88,7 +88,9 @@ class LLSResult:
             ``method="cholesky"`` and in :func:`fir_lls` a power-iteration estimate, which
             the warning and the singularity test need only where a cheap upper bound reaches
             their thresholds (see ``_screened_condition``).
-        dof: residual degrees of freedom ``M - p``.
+        dof: residual degrees of freedom ``M - p`` (``M``: the rows with a positive weight;
+            an int, or ``(*batch,)`` where diagonal weights with zeros give the problems
+            different counts).
         normal_inverse: ``(A'WA)^{-1}``, ``(*batch, p, p)``.
         singular: ``(*batch,)`` bool: the problems whose ``A'WA`` is numerically singular
             (all False unless ``singular="nan"``); their estimate, standard errors, ``sigma2``,
@@ -102,7 +104,7 @@ class LLSResult:
     theta: torch.Tensor
     standard_errors: torch.Tensor
     sigma2: torch.Tensor
-    dof: int
+    dof: int | torch.Tensor
     singular: torch.Tensor
     _covariance: torch.Tensor | Callable[[], torch.Tensor] = field(repr=False)
     _normal_inverse: torch.Tensor | Callable[[], torch.Tensor] = field(repr=False)
@@ -277,6 +279,26 @@ def _prepare_sigma(sigma, M: int, like: torch.Tensor, y_dim: int):
     )
 
 
+def _degrees_of_freedom(wkind: str, W, M: int, p: int, batch: torch.Size):
+    """Residual degrees of freedom ``M - p``, where ``M`` counts the rows with a positive
+    weight (a row of weight 0 is not an observation): an int, or ``(*batch,)`` where diagonal
+    weights give the problems different counts. Raises :class:`InputValidationError` where a
+    problem has ``M <= p``."""
+    if wkind != "diag":
+        return M - p
+    rows = (W > 0).sum(-1).expand(batch)
+    if bool((rows <= p).any()):
+        idx = _first_index(rows <= p)
+        raise InputValidationError(
+            f"lls: problem {idx} has {int(rows[idx])} rows with a positive weight for p = {p} "
+            "parameters; a row of weight 0 is no equation: give more rows a positive weight or "
+            "use a smaller model."
+        )
+    if bool((rows == rows.reshape(-1)[0]).all()):
+        return int(rows.reshape(-1)[0]) - p
+    return (rows - p).to(W.dtype)
+
+
 def _cholesky_upper_of_weights(W: torch.Tensor) -> torch.Tensor:
     """``L'`` with ``W = L L'``, so that ``||x||_W^2 = ||L' x||^2``."""
     L, info = torch.linalg.cholesky_ex(W)
@@ -370,6 +392,7 @@ def lls(
     skind, S = _prepare_sigma(sigma, M, A, y.dim())
     batch = _extra_batch("W", Wt, wkind, batch, "A and y")
     _extra_batch("sigma", S, skind, batch, "A, y and W")
+    dof = _degrees_of_freedom(wkind, Wt, M, p, batch)
 
     # Whitened problem: ||y - A theta||_W^2 = ||yw - Aw theta||^2.
     if wkind == "diag":
@@ -424,7 +447,7 @@ def lls(
         rw = residuals * sw
     else:
         rw = (Lt @ residuals.unsqueeze(-1)).squeeze(-1)
-    sigma2 = (rw * rw).sum(-1) / (M - p)
+    sigma2 = (rw * rw).sum(-1) / dof
     if method == "qr":
         kappa = scaled_cond.sqrt()
         tan_phi = rw.norm(dim=-1) / (yw - rw).norm(dim=-1).clamp_min(torch.finfo(A.dtype).tiny)
@@ -450,7 +473,7 @@ def lls(
         theta=theta,
         standard_errors=standard_errors,
         sigma2=sigma2,
-        dof=M - p,
+        dof=dof,
         singular=_singular_mask(failed, theta),
         _covariance=covariance,
         _normal_inverse=normal_inverse,

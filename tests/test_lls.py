@@ -501,3 +501,28 @@ def test_singular_members_are_nan_and_the_others_as_if_solved_alone(method):
         torch.testing.assert_close(result.residuals[i], alone.residuals, rtol=0, atol=1e-13)
     with pytest.raises(InputValidationError, match="singular must be 'raise' or 'nan'"):
         lls(A, y, singular="ignore")
+
+
+def test_rows_of_weight_zero_are_not_counted_as_observations():
+    """Diagonal weights with zeros: sigma^2, the standard errors and dof equal statsmodels'
+    WLS on the rows of positive weight (the zero rows used to count in M - p: standard errors
+    4x too small with 4 of 20 rows weighted); per-problem counts where they differ; too few
+    weighted rows are refused."""
+    g = torch.Generator().manual_seed(9)
+    A = torch.randn(2, 20, 3, generator=g, dtype=DT)
+    y = torch.randn(2, 20, generator=g, dtype=DT)
+    W = torch.rand(2, 20, generator=g, dtype=DT) + 0.5
+    W[0, 6:] = 0.0
+    W[1, 11:] = 0.0
+    for method in ("qr", "cholesky"):
+        result = lls(A, y, W=W, method=method)
+        assert result.dof.tolist() == [3.0, 8.0]
+        for i, m in enumerate((6, 11)):
+            wls = sm.WLS(y[i, :m].numpy(), A[i, :m].numpy(), weights=W[i, :m].numpy()).fit()
+            np.testing.assert_allclose(result.theta[i].numpy(), wls.params, rtol=1e-10)
+            np.testing.assert_allclose(result.standard_errors[i].numpy(), wls.bse, rtol=1e-10)
+            np.testing.assert_allclose(float(result.sigma2[i]), wls.scale, rtol=1e-10)
+    assert lls(A[0], y[0], W=W[0]).dof == 3
+    W[1, 3:] = 0.0
+    with pytest.raises(InputValidationError, match=r"problem \(1,\) has 3 rows with a positive"):
+        lls(A, y, W=W)
