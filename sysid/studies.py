@@ -15,10 +15,12 @@ estimator call per chunk and estimator.
 Seeding. Trials are grouped in fixed blocks of ``block`` trials (``chunk`` is a multiple of
 ``block``); block ``b`` of grid point ``i`` draws its data from a ``torch.Generator`` seeded by
 ``numpy.random.SeedSequence(seed, spawn_key=(i, b))``, with ``simulate(point, n, generator)``
-called once per block. A trial's data therefore depend only on the seed, its grid point and
-its index, never on the chunk size or on the order in which chunks run. ``block=1`` (the
-default) calls ``simulate`` once per trial; a larger block draws many trials in one batched
-call (faster) and keeps that guarantee for every chunk size that is a multiple of it.
+called once per block (with ``n = block``, also for a last block that holds fewer trials: the
+trials past ``trials`` are drawn and dropped). A trial's data therefore depend only on the
+seed, the block size, its grid point and its index, never on the chunk size, the number of
+trials or the order in which chunks run. ``block=1`` (the default) calls ``simulate`` once per
+trial; a larger block draws many trials in one batched call (faster) and keeps that guarantee
+for every chunk size that is a multiple of it.
 
 Storage. ``run(out_dir)`` writes ``out_dir/manifest.json`` (the declaration and its hash) and
 one Parquet file per finished chunk under ``out_dir/chunks/``, each written to a temporary
@@ -70,6 +72,7 @@ RESERVED_COLUMNS = (
     "covariance_row",
     # columns of the summaries (and their intermediate ones)
     "truth",
+    "usable",
     "error2",
     "inside",
     "trials",
@@ -319,11 +322,13 @@ class Study:
         return math.ceil(self.trials / self.chunk)
 
     def _check_manifest(self, folder: pathlib.Path) -> None:
-        """Write the manifest into a new folder, or refuse a folder of another declaration."""
+        """Write the manifest into a folder that holds no results (new, or left by a run that
+        failed before its first chunk), or refuse a folder of another declaration."""
         path = folder / "manifest.json"
         mine = {"declaration": self.declaration, "hash": self.declaration_hash}
-        if not path.exists():
-            if (folder / "chunks").exists() and any((folder / "chunks").glob("*.parquet")):
+        has_chunks = (folder / "chunks").exists() and any((folder / "chunks").glob("*.parquet"))
+        if not has_chunks or not path.exists():
+            if has_chunks:
                 raise StudyDeclarationError(
                     f"{folder} holds chunk files but no manifest.json, so their declaration is "
                     "unknown; run the study in a new folder or delete that one."
@@ -339,13 +344,15 @@ class Study:
                 "study in a new folder or delete that one."
             ) from err
         if stored.get("hash") != self.declaration_hash or theirs != self.declaration:
-            changed = sorted(
+            changed = sorted(  # as the hash compares them: their JSON text
                 key
                 for key in set(theirs) | set(self.declaration)
-                if theirs.get(key) != self.declaration.get(key)
+                if json.dumps(theirs.get(key), sort_keys=True)
+                != json.dumps(self.declaration.get(key), sort_keys=True)
             )
             details = "; ".join(
-                f"{key}: stored {theirs.get(key)!r}, now {self.declaration.get(key)!r}"
+                f"{key}: stored {json.dumps(theirs.get(key), sort_keys=True)}, now "
+                f"{json.dumps(self.declaration.get(key), sort_keys=True)}"
                 for key in changed
             )
             raise StudyDeclarationError(
@@ -364,7 +371,8 @@ class Study:
     def data(self, point: int = 0, chunk: int = 0) -> IOData:
         """The data sets the study fits in chunk ``chunk`` of grid point ``point`` (trials
         ``chunk * self.chunk`` up to the next chunk's first), drawn from the study's seed as
-        :meth:`run` draws them; batch shape ``(n,)``, one ``simulate`` call per block.
+        :meth:`run` draws them; batch shape ``(n,)``, one ``simulate`` call of ``block`` data
+        sets per block (a last block's extra ones dropped).
 
         Raises:
             InputValidationError: ``point`` or ``chunk`` out of range, or ``simulate``
@@ -377,16 +385,16 @@ class Study:
             )
         trials = self._chunk_trials(chunk)
         parts = []
-        for start in range(trials.start, trials.stop, self.block):
-            n = min(self.block, trials.stop - start)
-            generator = _block_generator(self.seed, point, start // self.block)
+        n = self.block
+        for start in range(trials.start, trials.stop, n):
+            generator = _block_generator(self.seed, point, start // n)
             data = self.simulate(dict(self.points[point]), n, generator)
             if not isinstance(data, IOData) or tuple(data.batch_shape) != (n,):
                 raise InputValidationError(
                     f"simulate(point={self.points[point]}, n={n}, generator) returned "
                     f"{data!r}; it must return an IOData of batch shape ({n},)."
                 )
-            parts.append(data)
+            parts.append(data if start + n <= trials.stop else data[: trials.stop - start])
         return parts[0] if len(parts) == 1 else IOData.cat(parts)
 
     def _compute_chunk(self, point: int, chunk: int):
@@ -558,16 +566,47 @@ class Study:
         return list(self.grid)
 
     def _truth_table(self):
-        """Rows factor values..., parameter, truth (empty when no truth was declared)."""
+        """Rows factor values..., parameter, truth (empty when no truth was declared); warns
+        about a declared truth that names no estimator's parameter (a misspelt name would
+        otherwise leave NaN in the bias of the parameter it meant)."""
         pd = _pandas()
         rows = []
         for point in self.points:
             values = self.truth(dict(point)) if callable(self.truth) else (self.truth or {})
             for parameter, value in dict(values).items():
-                rows.append({**point, "parameter": parameter, "truth": float(value)})
-        return pd.DataFrame(rows, columns=[*self.factors, "parameter", "truth"])
+                try:
+                    value = float(value)
+                except (TypeError, ValueError) as err:
+                    raise InputValidationError(
+                        f"truth[{parameter!r}] = {value!r} at grid point {point} is not a number."
+                    ) from err
+                rows.append({**point, "parameter": parameter, "truth": value})
+        table = pd.DataFrame(rows, columns=[*self.factors, "parameter", "truth"])
+        known = set(self.results["parameter"])
+        unknown = sorted(set(table["parameter"]) - known)
+        if unknown:
+            warnings.warn(
+                f"the study's truth names {unknown}, which no estimator has (their parameters "
+                f"are {sorted(known)}); check the spelling: a parameter without a truth gets "
+                "NaN bias, RMSE and coverage.",
+                RKIdentWarning,
+                stacklevel=3,
+            )
+        return table
 
-    def summary(self, level: float = 0.95):
+    def _usable(self, converged_only: bool):
+        """The results with a boolean column ``usable``: the rows whose estimate enters the
+        statistics, the one rule of every summary: a finite estimate whose standard error is
+        not ``+inf`` (a parameter the data set does not determine, e.g. the input
+        coefficients of a data set with a zero input: its estimate is arbitrary) and, with
+        ``converged_only``, a converged fit."""
+        frame = self.results
+        usable = np.isfinite(frame["estimate"]) & ~np.isposinf(frame["se"])
+        if converged_only:
+            usable &= frame["converged"].astype(bool)
+        return frame.assign(usable=usable)
+
+    def summary(self, level: float = 0.95, converged_only: bool = False):
         """Statistics per grid point x estimator x parameter.
 
         Columns: the factors, ``estimator``, ``parameter``, ``trials``, ``estimated`` (trials
@@ -578,21 +617,25 @@ class Study:
         ``|estimate - truth| <= z se``, ``z`` the normal quantile of ``level``),
         ``converged`` (fraction of all trials). Without truth: NaN in bias, rmse, coverage.
 
-        A trial whose estimate is not finite (a failed fit) counts in ``trials`` and
-        ``converged`` only; ``mean_se`` and ``coverage`` take the trials with a finite
-        estimate and a finite standard error.
+        Only usable estimates enter the statistics: a trial whose estimate is not finite (a
+        failed fit) or whose standard error is ``+inf`` (the data set does not determine the
+        parameter), and with ``converged_only`` one whose fit did not converge, counts in
+        ``trials`` and ``converged`` only (``estimated`` counts the others); ``mean_se``
+        and ``coverage`` take the usable trials with a finite standard error. The same rule
+        holds in :meth:`covariances`, :meth:`normalized_errors` and the report.
         """
         from scipy.stats import norm
 
         pd = _pandas()
         z = float(norm.ppf(0.5 + level / 2))
         keys = [*self.factors, "estimator", "parameter"]
-        frame = self.results.drop(columns="covariance_row").merge(
-            self._truth_table(), on=[*self.factors, "parameter"], how="left"
+        frame = (
+            self._usable(converged_only)
+            .drop(columns="covariance_row")
+            .merge(self._truth_table(), on=[*self.factors, "parameter"], how="left")
         )
-        finite = np.isfinite(frame["estimate"])
-        frame["estimate"] = frame["estimate"].where(finite)
-        frame["se"] = frame["se"].where(finite & np.isfinite(frame["se"]))
+        frame["estimate"] = frame["estimate"].where(frame["usable"])
+        frame["se"] = frame["se"].where(frame["usable"] & np.isfinite(frame["se"]))
         frame["error2"] = (frame["estimate"] - frame["truth"]) ** 2
         frame["inside"] = ((frame["estimate"] - frame["truth"]).abs() <= z * frame["se"]).where(
             frame["truth"].notna() & frame["se"].notna()
@@ -615,38 +658,47 @@ class Study:
         out.insert(out.columns.get_loc("mean_se") + 1, "se_over_std", out["mean_se"] / out["std"])
         return pd.DataFrame(out)
 
-    def covariances(self, point: int, estimator: str) -> dict[str, torch.Tensor | None]:
+    def covariances(
+        self, point: int, estimator: str, converged_only: bool = False
+    ) -> dict[str, torch.Tensor | None]:
         """Empirical, mean reported and theoretical covariance of one grid point's estimates.
 
         Args:
             point: index into :attr:`points`.
             estimator: an estimator's name.
+            converged_only: leave out the trials whose fit did not converge.
 
         Returns:
-            A dict with ``"parameters"`` (names), ``"trials"`` (T), ``"empirical"`` (about
-            the sample mean), ``"reported"`` (mean of the reported covariances) and
-            ``"theory"`` (None without ``theory``): float64 tensors ``(p, p)``.
+            A dict with ``"parameters"`` (names), ``"trials"`` (T: the trials whose every
+            estimate is usable, see :meth:`summary`), ``"estimates"`` (``(T, p)``),
+            ``"empirical"`` (about the sample mean; NaN for T < 2), ``"reported"`` (mean of
+            the reported covariances) and ``"theory"`` (None without ``theory``): float64
+            tensors ``(p, p)``.
         """
-        rows = _at(self.results, self.points[point])
+        rows = _at(self._usable(converged_only), self.points[point])
         rows = rows[rows["estimator"] == estimator]
         names = list(dict.fromkeys(rows["parameter"]))
         p = len(names)
-        estimates = torch.tensor(
-            rows["estimate"].to_numpy().reshape(-1, p)
-        )  # a copy: pandas 3 hands out read-only views
-        reported = np.stack(rows["covariance_row"].to_numpy()).reshape(-1, p, p).mean(0)
-        empirical = summarize_estimates(estimates, estimates.mean(0)).covariance
+        keep = rows["usable"].to_numpy().reshape(-1, p).all(axis=1)
+        estimates = torch.tensor(rows["estimate"].to_numpy().reshape(-1, p)[keep])  # a copy
+        reported = np.stack(rows["covariance_row"].to_numpy()).reshape(-1, p, p)[keep]
+        reported = reported.mean(0) if len(reported) else np.full((p, p), math.nan)
+        empirical = torch.full((p, p), math.nan, dtype=torch.float64)
+        if estimates.shape[0] >= 2:
+            empirical = summarize_estimates(estimates, estimates.mean(0)).covariance
         theory = None if self.theory is None else self.theory(dict(self.points[point]), estimator)
         return {
             "parameters": names,
             "trials": estimates.shape[0],
+            "estimates": estimates,
             "empirical": empirical,
             "reported": torch.as_tensor(reported),
             "theory": None if theory is None else torch.as_tensor(theory, dtype=torch.float64),
         }
 
-    def covariance_summary(self):
-        """Empirical vs reported (and theoretical) covariance per grid point x estimator.
+    def covariance_summary(self, converged_only: bool = False):
+        """Empirical vs reported (and theoretical) covariance per grid point x estimator
+        (:meth:`covariances`: the trials whose every estimate is usable).
 
         Columns: the factors, ``estimator``, ``trials``, ``rel_frobenius_reported``
         (``||C_emp - mean C_reported||_F / ||mean C_reported||_F``) and, where ``theory``
@@ -657,7 +709,7 @@ class Study:
         rows = []
         for i, point in enumerate(self.points):
             for name in self.estimators:
-                c = self.covariances(i, name)
+                c = self.covariances(i, name, converged_only)
                 est = c["empirical"]
                 row = {**point, "estimator": name, "trials": c["trials"]}
                 row["rel_frobenius_reported"] = _relative_frobenius(est, c["reported"])
@@ -671,7 +723,7 @@ class Study:
                 rows.append(row)
         return pd.DataFrame(rows)
 
-    def consistency(self, factor: str = "N"):
+    def consistency(self, factor: str = "N", converged_only: bool = False):
         """Fitted log-log slopes of ``|bias|`` and ``std`` against ``factor``.
 
         For a consistent estimator with the usual rate, ``std`` falls like ``N^(-1/2)``
@@ -697,7 +749,7 @@ class Study:
                 f"consistency(factor={factor!r}) needs a numeric grid factor with at least 2 "
                 f"values; the grid is {self.grid}."
             )
-        summary = self.summary()
+        summary = self.summary(converged_only=converged_only)
         others = [f for f in self.factors if f != factor]
         rows = []
         for key, group in summary.groupby([*others, "estimator", "parameter"], sort=False):
@@ -716,7 +768,7 @@ class Study:
             rows.append(row)
         return pd.DataFrame(rows)
 
-    def normalized_errors(self):
+    def normalized_errors(self, converged_only: bool = False):
         """Normalised errors ``z = (estimate - truth) / se`` of every trial.
 
         For an unbiased estimator whose reported standard errors are right, ``z`` is close to
@@ -725,18 +777,18 @@ class Study:
 
         Returns:
             One row per grid point x estimator x parameter x trial with a declared truth, a
-            finite estimate and a positive standard error: the factors, ``estimator``,
-            ``parameter``, ``trial``, ``z``.
+            usable estimate (see :meth:`summary`) and a finite positive standard error: the
+            factors, ``estimator``, ``parameter``, ``trial``, ``z``.
         """
         keys = [*self.factors, "estimator", "parameter", "trial"]
-        frame = self.results[[*keys, "estimate", "se"]].merge(
+        frame = self._usable(converged_only)[[*keys, "estimate", "se", "usable"]].merge(
             self._truth_table(), on=[*self.factors, "parameter"], how="inner"
         )
-        frame = frame[(frame["se"] > 0) & np.isfinite(frame["estimate"])]
+        frame = frame[frame["usable"] & (frame["se"] > 0) & np.isfinite(frame["se"])]
         frame = frame.assign(z=(frame["estimate"] - frame["truth"]) / frame["se"])
         return frame[[*keys, "z"]].reset_index(drop=True)
 
-    def normalized_error_summary(self):
+    def normalized_error_summary(self, converged_only: bool = False):
         """Mean, standard deviation and Kolmogorov-Smirnov distance to N(0, 1) of the
         normalised errors (:meth:`normalized_errors`) per grid point x estimator x parameter.
 
@@ -748,7 +800,7 @@ class Study:
         pd = _pandas()
         keys = [*self.factors, "estimator", "parameter"]
         rows = []
-        for key, group in self.normalized_errors().groupby(keys, sort=False):
+        for key, group in self.normalized_errors(converged_only).groupby(keys, sort=False):
             z = group["z"].to_numpy()
             test = kstest(z, "norm")
             rows.append(
@@ -772,6 +824,7 @@ class Study:
         factor: str = "N",
         ellipse: tuple[str, str] | None = None,
         level: float = 0.95,
+        converged_only: bool = False,
     ) -> pathlib.Path:
         """Write ``report.md`` with the summary tables (also as CSV) and figures.
 
@@ -783,8 +836,8 @@ class Study:
           axes with the ``factor^(-1/2)`` reference (numeric ``factor`` only);
         * ``coverage_vs_<factor>.png``: coverage of the ``level`` intervals against
           ``factor``, the nominal level and its binomial band ``level +- z sqrt(level
-          (1 - level) / trials)`` (``z`` the normal quantile of ``level``; numeric ``factor``
-          only);
+          (1 - level) / n)`` (``z`` the normal quantile of ``level``, ``n`` the fewest trials
+          with usable estimates; numeric ``factor`` only);
         * ``normalized_histograms.png`` and ``normalized_qq.png``: histograms and QQ plots of
           the normalised errors ``(estimate - truth) / se`` against N(0, 1), one panel per
           estimator x parameter, one curve per grid point (needs ``truth``);
@@ -795,6 +848,9 @@ class Study:
           covariance, all centred on the sample mean ``m``, and the truth;
         * ``se_vs_std.png``: mean reported standard error against the empirical standard
           deviation, with the line of equality.
+
+        Every table and figure takes the usable estimates of :meth:`summary` (with
+        ``converged_only``, of the converged fits only).
 
         Returns:
             The path of ``report.md``.
@@ -810,16 +866,17 @@ class Study:
         folder = pathlib.Path(out_dir)
         folder.mkdir(parents=True, exist_ok=True)
         tables = {
-            "summary": self.summary(level),
-            "covariance": self.covariance_summary(),
-            "normalized_errors": self.normalized_error_summary(),
+            "summary": self.summary(level, converged_only),
+            "covariance": self.covariance_summary(converged_only),
+            "normalized_errors": self.normalized_error_summary(converged_only),
         }
         values = self.grid.get(factor)
         by_factor = values is not None and len(set(values)) > 1
         by_factor = by_factor and not isinstance(values[0], (str, bool))
         if by_factor:
-            tables["consistency"] = self.consistency(factor)
-        text = [f"# Monte-Carlo study\n\n{self.trials} trials per grid point, seed {self.seed}.\n"]
+            tables["consistency"] = self.consistency(factor, converged_only)
+        text = [f"# Monte-Carlo study\n\n{self.trials} trials per grid point, seed {self.seed}"]
+        text[0] += " (statistics of converged fits only).\n" if converged_only else ".\n"
         for name, table in tables.items():
             table.to_csv(folder / f"{name}.csv", index=False)
             text.append(f"## {name}\n\n{_markdown(table)}")
@@ -828,8 +885,8 @@ class Study:
             figures.append(self._plot_bias_std(plt, tables["summary"], factor))
             figures.append(self._plot_coverage(plt, tables["summary"], factor, level))
         if len(tables["normalized_errors"]):
-            figures += self._plot_normalized(plt)
-        figures.append(self._plot_ellipses(plt, ellipse, level))
+            figures += self._plot_normalized(plt, converged_only)
+        figures.append(self._plot_ellipses(plt, ellipse, level, converged_only))
         figures.append(self._plot_se_vs_std(plt, tables["summary"]))
         text.append("## figures\n")
         for fig, name, caption in (f for f in figures if f is not None):
@@ -871,7 +928,7 @@ class Study:
         for key, group in summary.groupby([*others, "estimator", "parameter"], sort=False):
             if group["coverage"].notna().any():
                 ax.semilogx(group[factor], group["coverage"], "o-", label=" ".join(map(str, key)))
-        per_value = summary.groupby(factor)["trials"].min()
+        per_value = summary.groupby(factor)["estimated"].min().clip(lower=1)
         n = per_value.index.to_numpy(dtype=float)
         half = norm.ppf(0.5 + level / 2) * np.sqrt(level * (1 - level) / per_value.to_numpy())
         ax.fill_between(n, level - half, level + half, color="0.85", label="binomial band")
@@ -882,12 +939,12 @@ class Study:
         fig.tight_layout()
         return fig, f"coverage_vs_{factor}.png", f"coverage vs {factor}"
 
-    def _plot_normalized(self, plt):
+    def _plot_normalized(self, plt, converged_only: bool):
         """Histograms and QQ plots of the normalised errors: rows estimators, columns
         parameters, one curve per grid point (QQ: at most 200 evenly spaced quantiles)."""
         from scipy.stats import norm
 
-        z = self.normalized_errors()
+        z = self.normalized_errors(converged_only)
         estimators = list(dict.fromkeys(z["estimator"]))
         parameters = {
             e: list(dict.fromkeys(z[z["estimator"] == e]["parameter"])) for e in estimators
@@ -940,7 +997,7 @@ class Study:
             (qq, "normalized_qq.png", "QQ plots of normalised errors against N(0, 1)"),
         ]
 
-    def _plot_ellipses(self, plt, ellipse, level: float):
+    def _plot_ellipses(self, plt, ellipse, level: float, converged_only: bool):
         """The covariance ellipses of two parameters (see :meth:`report`), or None when no
         estimator has two parameters."""
         from scipy.stats import chi2
@@ -970,10 +1027,8 @@ class Study:
             ia, ib = names[estimator].index(a), names[estimator].index(b)
             for i, point in enumerate(self.points):
                 ax = axes[r, i]
-                c = self.covariances(i, estimator)
-                rows_i = _at(self.results, point)
-                rows_i = rows_i[rows_i["estimator"] == estimator]
-                est = rows_i["estimate"].to_numpy().reshape(-1, len(names[estimator]))[:, [ia, ib]]
+                c = self.covariances(i, estimator, converged_only)
+                est = c["estimates"].numpy()[:, [ia, ib]]
                 mean = est.mean(0)
                 ax.plot(est[:500, 0], est[:500, 1], ".", ms=2, color="0.6", label="estimates")
                 for key, style in (("empirical", "-"), ("reported", "--"), ("theory", ":")):

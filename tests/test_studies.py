@@ -19,7 +19,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from sysid import ARX, FIR, IOData, fit
-from sysid.errors import InputValidationError, RKIdentWarning, StudyDeclarationError
+from sysid.errors import (
+    InputValidationError,
+    PoorExcitationWarning,
+    RKIdentWarning,
+    StudyDeclarationError,
+)
 from sysid.montecarlo import input_signal, simulate_data
 from sysid.studies import WORKER_ENVIRONMENT, Study, local_cluster
 
@@ -73,8 +78,13 @@ def small_study(chunk=5, trials=15, block=1, estimators=None, **options):
 
 def table(study):
     """The results without the timing column, in a canonical row order."""
+    return table_of(study.results)
+
+
+def table_of(frame):
+    """``frame`` (results rows) without the timing column, in a canonical row order."""
     keys = ["N", "estimator", "trial", "parameter"]
-    frame = study.results.drop(columns="time").sort_values(keys).reset_index(drop=True)
+    frame = frame.drop(columns="time").sort_values(keys).reset_index(drop=True)
     frame["covariance_row"] = frame["covariance_row"].map(tuple)
     return frame
 
@@ -209,6 +219,20 @@ def test_same_trial_same_data_for_any_block_aligned_chunk(tmp_path):
     assert table(d).equals(table(e))
 
 
+def test_a_trial_keeps_its_data_when_trials_is_not_a_multiple_of_block(tmp_path):
+    """The last, incomplete block is drawn whole and cut: trial 8 of a 10-trial study sees
+    the data of trial 8 of a 12-trial one (block 4), so its estimates are equal."""
+    ten = small_study(trials=10, chunk=4, block=4).run(progress=False)
+    twelve = small_study(trials=12, chunk=4, block=4).run(progress=False)
+    for point in range(2):
+        last_10, last_12 = ten.data(point, 2), twelve.data(point, 2)
+        assert last_10.batch_shape == (2,)
+        torch.testing.assert_close(last_10.u, last_12.u[:2], rtol=0, atol=0)
+        torch.testing.assert_close(last_10.y, last_12.y[:2], rtol=0, atol=0)
+    keep = twelve.results["trial"] < 10
+    assert table(ten).equals(table_of(twelve.results[keep]))
+
+
 def simulate_two_experiments(point, n, generator):
     """n data sets of two experiments (60 and 40 samples) with first-order-hold inputs."""
     parts = []
@@ -318,6 +342,36 @@ def test_changed_grid_or_seed_is_refused(tmp_path):
         reseeded.run(tmp_path, progress=False)
 
 
+def test_a_folder_without_results_takes_a_new_declaration_and_changes_are_named(tmp_path):
+    """A folder left by a run that failed before its first chunk (manifest only) holds no
+    results: a corrected declaration runs there. A grid value 1 against 1.0 (equal in Python,
+    another declaration in the stored JSON) is named in the refusal."""
+
+    def broken(point, n, generator):
+        raise RuntimeError("simulate failed")
+
+    with pytest.raises(RuntimeError, match="simulate failed"):
+        Study(broken, {"fir_ls": fir_ls}, grid={"N": [40]}, trials=4, chunk=2).run(tmp_path)
+    assert (tmp_path / "manifest.json").exists()
+    small_study().run(tmp_path, progress=False)  # no longer "a different declaration"
+    float_grid = Study(simulate_white, {"fir_ls": fir_ls}, {"N": [40.0, 80]}, 15, seed=3, chunk=5)
+    with pytest.raises(StudyDeclarationError, match=r"grid: stored \{\"N\": \[40, 80\]\}"):
+        float_grid.run(tmp_path, progress=False)
+
+
+def test_truth_that_names_no_parameter_warns_and_a_non_number_is_refused(tmp_path):
+    def declared(truth):
+        return Study(simulate_white, {"fir_ls": fir_ls}, {"N": [40]}, 4, chunk=4, truth=truth)
+
+    study = declared({"B1": 1.0, "b2": 0.5, "b3": 0.2}).run(progress=False)
+    with pytest.warns(RKIdentWarning, match=r"truth names \['B1'\], which no estimator has"):
+        summary = study.summary()
+    assert summary[summary["parameter"] == "b1"]["bias"].isna().all()
+    wrong = declared({"b1": "a"}).run(progress=False)
+    with pytest.raises(InputValidationError, match=r"truth\['b1'\] = 'a'"):
+        wrong.summary()
+
+
 def test_invalid_declarations_are_refused():
     with pytest.raises(InputValidationError, match="multiple of block"):
         small_study(chunk=5, block=2)
@@ -338,7 +392,7 @@ def test_reordered_factors_repeated_values_and_summary_names_are_refused(tmp_pat
     grid = {"N": [40, 80], "sigma": [0.5, 1.0]}
     Study(simulate_white, {"fir_ls": fir_ls}, grid, trials=4, chunk=4).run(tmp_path)
     swapped = {"sigma": [0.5, 1.0], "N": [40, 80]}
-    with pytest.raises(StudyDeclarationError, match=r"factors: stored \['N', 'sigma'\]"):
+    with pytest.raises(StudyDeclarationError, match=r'factors: stored \["N", "sigma"\]'):
         Study(simulate_white, {"fir_ls": fir_ls}, swapped, trials=4, chunk=4).run(tmp_path)
     with pytest.raises(InputValidationError, match="repeats the values 40"):
         Study(simulate_white, {"fir_ls": fir_ls}, {"N": [40, 40, 80]})
@@ -385,6 +439,82 @@ def test_failed_trials_leave_every_statistic_but_their_count(tmp_path):
         assert row["coverage"] == pytest.approx(np.mean(np.abs(error[both]) <= z * se[both]))
         assert row["rmse"] == pytest.approx(np.sqrt(np.mean(error[ok] ** 2)))
     assert (summary[summary["estimator"] == "failing"]["estimated"] < 60).all()
+
+
+def test_undetermined_and_unconverged_estimates_follow_one_rule_in_every_statistic(tmp_path):
+    """A trial with a zero input (its b's are undetermined: estimate 0, SE inf) leaves every
+    statistic of those parameters, as a NaN estimate does; converged_only also leaves out
+    the fits flagged not converged (wrong by +10 here). summary, covariances and
+    normalized_errors against numpy over the same trials."""
+
+    def zero_inputs(point, n, generator):
+        data = simulate_white(point, n, generator)
+        u = data.u.clone()
+        u[::4] = 0.0  # every fourth trial of a block
+        return simulate_data(FIR(3, 1), u, theta=FIR_THETA, noise_std=SIGMA, generator=generator)
+
+    def flagged(data):
+        result = fit(FIR(3, 1), data)
+        bad = data.u[:, 1, 0] > 1.0
+        result.theta[bad] += 10.0
+        result.converged[bad] = False
+        return result
+
+    study = Study(
+        zero_inputs,
+        {"fir_ls": fir_ls, "flagged": flagged},
+        grid={"N": [40, 80]},
+        trials=40,
+        seed=5,
+        chunk=8,
+        block=8,
+        truth=FIR_TRUTH,
+    )
+    with pytest.warns(PoorExcitationWarning, match="minimum-norm"):
+        study.run(tmp_path, progress=False)
+    rows = study.results
+    assert np.isposinf(rows[rows["trial"] % 4 == 0]["se"]).all()
+    z95 = 1.959963984540054
+    for converged_only in (False, True):
+        summary = study.summary(converged_only=converged_only)
+        errors = study.normalized_errors(converged_only)
+        for (N, name, parameter), group in rows.groupby(["N", "estimator", "parameter"]):
+            row = summary[
+                (summary["N"] == N)
+                & (summary["estimator"] == name)
+                & (summary["parameter"] == parameter)
+            ].iloc[0]
+            estimate, se = group["estimate"].to_numpy(), group["se"].to_numpy()
+            use = (group["trial"] % 4 != 0).to_numpy()
+            if converged_only:
+                use = use & group["converged"].to_numpy()
+            error = estimate[use] - FIR_TRUTH[parameter]
+            assert row["trials"] == 40 and row["estimated"] == use.sum()
+            assert row["mean"] == pytest.approx(estimate[use].mean(), rel=1e-12)
+            assert row["std"] == pytest.approx(estimate[use].std(ddof=1), rel=1e-12)
+            assert row["mean_se"] == pytest.approx(se[use].mean(), rel=1e-12)
+            assert row["coverage"] == pytest.approx(np.mean(np.abs(error) <= z95 * se[use]))
+            mine = errors[
+                (errors["N"] == N)
+                & (errors["estimator"] == name)
+                & (errors["parameter"] == parameter)
+            ]
+            np.testing.assert_allclose(np.sort(mine["z"]), np.sort(error / se[use]), rtol=1e-12)
+        for i, point in enumerate(study.points):
+            for name in study.estimators:
+                at = rows[(rows["N"] == point["N"]) & (rows["estimator"] == name)]
+                theta = at["estimate"].to_numpy().reshape(-1, 3)
+                use = at["trial"].to_numpy()[::3] % 4 != 0
+                if converged_only:
+                    use = use & at["converged"].to_numpy()[::3]
+                c = study.covariances(i, name, converged_only)
+                assert c["trials"] == use.sum()
+                np.testing.assert_allclose(c["empirical"], np.cov(theta[use].T), rtol=1e-10)
+                reported = np.stack(at["covariance_row"].to_numpy()).reshape(-1, 3, 3)
+                np.testing.assert_allclose(c["reported"], reported[use].mean(0), rtol=1e-12)
+    flagged_rows = study.summary(converged_only=True)
+    flagged_rows = flagged_rows[flagged_rows["estimator"] == "flagged"]
+    assert (flagged_rows["bias"].abs() < 0.3).all()  # the +10 fits are left out
 
 
 def test_simulate_with_the_wrong_batch_is_named(tmp_path):
