@@ -235,6 +235,44 @@ def progress(iterable, desc: str, total: int | None = None, **options):
     return tqdm(iterable, desc=desc, total=total, dynamic_ncols=True, **options)
 
 
+def study_grid(grid, default: dict, choices: dict | None = None) -> dict:
+    """The grid of a declared study: ``default`` where ``grid`` is None, else ``grid``, whose
+    factors must be those of ``default`` (the ones the study's ``simulate`` reads: an unknown
+    factor would label rows with a value nothing used) and whose values of each factor in
+    ``choices`` (factor -> allowed values) must be among them.
+
+    Raises:
+        InputValidationError: a missing or unknown factor, or a value not allowed; the
+            message lists what is.
+    """
+    from sysid.errors import InputValidationError
+
+    if grid is None:
+        return {factor: list(values) for factor, values in default.items()}
+    if not isinstance(grid, dict):
+        raise InputValidationError(
+            f"grid must be a table of factor -> list of values with the factors {list(default)}, "
+            f"got {grid!r}."
+        )
+    unknown, missing = sorted(set(grid) - set(default)), sorted(set(default) - set(grid))
+    if unknown or missing:
+        raise InputValidationError(
+            f"this study's grid has the factors {list(default)} (the ones its data generator "
+            f"reads); got unknown {unknown} and missing {missing}."
+        )
+    grid = {
+        factor: list(values) if isinstance(values, (list, tuple)) else [values]
+        for factor, values in grid.items()
+    }
+    for factor, allowed in (choices or {}).items():
+        wrong = [value for value in grid[factor] if value not in allowed]
+        if wrong:
+            raise InputValidationError(
+                f"grid factor {factor!r} takes values among {list(allowed)}; got {wrong}."
+            )
+    return grid
+
+
 def note(message: str) -> None:
     """One progress line on stderr, for a stage that is a single batched call (no loop to
     put a progress bar on)."""

@@ -28,7 +28,14 @@ from __future__ import annotations
 
 import argparse
 
-from experiments._common import experiment_parser, finish, output_dir, parse_early, write_table
+from experiments._common import (
+    experiment_parser,
+    finish,
+    output_dir,
+    parse_early,
+    study_grid,
+    write_table,
+)
 
 NAME = "greybox_consistency"
 
@@ -96,11 +103,10 @@ def declare(grid=None, trials=TRIALS, seed=SEED, chunk=CHUNK) -> Study:
     """The declared study: the grey-box fit on ``trials`` data sets per point of ``grid``
     (factors ``N`` and ``sigma``; default :data:`GRID`), master ``seed``, ``chunk`` data sets
     per batched fit and per ``simulate`` call."""
-    chunk = min(chunk, trials)
     return Study(
         simulate,
         {"greybox": lambda data: fit(model(START), data)},
-        grid=dict(GRID if grid is None else grid),
+        grid=study_grid(grid, GRID),
         trials=trials,
         seed=seed,
         chunk=chunk,

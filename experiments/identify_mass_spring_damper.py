@@ -38,6 +38,7 @@ from experiments._common import (
     output_dir,
     parse_early,
     save_figure,
+    study_grid,
     write_table,
 )
 
@@ -158,11 +159,10 @@ def declare(grid=None, trials=500, seed=0, chunk=CHUNK, estimators=(ARX_LS, OE_G
     :data:`ESTIMATORS`) on ``trials`` data sets per point of ``grid`` (factors ``N`` and
     ``noise``; default ``N = 1000``, ``noise = 0.02``), master ``seed``, ``chunk`` data sets per
     batched fit and per ``simulate`` call."""
-    chunk = min(chunk, trials)
     return Study(
         simulate_data,
         {name: ESTIMATORS[name] for name in estimators},
-        grid=dict({"N": [1000], "noise": [0.02]} if grid is None else grid),
+        grid=study_grid(grid, {"N": [1000], "noise": [0.02]}),
         trials=trials,
         seed=seed,
         chunk=chunk,

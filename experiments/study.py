@@ -18,10 +18,11 @@ or (TOML)::
 
 Keys left out take the kind's defaults. The study's chunks go to ``DIR/study`` (Parquet, one
 file per finished chunk, and ``manifest.json``), its report (Markdown, CSV, figures) to
-``DIR/report``. A run refuses a ``DIR/study`` that already holds results unless ``--resume``
-is given; with ``--resume`` it computes only the missing chunks of the same declaration, and a
-different declaration (grid, trials, seed, chunk, kind, options) is refused by the study's
-manifest check instead of mixing results.
+``DIR/report``. A run refuses a ``DIR/study`` that already holds results (chunk files) unless
+``--resume`` is given; with ``--resume`` it computes only the missing chunks of the same
+declaration, and a different declaration (grid, trials, seed, chunk, kind, options) is
+refused by the study's manifest check instead of mixing results. The grid's factors are the
+kind's (the ones its data generator reads); a trial's data do not depend on ``--trials``.
 
 Run: ``python -m experiments.study DECLARATION [--trials N] [--workers K] [--resume]
 [--out DIR] [--quick]``.
@@ -84,13 +85,15 @@ def read_declaration(path: pathlib.Path) -> dict:
     :data:`KEYS`; ``kind`` one of :data:`KINDS`.
 
     Raises:
-        ValueError: unreadable file, unknown suffix, unknown key or kind (the message says
-            which and what is allowed).
+        ValueError: unreadable file, unknown suffix, unknown key or kind, a value of the wrong
+            type (trials, seed and chunk are integers, grid and options tables); the message
+            says which and what is allowed.
     """
     path = pathlib.Path(path)
-    if path.suffix == ".json":
+    suffix = path.suffix.lower()
+    if suffix == ".json":
         declaration = json.loads(path.read_text())
-    elif path.suffix == ".toml":
+    elif suffix == ".toml":
         import tomllib
 
         declaration = tomllib.loads(path.read_text())
@@ -106,15 +109,37 @@ def read_declaration(path: pathlib.Path) -> dict:
             f"{path}: kind {declaration.get('kind')!r} is not a known study kind; "
             f"choose one of {sorted(KINDS)}."
         )
+    for key in ("trials", "seed", "chunk"):
+        value = declaration.get(key, 0)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f"{path}: {key} must be an integer, got {value!r}.")
+    for key in ("grid", "options"):
+        if not isinstance(declaration.get(key, {}), dict):
+            raise ValueError(
+                f"{path}: {key} must be a table (TOML) / object (JSON), got {declaration[key]!r}."
+            )
     return declaration
 
 
 def declare(declaration: dict, trials: int | None = None):
     """The :class:`sysid.studies.Study` of ``declaration`` (see :func:`read_declaration`),
-    built by its kind's module; ``trials`` overrides the declaration's."""
+    built by its kind's module; ``trials`` overrides the declaration's.
+
+    Raises:
+        ValueError: an option the kind does not take; the kind's and the study's checks of
+            the values (:class:`~sysid.errors.InputValidationError`).
+    """
     import importlib
+    import inspect
 
     module = importlib.import_module(KINDS[declaration["kind"]])
+    allowed = set(inspect.signature(module.declare).parameters) - set(KEYS)
+    unknown = sorted(set(declaration.get("options", {})) - allowed)
+    if unknown:
+        raise ValueError(
+            f"the kind {declaration['kind']!r} has no option(s) {unknown}; its options are "
+            f"{sorted(allowed)}."
+        )
     keywords = {
         key: declaration[key] for key in ("grid", "trials", "seed", "chunk") if key in declaration
     }
@@ -134,26 +159,34 @@ def main(argv=None):
         parser.error(str(err))
     out = output_dir(args, NAME)
     folder = out / "study"
-    if folder.exists() and any(folder.iterdir()) and not args.resume:
+    if any(folder.glob("chunks/*.parquet")) and not args.resume:
         parser.error(
-            f"{folder} already holds a study; pass --resume to continue it (same declaration), "
-            "or choose another --out."
+            f"{folder} already holds results of a study; pass --resume to continue it (same "
+            "declaration), or choose another --out."
         )
     trials = QUICK_TRIALS if args.quick and args.trials is None else args.trials
-    study = declare(declaration, trials)
+    try:  # the kind's and the study's checks of the values (InputValidationError)
+        study = declare(declaration, trials)
+    except ValueError as err:
+        parser.error(f"{args.declaration}: {err}")
     note(
         f"study {declaration['kind']}: {len(study.points)} grid points x {study.trials} trials, "
         f"{study.n_chunks} chunk(s) each, {args.workers} worker(s)"
     )
-    if args.workers > 1:
-        from dask.distributed import Client
+    from sysid.errors import StudyDeclarationError
 
-        from sysid.studies import local_cluster
+    try:
+        if args.workers > 1:
+            from dask.distributed import Client
 
-        with local_cluster(args.workers) as cluster, Client(cluster) as client:
-            study.run(folder, client=client)
-    else:
-        study.run(folder)
+            from sysid.studies import local_cluster
+
+            with local_cluster(args.workers) as cluster, Client(cluster) as client:
+                study.run(folder, client=client)
+        else:
+            study.run(folder)
+    except StudyDeclarationError as err:  # --resume on another declaration's results
+        parser.error(str(err))
     report = study.report(out / "report")
     finish(out, report.read_text())
     return study

@@ -34,6 +34,7 @@ from experiments._common import (
     parse_early,
     readable_log_ticks,
     save_figure,
+    study_grid,
     write_table,
 )
 
@@ -114,11 +115,10 @@ def declare(grid=None, trials=TRIALS, seed=SEED, chunk=CHUNK, noise="output") ->
     if noise not in ("equation", "output"):
         raise InputValidationError(f"noise must be 'equation' or 'output', got {noise!r}.")
     names = [name for name, kind in CASES if kind == noise]
-    chunk = min(chunk, trials)
     return Study(
         simulate(noise),
         {name: ESTIMATORS[name] for name in names},
-        grid=dict(GRID if grid is None else grid),
+        grid=study_grid(grid, GRID),
         trials=trials,
         seed=seed,
         chunk=chunk,

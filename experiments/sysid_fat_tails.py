@@ -25,6 +25,7 @@ from experiments._common import (
     output_dir,
     parse_early,
     save_figure,
+    study_grid,
     write_table,
 )
 
@@ -104,11 +105,10 @@ def declare(grid=None, trials=TRIALS, seed=SEED, chunk=CHUNK) -> Study:
     """The declared study: ``grid`` (factors ``noise`` (keys of :data:`NOISES`), ``N``,
     ``sigma``; default :data:`GRID`), ``trials`` per grid point, master ``seed``, ``chunk``
     trials per batched fit (and per ``simulate`` call)."""
-    chunk = min(chunk, trials)
     return Study(
         simulate,
         ESTIMATORS,
-        grid=dict(GRID if grid is None else grid),
+        grid=study_grid(grid, GRID, {"noise": NOISES}),
         trials=trials,
         seed=seed,
         chunk=chunk,

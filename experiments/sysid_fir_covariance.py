@@ -23,6 +23,7 @@ from experiments._common import (
     output_dir,
     parse_early,
     save_figure,
+    study_grid,
     write_table,
 )
 
@@ -55,7 +56,7 @@ import torch
 from experiments._common import plt
 from experiments.sysid_fir_inputs import true_fir
 from sysid import FIR, IOData, fit
-from sysid.montecarlo import fir_regressor, input_signal, noise_signal
+from sysid.montecarlo import INPUT_KINDS, fir_regressor, input_signal, noise_signal
 from sysid.studies import Study
 
 N_TAPS = 20
@@ -99,8 +100,7 @@ def declare(grid=None, trials=TRIALS, seed=SEED, chunk=CHUNK) -> Study:
     """The declared study: ``grid`` (factors ``input``, ``N``, ``sigma``; default
     :data:`GRID`), ``trials`` per grid point, master ``seed``, ``chunk`` trials per batched
     fit (and per ``simulate`` call)."""
-    grid = dict(GRID if grid is None else grid)
-    chunk = min(chunk, trials)
+    grid = study_grid(grid, GRID, {"input": INPUT_KINDS})
     truth = dict(zip(MODEL.parameter_names(), true_fir(N_TAPS).tolist(), strict=True))
     return Study(
         simulate,

@@ -14,7 +14,6 @@ import pandas as pd
 import pytest
 
 from experiments import study as cli
-from sysid.errors import StudyDeclarationError
 
 ROOT = pathlib.Path(cli.__file__).resolve().parent.parent
 DECLARATION = {
@@ -77,22 +76,24 @@ def test_resume_after_a_partial_run_gives_the_full_rows(cli_run, tmp_path):
     kept = {p: p.stat().st_mtime_ns for p in chunks[::2]}
     refused = run_cli(str(path), "--out", str(out))
     assert refused.returncode == 2
-    assert "already holds a study" in refused.stderr and "--resume" in refused.stderr
+    assert "already holds results" in refused.stderr and "--resume" in refused.stderr
     resumed = run_cli(str(path), "--out", str(out), "--resume")
     assert resumed.returncode == 0, resumed.stderr
     assert {p: p.stat().st_mtime_ns for p in kept} == kept  # finished chunks not recomputed
     pd.testing.assert_frame_equal(table(out / "study"), full)
 
 
-def test_resume_with_another_declaration_is_refused(cli_run, tmp_path):
+def test_resume_with_another_declaration_is_refused(cli_run, tmp_path, capsys):
     src, path, _ = cli_run
     other = tmp_path / "other.toml"
     other.write_text(
         'kind = "fir_covariance"\ntrials = 12\nseed = 5\nchunk = 4\n'
         '[grid]\ninput = ["white", "prbs"]\nN = [60]\nsigma = [0.5]\n'
     )
-    with pytest.raises(StudyDeclarationError, match="seed: stored 4, now 5"):
+    with pytest.raises(SystemExit) as done:
         cli.main([str(other), "--out", str(src / "out"), "--resume"])
+    assert done.value.code == 2
+    assert "seed: stored 4, now 5" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
@@ -100,6 +101,20 @@ def test_resume_with_another_declaration_is_refused(cli_run, tmp_path):
     [
         ('{"kind": "nonsense"}', "not a known study kind"),
         ('{"kind": "fat_tails", "trails": 3}', "unknown key(s) ['trails']"),
+        ('{"kind": "fat_tails", "trials": "12"}', "trials must be an integer, got '12'"),
+        ('{"kind": "fat_tails", "grid": [60]}', "grid must be a table"),
+        ('{"kind": "fat_tails", "options": "output"}', "options must be a table"),
+        ('{"kind": "fat_tails", "options": {"noise": "x"}}', "has no option(s) ['noise']"),
+        (
+            '{"kind": "consistency", "grid": {"N": [100], "sigma": [0.5], "noise": ["output"]}}',
+            "got unknown ['noise'] and missing []",
+        ),
+        ('{"kind": "fir_covariance", "grid": {"N": [60], "sigma": [0.5]}}', "missing ['input']"),
+        (
+            '{"kind": "fat_tails", "grid": {"noise": ["cauchy"], "N": [60], "sigma": [0.2]}}',
+            "'noise' takes values among",
+        ),
+        ('{"kind": "fat_tails", "chunk": 0}', "chunk must be an integer >= 1"),
     ],
 )
 def test_bad_declarations_are_named(tmp_path, capsys, text, words):
@@ -109,3 +124,18 @@ def test_bad_declarations_are_named(tmp_path, capsys, text, words):
         cli.main([str(path), "--out", str(tmp_path / "out")])
     assert done.value.code == 2
     assert words in capsys.readouterr().err
+
+
+def test_a_folder_left_by_a_failed_start_takes_the_corrected_declaration(tmp_path):
+    """A run that failed before its first chunk leaves DIR/study without results: the
+    corrected declaration runs there without --resume."""
+    (tmp_path / "out" / "study" / "chunks").mkdir(parents=True)
+    (tmp_path / "out" / "study" / "manifest.json").write_text('{"declaration": {}, "hash": ""}')
+    path = tmp_path / "fir.JSON"  # the suffix in any case
+    path.write_text(
+        json.dumps(
+            {**DECLARATION, "trials": 4, "grid": {**DECLARATION["grid"], "input": ["white"]}}
+        )
+    )
+    study = cli.main([str(path), "--out", str(tmp_path / "out")])
+    assert len(study.results) == 4 * 20
