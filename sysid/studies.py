@@ -30,9 +30,16 @@ different declaration is refused with :class:`~sysid.errors.StudyDeclarationErro
 
 Results. :attr:`Study.results` is a tidy table, one row per grid point x estimator x trial x
 parameter, with columns ``<factors...>, estimator, trial, parameter, estimate, se, converged,
-loss, time, covariance_row`` (``time``: the chunk's estimator time divided by its trials, in
-seconds; ``covariance_row``: the parameter's row of the reported covariance, in the order of
-the parameters).
+loss, time, covariance_row, error`` (``time``: the chunk's estimator time divided by its
+trials, in seconds; ``covariance_row``: the parameter's row of the reported covariance, in the
+order of the parameters; ``error``: empty, or the error the estimator raised for that trial).
+
+Failures. An estimator that raises one of the project's errors
+(:class:`~sysid.errors.RKIdentError`, e.g. a :class:`~sysid.errors.ConvergenceError` for a
+batch) on a chunk is called again on each half of it, down to single trials, so the trials
+that make it fail are found: their rows hold NaN, ``converged`` False and the error's message,
+the other trials their estimates. Where it fails for every trial of the chunk the error is
+raised (a mistake in the declaration, not a property of some data sets).
 """
 
 from __future__ import annotations
@@ -54,7 +61,7 @@ import numpy as np
 import torch
 
 from .data import IOData
-from .errors import InputValidationError, RKIdentWarning, StudyDeclarationError
+from .errors import InputValidationError, RKIdentError, RKIdentWarning, StudyDeclarationError
 from .montecarlo import summarize_estimates
 
 __all__ = ["WORKER_ENVIRONMENT", "Study", "local_cluster"]
@@ -70,6 +77,7 @@ RESERVED_COLUMNS = (
     "loss",
     "time",
     "covariance_row",
+    "error",
     # columns of the summaries (and their intermediate ones)
     "truth",
     "usable",
@@ -402,39 +410,21 @@ class Study:
         pd = _pandas()
         data = self.data(point, chunk)
         trials = np.asarray(self._chunk_trials(chunk))
-        n = len(trials)
         frames = []
         for name, estimator in self.estimators.items():
             start = time.perf_counter()
-            result = estimator(data)
+            parts = _fit_or_split(estimator, data, 0, len(trials))
             elapsed = time.perf_counter() - start
-            theta = result.theta.detach()
-            names = list(result.parameter_names)
-            p = len(names)
-            if tuple(theta.shape) != (n, p):
-                raise InputValidationError(
-                    f"estimator {name!r} returned theta of shape {tuple(theta.shape)} for a "
-                    f"chunk of {n} data sets and {p} parameter names; expected ({n}, {p})."
+            results = [r for _, _, r, error in parts if error is None]
+            for result in results:
+                _check_result(name, result)
+            names = list(results[0].parameter_names) if results else None
+            if names is None:  # every trial failed: not a property of some data sets
+                raise parts[0][3]
+            for lo, hi, result, error in parts:
+                frames.append(
+                    _rows(name, names, trials[lo:hi], result, error, elapsed / len(trials))
                 )
-            theta = theta.double().cpu().numpy()
-            se = result.standard_errors.detach().double().cpu().numpy().reshape(n, p)
-            cov = result.covariance.detach().double().cpu().numpy().reshape(n, p, p)
-            converged = result.converged.detach().cpu().numpy().reshape(n).astype(bool)
-            loss = result.loss_history.detach()[-1].double().cpu().numpy().reshape(n)
-            frame = pd.DataFrame(
-                {
-                    "estimator": name,
-                    "trial": np.repeat(trials, p),
-                    "parameter": np.tile(names, n),
-                    "estimate": theta.reshape(-1),
-                    "se": se.reshape(-1),
-                    "converged": np.repeat(converged, p),
-                    "loss": np.repeat(loss, p),
-                    "time": elapsed / n,
-                    "covariance_row": list(cov.reshape(n * p, p)),
-                }
-            )
-            frames.append(frame)
         out = pd.concat(frames, ignore_index=True)
         for position, (factor, value) in enumerate(self.points[point].items()):
             out.insert(position, factor, value)
@@ -1059,6 +1049,73 @@ class Study:
         ax.legend(fontsize=7)
         fig.tight_layout()
         return fig, "se_vs_std.png", "reported SE vs empirical std"
+
+
+def _fit_or_split(estimator, data: IOData, lo: int, hi: int) -> list[tuple]:
+    """``estimator`` on the data sets ``lo:hi`` of ``data``: ``[(lo, hi, result, None)]``, or,
+    where it raises a project error, the parts of its two halves, down to single data sets
+    ``(i, i + 1, None, error)``."""
+    try:
+        part = data if (lo, hi) == (0, data.batch_shape[0]) else data[lo:hi]
+        return [(lo, hi, estimator(part), None)]
+    except StudyDeclarationError:
+        raise
+    except RKIdentError as error:
+        if hi - lo == 1:
+            return [(lo, hi, None, error)]
+        mid = (lo + hi) // 2
+        return _fit_or_split(estimator, data, lo, mid) + _fit_or_split(estimator, data, mid, hi)
+
+
+def _check_result(name: str, result) -> None:
+    """Raise unless ``result`` has what a results row needs (a :class:`FitResult` does)."""
+    needed = ("theta", "standard_errors", "covariance", "converged", "loss_history")
+    missing = [a for a in (*needed, "parameter_names") if not hasattr(result, a)]
+    if missing:
+        raise InputValidationError(
+            f"estimator {name!r} returned a {type(result).__name__} without {missing}; it must "
+            "return a FitResult (anything sysid.fit returns)."
+        )
+
+
+def _rows(name: str, names: list[str], trials: np.ndarray, result, error, seconds: float):
+    """The results rows of one estimator's ``result`` for ``trials``, or of the ``error`` it
+    raised for them (NaN, not converged); ``seconds`` per trial."""
+    pd = _pandas()
+    n, p = len(trials), len(names)
+    if error is not None:
+        nan = np.full((n, p), math.nan)
+        theta, se, cov = nan, nan, np.full((n, p, p), math.nan)
+        converged, loss = np.zeros(n, dtype=bool), np.full(n, math.nan)
+        message = f"{type(error).__name__}: {error}"
+    else:
+        theta = result.theta.detach()
+        if tuple(theta.shape) != (n, p) or list(result.parameter_names) != names:
+            raise InputValidationError(
+                f"estimator {name!r} returned theta of shape {tuple(theta.shape)} with the "
+                f"parameters {list(result.parameter_names)} for a chunk of {n} data sets; "
+                f"expected ({n}, {p}) with {names}."
+            )
+        theta = theta.double().cpu().numpy()
+        se = result.standard_errors.detach().double().cpu().numpy().reshape(n, p)
+        cov = result.covariance.detach().double().cpu().numpy().reshape(n, p, p)
+        converged = result.converged.detach().cpu().numpy().reshape(n).astype(bool)
+        loss = result.loss_history.detach()[-1].double().cpu().numpy().reshape(n)
+        message = ""
+    return pd.DataFrame(
+        {
+            "estimator": name,
+            "trial": np.repeat(trials, p),
+            "parameter": np.tile(names, n),
+            "estimate": theta.reshape(-1),
+            "se": se.reshape(-1),
+            "converged": np.repeat(converged, p),
+            "loss": np.repeat(loss, p),
+            "time": seconds,
+            "covariance_row": list(cov.reshape(n * p, p)),
+            "error": message,
+        }
+    )
 
 
 def _at(frame, point: dict):

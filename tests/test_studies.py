@@ -188,6 +188,7 @@ def test_results_table_is_tidy(tmp_path):
         "loss",
         "time",
         "covariance_row",
+        "error",
     ]
     assert len(rows) == 2 * 15 * 3
     # one batched fit per chunk gives the same numbers as a fit of each trial alone
@@ -515,6 +516,47 @@ def test_undetermined_and_unconverged_estimates_follow_one_rule_in_every_statist
     flagged_rows = study.summary(converged_only=True)
     flagged_rows = flagged_rows[flagged_rows["estimator"] == "flagged"]
     assert (flagged_rows["bias"].abs() < 0.3).all()  # the +10 fits are left out
+
+
+def test_an_estimator_error_is_narrowed_down_to_the_trials_that_cause_it(tmp_path):
+    """An estimator that raises a project error for a whole batch when one of its data sets is
+    bad (here: a first input sample above 1.5) costs only those trials: NaN, not converged,
+    the error's message; the other trials equal the plain fit's estimates. One that fails for
+    every trial raises; one that returns no FitResult is named."""
+    from sysid.errors import ConvergenceError
+
+    def fragile(data):
+        bad = data.u[:, 0, 0] > 1.5
+        if bool(bad.any()):
+            raise ConvergenceError(f"{int(bad.sum())} bad data sets in the batch")
+        return fit(FIR(3, 1), data)
+
+    study = small_study(trials=24, chunk=8, estimators={"fragile": fragile, "fir_ls": fir_ls})
+    rows = study.run(tmp_path, progress=False).results
+    first = torch.cat([study.data(i, c).u[:, 0, 0] for i in range(2) for c in range(3)])
+    bad = np.repeat((first > 1.5).numpy(), 3)  # rows: point, trial, parameter
+    assert 0 < bad.sum() < len(bad)
+    fragile_rows = rows[rows["estimator"] == "fragile"].sort_values(["N", "trial", "parameter"])
+    plain = rows[rows["estimator"] == "fir_ls"].sort_values(["N", "trial", "parameter"])
+    assert np.isnan(fragile_rows["estimate"].to_numpy()[bad]).all()
+    assert not fragile_rows["converged"].to_numpy()[bad].any()
+    assert (
+        fragile_rows["error"].to_numpy()[bad] == "ConvergenceError: 1 bad data sets in the batch"
+    ).all()
+    assert (fragile_rows["error"].to_numpy()[~bad] == "").all()
+    np.testing.assert_allclose(
+        fragile_rows["estimate"].to_numpy()[~bad], plain["estimate"].to_numpy()[~bad], rtol=1e-12
+    )
+    summary = study.summary()
+    assert summary[summary["estimator"] == "fragile"]["estimated"].sum() == (~bad).sum()
+
+    def hopeless(data):
+        raise ConvergenceError("never")
+
+    with pytest.raises(ConvergenceError, match="never"):
+        small_study(trials=4, chunk=4, estimators={"hopeless": hopeless}).run(progress=False)
+    with pytest.raises(InputValidationError, match="returned a NoneType without"):
+        small_study(trials=4, chunk=4, estimators={"none": lambda data: None}).run(progress=False)
 
 
 def test_simulate_with_the_wrong_batch_is_named(tmp_path):
