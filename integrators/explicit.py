@@ -372,7 +372,13 @@ def solve_explicit(
             integer ``k >= 1`` sets the steps per segment. Segments run eager (not compiled)
             chunks. The graph's nodes (about 1 kB each, some 40 per RK4 step of a small model)
             and the outputs are still kept for every step, so checkpointing pays off once the
-            state holds more than a few hundred numbers. Ignored without autograd.
+            state holds more than a few hundred numbers. Ignored without autograd. A model
+            that calls ``torch.autograd.grad`` inside ``f`` reads tensors its own graph saved
+            at once, which under the checkpoint's hooks recomputes the segment so far at each
+            such call (a cost growing with the square of the segment); it should keep its
+            graph's tensors (``torch.autograd.graph.saved_tensors_hooks`` with identity
+            functions around its body), as the Lagrangian systems of ``sysid.mechanics`` do:
+            checkpointing then saves little for it.
 
     Returns:
         Solution with ``x`` (*batch, T, nx) (a view of a time-major (T, *batch, nx) buffer,

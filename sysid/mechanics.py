@@ -186,9 +186,18 @@ def exact_higher_derivatives():
 def _nested(method, self, args, kwargs):
     _STATE.depth = getattr(_STATE, "depth", 0) + 1
     try:
-        return method(self, *args, **kwargs)
+        # the tensors this call's graph saves stay with it, whatever saved-tensor hooks are
+        # active outside: the derivatives taken inside the call read them at once, and under
+        # torch.utils.checkpoint (odeint(..., checkpoint=True)) each such read would recompute
+        # the checkpointed segment so far, a cost that grows with the square of its length
+        with torch.autograd.graph.saved_tensors_hooks(_keep, _keep):
+            return method(self, *args, **kwargs)
     finally:
         _STATE.depth -= 1
+
+
+def _keep(tensor: torch.Tensor) -> torch.Tensor:
+    return tensor
 
 
 def _wider_batch(value: torch.Tensor, *states: torch.Tensor):
