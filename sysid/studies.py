@@ -25,8 +25,9 @@ for every chunk size that is a multiple of it.
 Storage. ``run(out_dir)`` writes ``out_dir/manifest.json`` (the declaration and its hash) and
 one Parquet file per finished chunk under ``out_dir/chunks/``, each written to a temporary
 file and renamed into place (:func:`os.replace`, atomic), so an interrupted run leaves only
-complete chunks and a rerun computes only the missing ones. A folder whose manifest holds a
-different declaration is refused with :class:`~sysid.errors.StudyDeclarationError`.
+complete chunks and a rerun computes only the missing ones. A folder whose chunk files belong
+to a different declaration (its manifest) is refused with
+:class:`~sysid.errors.StudyDeclarationError`; one without chunk files takes the new one.
 
 Results. :attr:`Study.results` is a tidy table, one row per grid point x estimator x trial x
 parameter, with columns ``<factors...>, estimator, trial, parameter, estimate, se, converged,
