@@ -426,6 +426,23 @@ def test_invalid_requests():
         fit(OE(2, 2, 1), IOData(data.u[:6], data.y[:6]))
 
 
+@pytest.mark.parametrize("method", ["lls", "iv"])
+def test_simulation_criterion_with_a_direct_solve_is_refused(method):
+    """lls and iv minimise one-step prediction errors; with criterion="simulation" they
+    returned that estimate as if it minimised the free-run errors. gauss_newton on the
+    same data minimises the simulation errors: its criterion is below the lls estimate's."""
+    u = input_signal("white", 200, generator=gen(29))
+    theta = torch.tensor(TRUE["ARX"][1], dtype=DT)
+    data = simulate_data(ARX(2, 2, 1), u, noise_std=0.3, theta=theta)
+    data = IOData(data.u, data.y + 0.5 * torch.randn(200, 1, generator=gen(30), dtype=DT))
+    with pytest.raises(InputValidationError, match="criterion='simulation'.*gauss_newton"):
+        fit(ARX(2, 2, 1), data, method=method, criterion="simulation")
+    sim = fit(ARX(2, 2, 1), data, method="gauss_newton", criterion="simulation")
+    lls = fit(ARX(2, 2, 1), data, method="lls")
+    errors = [r.model.simulation_errors(data).pow(2).sum() for r in (sim, lls)]
+    assert errors[0] < errors[1]
+
+
 def test_uniform_noise_polytope_eq_4_58():
     """The MLE set for uniform noise contains the truth; LP bounds match a grid search."""
     g = gen(23)

@@ -182,6 +182,12 @@ def fit(
         raise InputValidationError(
             f"method {method!r} minimises squared errors; use method='mle' for loss={loss!r}."
         )
+    if method in ("lls", "iv") and criterion == "simulation":
+        raise InputValidationError(
+            f"method {method!r} minimises one-step prediction errors (a direct solve); "
+            "criterion='simulation' (free-run errors) needs an iterative fit: use "
+            "method='gauss_newton' or 'mle', or criterion='prediction' with this method."
+        )
     if method in ("lls", "iv") and not model.is_linear_in_parameters:
         raise InputValidationError(
             f"method {method!r} needs a model linear in its parameters (FIR, ARX); "
