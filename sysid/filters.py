@@ -9,8 +9,8 @@ Conventions (``q^-1`` is the backward shift, ``q^-1 x_k = x_{k-1}``):
   ``[1, a_1, ..., a_n]``);
 - ``x``: ``(*batch, N)``, filtered along the last dimension;
 - ``zi``: ``(*batch, k)`` initial state in scipy's transposed direct form II convention
-  (``k = max(n, m - 1)`` there; any ``k`` is accepted). Its effect is exactly that of adding
-  ``zi`` to the first ``k`` samples of ``B(q) x`` before the all-pole part ``1/A(q)``.
+  (``k = max(n, m - 1)`` entries, as there). Its effect is exactly that of adding ``zi`` to
+  the first ``k`` samples of ``B(q) x`` before the all-pole part ``1/A(q)``.
 
 All batch shapes broadcast. Everything is pure torch, so it runs on any device.
 
@@ -557,6 +557,15 @@ def iir_filter(
         )
     if zi is None:
         zi = x.new_zeros(0)
+    elif not isinstance(zi, torch.Tensor) or zi.ndim < 1:
+        raise InputValidationError("zi must be a tensor (*batch, k) with k = max(n, m - 1).")
     elif zi.dtype != x.dtype:
         raise InputValidationError(f"zi has dtype {zi.dtype} but x has {x.dtype}.")
+    elif zi.shape[-1] != (k := max(a.shape[-1], b.shape[-1] - 1)):
+        raise InputValidationError(
+            f"zi has {zi.shape[-1]} entries in its last dimension but this filter's state has "
+            f"k = max(n, m - 1) = {k} (n = {a.shape[-1]} denominator coefficients a_1..a_n, "
+            f"m = {b.shape[-1]} numerator coefficients): give zi of shape (*batch, {k}), "
+            "e.g. from scipy.signal.lfilter_zi, or zi=None for a start at rest."
+        )
     return _IIR.apply(b, a, x, zi)[0]

@@ -304,7 +304,8 @@ class PolynomialModel(nn.Module):
             u: ``(*batch, N, nu)`` / ``(N, nu)`` / ``(N,)`` tensor, or :class:`IOData`
                 (several experiments are simulated separately and concatenated in time).
             zi: optional ``(*batch, nu, k)`` initial states of the filters
-                ``q^-nk_i B_i/(A F_i)`` in scipy.signal.lfilter's convention (single experiment).
+                ``q^-nk_i B_i/(A F_i)`` in scipy.signal.lfilter's convention (single experiment),
+                ``k = max(na + max nf, max(nk + nb) - 1)``.
             theta: optional parameter vector used instead of the module's parameters.
 
         Returns:
@@ -314,6 +315,14 @@ class PolynomialModel(nn.Module):
         parts = self._inputs(u)
         if zi is not None and len(parts) > 1:
             raise InputValidationError("zi is only supported for a single experiment.")
+        k = max(den_tail.shape[-1], B.shape[-1] - 1)
+        if zi is not None and (not isinstance(zi, torch.Tensor) or zi.shape[-1:] != (k,)):
+            got = tuple(zi.shape) if isinstance(zi, torch.Tensor) else type(zi).__name__
+            raise InputValidationError(
+                f"zi must be (*batch, nu, k) with k = max(na + max nf, max(nk + nb) - 1) = {k} "
+                "(the state of each input's filter q^-nk B / (A F) in scipy.signal.lfilter's "
+                f"convention), got {got}; zi=None starts at rest."
+            )
         out = []
         for x in parts:
             y = _sum_inputs(iir_filter(B, den_tail, x, zi))

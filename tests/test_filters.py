@@ -8,6 +8,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from integrators.errors import InputValidationError
 from sysid import filters
 from sysid.filters import allpole, iir_filter, poly_mul
 
@@ -198,6 +199,23 @@ def test_poly_mul_matches_numpy_convolve():
     got = poly_mul(torch.tensor(p), torch.tensor(q)).numpy()
     for i in range(3):
         np.testing.assert_allclose(got[i], np.convolve(p[i], q[i]), atol=1e-14)
+
+
+@pytest.mark.parametrize("k", [0, 1, 3, 4])
+def test_initial_state_of_the_wrong_length_is_rejected(k):
+    """b with m = 3 and a with n = 2 have k = max(n, m - 1) = 2 states (scipy's lfilter
+    refuses another length); a shorter zi was zero-padded, a longer one cut."""
+    b = torch.tensor([1.0, 0.5, 0.25], dtype=torch.float64)
+    a = torch.tensor([-0.5, 0.1], dtype=torch.float64)
+    x = torch.ones(6, dtype=torch.float64)
+    for backend in ("auto", "torch"):
+        with filters.cpu_backend(backend), pytest.raises(InputValidationError, match="k = .* 2"):
+            iir_filter(b, a, x, torch.ones(k, dtype=torch.float64))
+    with pytest.raises(ValueError):
+        scipy.signal.lfilter(b.numpy(), np.r_[1.0, a.numpy()], x.numpy(), zi=np.ones(k))
+    zi = torch.tensor([0.3, -0.7], dtype=torch.float64)
+    expected = scipy.signal.lfilter(b.numpy(), np.r_[1.0, a.numpy()], x.numpy(), zi=zi.numpy())
+    np.testing.assert_allclose(iir_filter(b, a, x, zi).numpy(), expected[0], atol=1e-14)
 
 
 def test_dtype_mismatch_is_rejected():

@@ -275,6 +275,19 @@ def test_simulate_initial_state_matches_scipy():
     np.testing.assert_allclose(model.simulate(u, zi=zi)[:, 0].detach().numpy(), ref[0], atol=1e-12)
 
 
+@pytest.mark.parametrize("k", [0, 1, 3, 7])
+def test_simulate_refuses_an_initial_state_of_the_wrong_length(k):
+    """OE(2, 2, 1)'s filter q^-1 B / F has k = max(nf, nk + nb - 1) = 2 states; a zi of
+    another length was padded or cut and gave numbers (7 entries: a 5-sample output)."""
+    model = model_with("OE")
+    u, _ = signals(5)
+    with pytest.raises(InputValidationError, match="k = max.* = 2"):
+        model.simulate(u, zi=torch.ones(1, k, dtype=torch.float64))
+    zi = torch.ones(1, 2, dtype=torch.float64)
+    ref = scipy.signal.lfilter([0, 1.0, 0.5], [1, -1.2, 0.5], u[:, 0].numpy(), zi=zi[0].numpy())
+    np.testing.assert_allclose(model.simulate(u, zi=zi)[:, 0].detach().numpy(), ref[0], atol=1e-12)
+
+
 def test_gradient_of_simulation_loss_matches_finite_differences():
     model = model_with("BJ")
     u, e = signals(60)
