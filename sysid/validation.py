@@ -196,7 +196,8 @@ def fit_percent(y, yhat, skip: int | None = None) -> torch.Tensor:
         y: measured outputs ``(*batch, N, ny)`` (or ``(N,)``); or a fitted
             :class:`sysid.PolynomialModel` / its :class:`sysid.FitResult`, a grey-box
             :class:`sysid.FitResult` or a :class:`~sysid.continuous.training.TrainingResult`.
-        yhat: model outputs (simulated or predicted), same shape as ``y`` (broadcastable);
+        yhat: model outputs (simulated or predicted), ``(*batch, N, ny)`` with the ``N`` and
+            ``ny`` of ``y`` (batch dimensions broadcast);
             or, with a model as first argument, the :class:`sysid.IOData` to compare on: the
             fit is then that of the model's noise-free simulated output to ``data.y``
             (MATLAB's ``compare``), computed without gradient: ``model.simulate(data)`` of a
@@ -255,7 +256,8 @@ def fit_quality(y, yhat, skip: int = 0) -> FitQuality:
 
     Args:
         y: measured outputs ``(*batch, N, ny)`` (or ``(N,)``).
-        yhat: model outputs (e.g. a free-run simulation), broadcastable to ``y``.
+        yhat: model outputs (e.g. a free-run simulation), ``(*batch, N, ny)`` with the ``N``
+            and ``ny`` of ``y`` (batch dimensions broadcast).
         skip: samples left out at the start (``0 <= skip <= N - 2``), e.g. the transient of
             an unknown initial state.
 
@@ -275,11 +277,19 @@ def _quality(y, yhat, skip, func: str, check: bool = True) -> FitQuality:
     if check:
         y = _as_sequences(y, "y", func)
         yhat = _as_sequences(yhat, "yhat", func).to(dtype=y.dtype, device=y.device)
+        if y.shape[-2:] != yhat.shape[-2:]:
+            raise InputValidationError(
+                f"{func}: y {tuple(y.shape)} and yhat {tuple(yhat.shape)} must have the same "
+                f"number of samples N and channels (the last two dimensions, (N, ny); a 1-D "
+                "signal is (N, 1)); only their batch dimensions may broadcast. Compare the "
+                "model output over the same samples as y."
+            )
         try:
             torch.broadcast_shapes(y.shape, yhat.shape)
         except RuntimeError as exc:
             raise InputValidationError(
-                f"{func}: y {tuple(y.shape)} and yhat {tuple(yhat.shape)} do not match."
+                f"{func}: the batch shapes of y {tuple(y.shape[:-2])} and yhat "
+                f"{tuple(yhat.shape[:-2])} do not broadcast."
             ) from exc
         N = y.shape[-2]
         if isinstance(skip, bool) or int(skip) != skip or not 0 <= skip <= N - 2:

@@ -18,7 +18,7 @@ from sysid.estimation import fit
 from sysid.filters import iir_filter
 from sysid.models import ARX, OE
 from sysid.montecarlo import input_signal, simulate_data
-from sysid.validation import aic, fit_percent, fpe, residual_test, select_order
+from sysid.validation import aic, fit_percent, fit_quality, fpe, residual_test, select_order
 
 DT = torch.float64
 
@@ -46,6 +46,27 @@ def test_fit_percent_hand_computation():
     assert torch.allclose(fit_percent(yt, mean_model), torch.zeros(3, 2, dtype=DT), atol=1e-12)
     with pytest.raises(InputValidationError, match="constant"):
         fit_percent(torch.ones(10), torch.zeros(10))
+
+
+def test_fit_percent_needs_the_samples_and_channels_of_y():
+    """yhat with another number of samples or channels broadcast along time: a (1,) yhat
+    against 50 samples gave a fit, (1, 50) against (50, 1) gave 50 fits. Batch dimensions
+    still broadcast: one yhat (50, 2) against three batch members equals the loop."""
+    rng = np.random.default_rng(2)
+    y = torch.tensor(rng.standard_normal((3, 50, 2)))
+    y1 = y[0, :, 0]
+    pairs = [(y1, torch.zeros(1)), (y1[:, None], y1[None, :]), (y1, y1[:49]), (y[0], y[0, :, :1])]
+    for call in (fit_percent, fit_quality):
+        for measured, yhat in pairs:
+            with pytest.raises(InputValidationError, match="same number of samples N"):
+                call(measured, yhat)
+    yhat = torch.tensor(rng.standard_normal((50, 2)))
+    got = fit_percent(y, yhat)
+    for b in range(3):
+        ref = 100 * (
+            1 - np.linalg.norm(y[b] - yhat, axis=0) / np.linalg.norm(y[b] - y[b].mean(0), axis=0)
+        )
+        np.testing.assert_allclose(got[b].numpy(), ref, rtol=1e-12)
 
 
 def test_aic_fpe_hand_computation():
