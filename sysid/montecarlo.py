@@ -313,7 +313,8 @@ def simulate_data(
     Args:
         model: the true system (its parameters, or ``theta``).
         u: inputs ``(*batch, N, nu)``.
-        noise_std: standard deviation of the white noise ``e``.
+        noise_std: standard deviation of the white noise ``e`` (output units), one finite
+            number >= 0 (0: noise-free data).
         noise: ``"output"`` (``v = e``: white measurement noise, the OE assumption) or
             ``"model"`` (``v = C/(A D) e``: the model's own noise model; for ARX the equation
             error ``A y = B u + e``, eq. 4.117–4.120).
@@ -328,6 +329,7 @@ def simulate_data(
     """
     if noise not in ("output", "model"):
         raise InputValidationError(f"noise must be 'output' or 'model', got {noise!r}.")
+    _check_noise_std(noise_std)
     # the simulation runs in the model's dtype, as model.simulate treats u
     th = model.parameter_vector().detach() if theta is None else torch.as_tensor(theta)
     th = th.to(dtype=model.a.dtype, device=model.a.device)
@@ -347,6 +349,20 @@ def simulate_data(
             e = iir_filter(C, AD, e)
         y = y + e.unsqueeze(-1)
     return IOData(u, y, model.Ts if Ts is None else Ts)
+
+
+def _check_noise_std(noise_std) -> None:
+    """Raise unless ``noise_std`` is one real number, finite and >= 0."""
+    scalar = not isinstance(noise_std, bool) and (
+        isinstance(noise_std, numbers.Real)
+        or (isinstance(noise_std, torch.Tensor) and noise_std.dim() == 0)
+    )
+    if not scalar or not 0 <= float(noise_std) < math.inf:
+        raise InputValidationError(
+            f"noise_std (the standard deviation of the white noise e, output units) must be "
+            f"one finite real number >= 0, got {noise_std!r}; noise_std=0 gives noise-free "
+            "data. For different noise levels per data set, simulate them separately."
+        )
 
 
 @dataclass

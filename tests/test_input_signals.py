@@ -1,13 +1,17 @@
 """Excitation signals of :func:`sysid.montecarlo.input_signal` against their definitions: the
 maximum-length sequence (period, two-valued periodic autocorrelation, balance) and the
-random-phase multisine (DFT lines only in the band, flat amplitude, RMS)."""
+random-phase multisine (DFT lines only in the band, flat amplitude, RMS); the argument checks
+of the module's generators (input_signal, simulate_data)."""
+
+import math
 
 import numpy as np
 import pytest
 import torch
 
 from integrators.errors import InputValidationError
-from sysid.montecarlo import MLS_TAPS, input_signal
+from sysid.models import OE
+from sysid.montecarlo import MLS_TAPS, input_signal, simulate_data
 
 
 @pytest.mark.parametrize("order", [n for n in MLS_TAPS if n <= 14])
@@ -92,3 +96,28 @@ def test_bad_signal_options_are_named():
         input_signal("multisine", 8, band=(0.01, 0.1))
     with pytest.raises(InputValidationError, match="period"):
         input_signal("multisine", 10, period=1)
+
+
+@pytest.mark.parametrize(
+    "noise_std", [math.nan, -1.0, math.inf, True, "0.1", torch.tensor([0.1, 0.2])]
+)
+def test_simulate_data_refuses_a_noise_std_that_is_not_a_finite_number_ge_0(noise_std):
+    """An `if noise_std > 0` guard skipped the noise for NaN and -1 and returned noise-free
+    data as if they had been asked for."""
+    u = input_signal("white", 20, seed=1)
+    with pytest.raises(InputValidationError, match="noise_std .* finite real number >= 0"):
+        simulate_data(OE(1, 1, 1), u, noise_std=noise_std)
+
+
+def test_simulate_data_noise_std_forms():
+    """noise_std 0 gives G u exactly; a numpy float and a 0-d tensor add std * N(0, 1) drawn
+    from the generator (the same draws as torch.randn with that seed)."""
+    model = OE(1, 1, 1)
+    model.set_parameter_vector(torch.tensor([0.5, -0.8], dtype=torch.float64))
+    u = input_signal("white", 30, (2,), seed=1)
+    clean = model.simulate(u).detach()
+    assert torch.equal(simulate_data(model, u, noise_std=0).y, clean)
+    draws = torch.randn((2, 30), generator=torch.Generator().manual_seed(7), dtype=torch.float64)
+    for std in (np.float64(0.5), torch.tensor(0.5)):
+        y = simulate_data(model, u, noise_std=std, seed=7).y
+        torch.testing.assert_close(y[..., 0] - clean[..., 0], 0.5 * draws, rtol=0, atol=1e-14)
