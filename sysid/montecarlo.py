@@ -69,6 +69,23 @@ def _check_float_dtype(dtype) -> None:
         )
 
 
+def _batch_shape(batch_shape) -> torch.Size:
+    """``batch_shape`` (an integer or a sequence of integers, each >= 0) as a ``torch.Size``."""
+    sizes = (batch_shape,) if isinstance(batch_shape, numbers.Integral) else batch_shape
+    try:
+        sizes = tuple(sizes)
+    except TypeError:
+        sizes = None
+    if sizes is None or not all(
+        isinstance(n, numbers.Integral) and not isinstance(n, bool) and n >= 0 for n in sizes
+    ):
+        raise InputValidationError(
+            f"batch_shape must be an integer >= 0 or a sequence of them (the number of data "
+            f"sets along each batch dimension), got {batch_shape!r}."
+        )
+    return torch.Size(int(n) for n in sizes)
+
+
 def input_signal(
     kind: str,
     N: int,
@@ -103,7 +120,8 @@ def input_signal(
             system at rest before) or ``"sinusoid"`` (``amplitude sin(omega k + phase)`` with a
             random phase per data set).
         N: number of samples (an integer >= 1).
-        batch_shape: leading batch shape (one signal per data set).
+        batch_shape: leading batch shape (one signal per data set), an integer >= 0 or a
+            sequence of them.
         n_inputs: number of input channels (an integer >= 1).
         hold: samples per PRBS / MLS level (an integer >= 1).
         order: MLS register length, 2 to 20 (default: the shortest whose period of
@@ -122,7 +140,7 @@ def input_signal(
         if not isinstance(value, numbers.Integral) or value < 1:
             raise InputValidationError(f"{name} must be an integer >= 1, got {value!r}.")
     _check_float_dtype(dtype)
-    batch_shape = torch.Size((batch_shape,) if isinstance(batch_shape, int) else batch_shape)
+    batch_shape = _batch_shape(batch_shape)
     shape = (*batch_shape, N, n_inputs)
     g = _generator(generator, seed, device)
     to = dict(dtype=dtype, device=device)

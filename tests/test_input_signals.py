@@ -121,3 +121,18 @@ def test_simulate_data_noise_std_forms():
     for std in (np.float64(0.5), torch.tensor(0.5)):
         y = simulate_data(model, u, noise_std=std, seed=7).y
         torch.testing.assert_close(y[..., 0] - clean[..., 0], 0.5 * draws, rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("batch_shape", [-2, (-2,), (3, -1), (2.0,), 1.5, "3", (True,)])
+def test_input_signal_refuses_a_batch_shape_that_is_not_integers_ge_0(batch_shape):
+    """A negative size raised torch's RuntimeError (negative dimension) from inside."""
+    with pytest.raises(InputValidationError, match="batch_shape must be an integer >= 0"):
+        input_signal("white", 10, batch_shape)
+
+
+def test_input_signal_batch_shape_forms():
+    """An integer, a tuple, numpy integers and an empty batch give the shape asked for."""
+    assert input_signal("white", 10, 3).shape == (3, 10, 1)
+    assert input_signal("prbs", 10, (2, np.int64(3))).shape == (2, 3, 10, 1)
+    assert input_signal("white", 10, np.int32(0)).shape == (0, 10, 1)
+    assert input_signal("white", 10, ()).shape == (10, 1)
