@@ -51,6 +51,7 @@ inputs or batch members).
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Sequence
 
 import numpy as np
@@ -136,9 +137,10 @@ class PolynomialModel(nn.Module):
         n_inputs: number of inputs ``nu``.
         batch_shape: leading batch shape of every parameter (one model per data set).
         dtype: float64 (default) or float32.
-        Ts: sample time used by :meth:`to_control` and :meth:`frequency_response`; a fitted
-            model takes its data's (:func:`sysid.fit` refuses a model whose ``Ts`` is set to
-            another value than the default and the data's).
+        Ts: sample time in seconds (finite, > 0) used by :meth:`to_control` and
+            :meth:`frequency_response`; a fitted model takes its data's (:func:`sysid.fit`
+            refuses a model whose ``Ts`` is set to another value than the default and the
+            data's).
 
     Parameters start at zero (``G = 0`` when nb > 0 means B = 0; A = C = D = F = 1).
     """
@@ -173,7 +175,7 @@ class PolynomialModel(nn.Module):
         self.batch_shape = torch.Size(
             (batch_shape,) if isinstance(batch_shape, int) else tuple(batch_shape)
         )
-        self.Ts = float(Ts)
+        self.Ts = Ts
 
         def param(n: int) -> nn.Parameter:
             return nn.Parameter(torch.zeros(*self.batch_shape, n, dtype=dtype, device=device))
@@ -184,6 +186,22 @@ class PolynomialModel(nn.Module):
         # (letter, size) of each block of theta, fixed by the orders (see _blocks)
         self._layout = [("a", self.na), *(("b", n) for n in self.nb), ("c", self.nc)]
         self._layout += [("d", self.nd), *(("f", n) for n in self.nf)]
+
+    @property
+    def Ts(self) -> float:
+        """Sample time in seconds (finite, > 0), checked when set."""
+        return self._Ts
+
+    @Ts.setter
+    def Ts(self, value) -> None:
+        Ts = value.item() if isinstance(value, torch.Tensor) and value.dim() == 0 else value
+        if isinstance(Ts, bool) or not isinstance(Ts, numbers.Real) or not 0 < Ts < math.inf:
+            raise InputValidationError(
+                f"sample time Ts must be a finite number > 0 (seconds), got {value!r}; "
+                f"leave it out for the default {DEFAULT_TS} s (sysid.fit gives the fitted "
+                "model its data's)."
+            )
+        self._Ts = float(Ts)
 
     # ------------------------------------------------------------------ parameters
     def _blocks(self) -> list[tuple[str, int, nn.Parameter]]:

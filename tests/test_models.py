@@ -215,6 +215,32 @@ def test_to_control_frequency_response_matches_model():
     np.testing.assert_allclose(model.frequency_response(w)[:, 0].numpy(), ref, rtol=1e-10)
 
 
+@pytest.mark.parametrize("Ts", [0, -1.0, math.nan, math.inf, True, "0.1", torch.ones(2)])
+def test_sample_time_must_be_finite_and_positive(Ts):
+    """Ts = 0 made frequency_response G(1) at every frequency and Ts < 0 its conjugate;
+    construction and assignment refuse it."""
+    with pytest.raises(InputValidationError, match="sample time Ts must be a finite number > 0"):
+        OE(2, 2, 1, Ts=Ts)
+    model = OE(2, 2, 1)
+    with pytest.raises(InputValidationError, match="sample time Ts"):
+        model.Ts = Ts
+    assert model.Ts == 1.0
+
+
+def test_sample_time_forms_and_frequency_response():
+    """The default, numpy and 0-d tensor sample times are floats; G(e^{j w Ts}) with Ts = 0.5
+    equals scipy.signal.freqz at w Ts rad/sample."""
+    assert OE(2, 2, 1).Ts == 1.0
+    assert OE(2, 2, 1, Ts=np.float32(0.5)).Ts == 0.5
+    model = OE(2, 2, 1)
+    model.set_parameter_vector(torch.tensor(TRUE["OE"][1], dtype=torch.float64))
+    model.Ts = torch.tensor(0.5)
+    assert type(model.Ts) is float
+    w = np.linspace(0.1, 6.0, 7)
+    _, ref = scipy.signal.freqz([0, 1.0, 0.5], [1, -1.2, 0.5], worN=w * 0.5)
+    np.testing.assert_allclose(model.frequency_response(w)[:, 0].numpy(), ref, rtol=1e-10)
+
+
 def test_poles_zeros_stability_and_stabilize():
     model = model_with("BJ")
     poles = np.sort_complex(model.poles().numpy())
