@@ -67,23 +67,36 @@ from .filters import iir_filter, poly_mul
 __all__ = ["ARMAX", "ARX", "BJ", "FIR", "OE", "PolynomialModel"]
 
 
+def _is_integer(value) -> bool:
+    """True for a Python or numpy integer, False for a bool and everything else."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
 def _per_input(value, n_inputs: int, name: str) -> list[int]:
-    if isinstance(value, (int, np.integer)):
-        values = [int(value)] * n_inputs
-    else:
-        values = [int(v) for v in value]
-        if len(values) != n_inputs:
-            raise InputValidationError(
-                f"{name} has {len(values)} entries but the model has {n_inputs} inputs."
-            )
-    if any(v < 0 for v in values):
-        raise InputValidationError(f"{name} must be >= 0, got {values}.")
-    return values
+    """``value`` (an integer or one per input) as a list of ``n_inputs`` integers >= 0."""
+    try:
+        values = [value] * n_inputs if _is_integer(value) else list(value)
+    except TypeError:  # not iterable
+        values = [value]
+    if isinstance(value, str) or not all(_is_integer(v) and v >= 0 for v in values):
+        raise InputValidationError(
+            f"{name} must be an integer >= 0 or a list of them (one per input), got "
+            f"{value!r}: orders count coefficients and nk counts samples, so they are whole "
+            "numbers (a bool or a float such as 2.0 is refused, not rounded)."
+        )
+    if len(values) != n_inputs:
+        raise InputValidationError(
+            f"{name} has {len(values)} entries but the model has {n_inputs} inputs."
+        )
+    return [int(v) for v in values]
 
 
 def _order(value, name: str) -> int:
-    if not isinstance(value, (int, np.integer)) or value < 0:
-        raise InputValidationError(f"{name} must be an integer >= 0, got {value!r}.")
+    if not _is_integer(value) or value < 0:
+        raise InputValidationError(
+            f"{name} must be an integer >= 0, got {value!r}: orders count coefficients, so "
+            "they are whole numbers (a bool or a float such as 2.0 is refused, not rounded)."
+        )
     return int(value)
 
 
@@ -163,7 +176,7 @@ class PolynomialModel(nn.Module):
         Ts: float = DEFAULT_TS,
     ):
         super().__init__()
-        if not isinstance(n_inputs, (int, np.integer)) or n_inputs < 1:
+        if not _is_integer(n_inputs) or n_inputs < 1:
             raise InputValidationError(f"n_inputs must be an integer >= 1, got {n_inputs!r}.")
         if dtype not in (torch.float32, torch.float64):
             raise InputValidationError(f"dtype must be float32 or float64, got {dtype}.")

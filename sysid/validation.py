@@ -52,6 +52,7 @@ the noise variance):
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -663,9 +664,20 @@ def select_order(
     if criterion not in ("aic", "fpe", "validation"):
         raise InputValidationError("criterion must be 'aic', 'fpe' or 'validation'.")
     names, default = _STRUCTURES[structure]
-    orders = [tuple(int(v) for v in o) for o in (default if orders is None else orders)]
+    try:
+        orders = [tuple(o) for o in (default if orders is None else orders)]
+    except TypeError:
+        orders = []
     if not orders or any(len(o) != len(names) for o in orders):
         raise InputValidationError(f"orders must be tuples {names} for structure {structure!r}.")
+    for o in orders:
+        if not all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in o):
+            raise InputValidationError(
+                f"select_order: the candidate orders {names} = {o} are not all integers; "
+                "orders count coefficients, so give whole numbers (a float such as 1.7 is "
+                "refused, not rounded)."
+            )
+    orders = [tuple(int(v) for v in o) for o in orders]
     cls = {"fir": models.FIR, "arx": models.ARX, "oe": models.OE, "armax": models.ARMAX}[structure]
     if criterion == "validation" and validation_data is None:
         estimation, validation_data = data.split(0.5)

@@ -370,6 +370,35 @@ def test_structures_reject_a_missing_polynomial(build, order):
         build()
 
 
+@pytest.mark.parametrize(
+    "build, order",
+    [
+        (lambda: ARX(2, [2.7], 1), "nb"),
+        (lambda: ARX(True, 2, 1), "na"),
+        (lambda: ARX(2, 2.0, 1), "nb"),
+        (lambda: ARX(2, 2, 1.5), "nk"),
+        (lambda: ARX(2, 2, None), "nk"),
+        (lambda: ARX(2, "2", 1), "nb"),
+        (lambda: OE([2, True], [1, 1], n_inputs=2), "nb"),
+        (lambda: ARMAX(2, 2, 1.0), "nc"),
+        (lambda: ARX(2, 2, 1, n_inputs=True), "n_inputs"),
+    ],
+)
+def test_orders_that_are_not_integers_are_refused(build, order):
+    """nb = [2.7] was truncated to 2 and na = True taken as 1; nb = 2.0, nk = 1.5 and
+    nk = None raised a bare TypeError."""
+    with pytest.raises(InputValidationError, match=rf"{order} must be an integer"):
+        build()
+
+
+def test_numpy_integer_orders_are_orders():
+    """numpy integers (scalars and arrays) give the model of the same Python ints."""
+    model = ARX(np.int64(2), np.array([2, 3]), [np.int32(1), 0], n_inputs=np.int64(2))
+    assert (model.na, model.nb, model.nk, model.n_inputs) == (2, [2, 3], [1, 0], 2)
+    assert all(type(v) is int for v in [model.na, *model.nb, *model.nk])
+    assert model.parameter_names() == ARX(2, [2, 3], [1, 0], n_inputs=2).parameter_names()
+
+
 def test_arx_without_one_polynomial_is_ar_or_fir_and_without_both_is_refused():
     """ARX(na, 0) is an AR model, ARX(0, nb) the FIR model (same regression, eq. 4.111);
     ARX(0, 0) has nothing to estimate."""

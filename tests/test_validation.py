@@ -246,6 +246,22 @@ def test_fit_result_validate_leaves_out_the_start_of_every_experiment():
             call(data, skip=299)
 
 
+def test_select_order_refuses_orders_that_are_not_integers():
+    """orders=[(1.7, 2.9)] ran the (1, 2) candidate and reported it as the choice; numpy
+    integers are orders like any other (the same AIC as the Python ints, and as the one
+    candidate given, the choice)."""
+    u = input_signal("white", 200, generator=gen(31))
+    true = torch.tensor([-0.5, 1.0, 0.3], dtype=DT)
+    data = simulate_data(ARX(1, 2, 1), u, theta=true, noise_std=0.1, generator=gen(32))
+    for orders in ([(1.7, 2.9)], [(1, 2.0)], [(True, 2)], [1]):
+        with pytest.raises(InputValidationError, match="orders"):
+            select_order(data, "arx", orders=orders)
+    plain = select_order(data, "arx", orders=[(1, 2)])
+    numpy = select_order(data, "arx", orders=[(np.int64(1), np.int32(2))])
+    assert numpy.best == (1, 2) and type(numpy.best[0]) is int
+    assert numpy.table[0]["aic"] == plain.table[0]["aic"]
+
+
 def test_select_order_scores_every_experiment_after_its_own_start():
     """AIC/FPE of select_order on two experiments (the second far from rest at its start)
     equal those of the one-step ARX prediction errors computed per experiment by numpy with the
