@@ -100,6 +100,20 @@ def _order(value, name: str) -> int:
     return int(value)
 
 
+def _batch_shape(batch_shape) -> torch.Size:
+    """``batch_shape`` (an integer or a sequence of integers, each >= 0) as a ``torch.Size``."""
+    try:
+        sizes = [batch_shape] if _is_integer(batch_shape) else list(batch_shape)
+    except TypeError:  # not iterable
+        sizes = [batch_shape]
+    if isinstance(batch_shape, str) or not all(_is_integer(n) and n >= 0 for n in sizes):
+        raise InputValidationError(
+            f"batch_shape must be an integer >= 0 or a sequence of them (the number of models "
+            f"along each batch dimension, one per data set), got {batch_shape!r}."
+        )
+    return torch.Size(int(n) for n in sizes)
+
+
 def _monic(tail: torch.Tensor) -> torch.Tensor:
     """``[1, tail...]`` along the last dim."""
     return F.pad(tail, (1, 0), value=1.0)
@@ -185,9 +199,7 @@ class PolynomialModel(nn.Module):
         self.nb = _per_input(nb, self.n_inputs, "nb")
         self.nf = _per_input(nf, self.n_inputs, "nf")
         self.nk = _per_input(nk, self.n_inputs, "nk")
-        self.batch_shape = torch.Size(
-            (batch_shape,) if isinstance(batch_shape, int) else tuple(batch_shape)
-        )
+        self.batch_shape = _batch_shape(batch_shape)
         self.Ts = Ts
 
         def param(n: int) -> nn.Parameter:
@@ -268,6 +280,18 @@ class PolynomialModel(nn.Module):
         """Copy ``theta`` (``(*batch, p)``, broadcast to the model's batch) into the parameters."""
         theta = torch.as_tensor(theta, dtype=self.a.dtype, device=self.a.device)
         parts = self._split(theta)
+        batch = theta.shape[:-1]
+        try:
+            fits = torch.broadcast_shapes(batch, self.batch_shape) == self.batch_shape
+        except RuntimeError:  # the shapes do not broadcast
+            fits = False
+        if not fits:
+            raise InputValidationError(
+                f"theta {tuple(theta.shape)} has batch shape {tuple(batch)}, which does not "
+                f"broadcast to the model's batch shape {tuple(self.batch_shape)}: give "
+                f"({self.n_params},) for every member or (*batch_shape, {self.n_params}), or "
+                "build the model with batch_shape= the batch of theta."
+            )
         for letter, i, p in self._blocks():
             p.copy_(parts[letter][max(i, 0)].expand_as(p))
 
@@ -370,10 +394,13 @@ class PolynomialModel(nn.Module):
         :meth:`simulate`. Zero initial conditions in each experiment.
         """
         data = self._check_data(data)
-        if horizon is None or horizon == math.inf:
+        if horizon is None or (not isinstance(horizon, bool) and horizon == math.inf):
             return self.simulate(data, theta=theta)
-        if int(horizon) != horizon or horizon < 1:
-            raise InputValidationError(f"horizon must be an integer >= 1 or inf, got {horizon}.")
+        if not _is_integer(horizon) or horizon < 1:
+            raise InputValidationError(
+                f"horizon must be an integer >= 1 (samples ahead) or math.inf / None (free-run "
+                f"simulation), got {horizon!r}."
+            )
         k = int(horizon)
         A, B, C, D, Fp = self._polys(theta)
         AD = poly_mul(A, D)
@@ -423,6 +450,11 @@ class PolynomialModel(nn.Module):
 
         Assumes ``b1 != 0`` (a leading zero means a longer delay: raise nk instead).
         """
+        if not _is_integer(input) or not 0 <= input < self.n_inputs:
+            raise InputValidationError(
+                f"input must be the index of an input, an integer in [0, {self.n_inputs - 1}] "
+                f"(this model has {self.n_inputs} input(s)), got {input!r}."
+            )
         with torch.no_grad():
             b = self.b[input]
             if b.shape[-1] <= 1:

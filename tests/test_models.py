@@ -39,6 +39,9 @@ def signals(N, seed=0, batch=()):
     return u, e
 
 
+_DATA = IOData(*signals(30, seed=12))
+
+
 def lag(x, t, i):
     return float(x[t - i]) if t - i >= 0 else 0.0
 
@@ -389,6 +392,41 @@ def test_orders_that_are_not_integers_are_refused(build, order):
     nk = None raised a bare TypeError."""
     with pytest.raises(InputValidationError, match=rf"{order} must be an integer"):
         build()
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda: ARX(2, 2, 1, batch_shape=-1), "batch_shape must be an integer >= 0"),
+        (lambda: ARX(2, 2, 1, batch_shape=(2, 1.5)), "batch_shape must be an integer >= 0"),
+        (lambda: model_with("ARX").set_parameter_vector(torch.ones(3, 4)), "does not broadcast"),
+        (lambda: ARX(2, 2, 1, batch_shape=2).set_parameter_vector(torch.ones(3, 4)), "(2,)"),
+        (lambda: model_with("ARX").predict(_DATA, math.nan), "horizon must be an integer"),
+        (lambda: model_with("ARX").predict(_DATA, -math.inf), "horizon must be an integer"),
+        (lambda: model_with("ARX").predict(_DATA, 1.5), "horizon must be an integer"),
+        (lambda: model_with("ARX").predict(_DATA, True), "horizon must be an integer"),
+        (lambda: model_with("ARX").zeros(5), r"integer in \[0, 0\]"),
+        (lambda: model_with("ARX").zeros(-1), r"integer in \[0, 0\]"),
+    ],
+)
+def test_bad_arguments_raise_named_errors(call, match):
+    """batch_shape=-1, a (3, 4) theta for an unbatched model, horizon NaN / -inf and an
+    input index out of range raised RuntimeError, ValueError, OverflowError, IndexError."""
+    with pytest.raises(InputValidationError, match=match):
+        call()
+
+
+def test_valid_horizons_batches_and_inputs_still_work():
+    """numpy integer horizons and batch sizes, a (p,) theta broadcast over a batch and the
+    last input's zeros (roots of b1 z + b2: -b2 / b1, by hand)."""
+    model = model_with("ARX")
+    torch.testing.assert_close(model.predict(_DATA, np.int64(2)), model.predict(_DATA, 2))
+    batched = ARX(2, 2, 1, batch_shape=np.int64(3))
+    batched.set_parameter_vector(torch.tensor(TRUE["ARX"][1], dtype=torch.float64))
+    torch.testing.assert_close(batched.parameter_vector()[2], model.parameter_vector())
+    two = ARX(1, [2, 2], [1, 1], n_inputs=2)
+    two.set_parameter_vector(torch.tensor([0.1, 1.0, 0.5, 2.0, -0.5], dtype=torch.float64))
+    torch.testing.assert_close(two.zeros(1), torch.tensor([0.25 + 0j], dtype=torch.complex128))
 
 
 def test_numpy_integer_orders_are_orders():
