@@ -443,6 +443,24 @@ def test_simulation_criterion_with_a_direct_solve_is_refused(method):
     assert errors[0] < errors[1]
 
 
+@pytest.mark.parametrize("init", ["foo", "automatic", {"a1": 0.1}, object()])
+@pytest.mark.parametrize("structure", ["ARX", "OE"])
+def test_an_init_of_no_accepted_form_is_refused(structure, init):
+    """init="foo" raised torch's TypeError (invalid data type 'str'); the message lists the
+    accepted forms (None, 'model', a tensor); None and a (p,) tensor fit the noise-free data
+    below to the true parameters (to 1e-8)."""
+    model, truth = TRUE[structure]
+    truth = torch.tensor(truth, dtype=DT)
+    u = input_signal("white", 100, generator=gen(33))
+    data = simulate_data(model, u, theta=truth)
+    with pytest.raises(InputValidationError, match=r"init must be None .*'model'.*\(p,\)"):
+        fit(model, data, method="gauss_newton", init=init)
+    start = truth + 0.05
+    for good in (None, start):
+        est = fit(model, data, method="gauss_newton", init=good).theta
+        torch.testing.assert_close(est, truth, rtol=0, atol=1e-8)
+
+
 def test_uniform_noise_polytope_eq_4_58():
     """The MLE set for uniform noise contains the truth; LP bounds match a grid search."""
     g = gen(23)

@@ -147,6 +147,15 @@ def _admissible_fn(model: PolynomialModel, criterion: str):
     return lambda th: _max_root_modulus(th, blocks) < 1.0
 
 
+def _bad_init(init, model) -> InputValidationError:
+    """The error for an ``init`` that is none of the forms :func:`sysid.fit` accepts."""
+    return InputValidationError(
+        f"init must be None (the automatic start), 'model' (the model's current parameters) "
+        f"or starting parameters, a tensor (*batch, p) or (p,) with p = {model.n_params} "
+        f"({', '.join(model.parameter_names())}), got {init!r}."
+    )
+
+
 def _fit_iterative(
     model, data, method, loss, alpha, w, criterion, init, linear, max_iter, xtol, ftol
 ) -> FitResult:
@@ -195,8 +204,13 @@ def _fit_iterative(
             ) from None
     elif isinstance(init, str) and init == "model":
         theta0 = model.parameter_vector().detach().expand(*batch, p).clone()
+    elif isinstance(init, str):
+        raise _bad_init(init, model)
     else:
-        theta0 = torch.as_tensor(init, dtype=data.dtype, device=data.device)
+        try:
+            theta0 = torch.as_tensor(init, dtype=data.dtype, device=data.device)
+        except (TypeError, ValueError, RuntimeError):
+            raise _bad_init(init, model) from None
         _check_broadcast("init", theta0, (*batch, p), "(*batch, p) or (p,)")
         theta0 = theta0.expand(*batch, p).clone()
     if admissible is not None and not bool(admissible(theta0).all()):
