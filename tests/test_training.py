@@ -535,6 +535,9 @@ def test_foh_input_between_samples_matches_closed_form():
         (dict(x0="encoder", n_init=3, encoder_hidden=0), "encoder_hidden must be an integer"),
         (dict(seed=1.5), "seed must be an integer, got 1.5"),
         (dict(patience=0), "patience .* integer >= 1, got 0"),
+        # an option train does not have raised train's TypeError
+        (dict(foo=3), r"unexpected option\(s\) \['foo'\].*'batch_size', 'callback'"),
+        (dict(method="lbfgs", epoch=2), r"unexpected option\(s\) \['epoch'\].*'epochs'"),
     ],
 )
 def test_bad_options(kwargs, words):

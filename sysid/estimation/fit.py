@@ -11,6 +11,7 @@ and reports data sets whose estimate did not converge or is unstable.
 
 from __future__ import annotations
 
+import inspect
 import warnings
 
 import torch
@@ -131,6 +132,15 @@ def fit(
             raise InputValidationError(
                 f"training a neural model minimises squared errors; loss={loss!r} is not "
                 "available: use loss='gaussian'."
+            )
+        own = {"model", "data", "method", "criterion", "x0", "progress"}  # passed below
+        options = sorted(set(inspect.signature(train).parameters) - own)
+        unknown = sorted(set(training) - set(options))
+        if unknown:
+            raise InputValidationError(
+                f"unexpected option(s) {unknown} for training a neural model: the options of "
+                f"sysid.continuous.training.train are {options} (with fit's own method, "
+                "criterion, x0 and progress)."
             )
         return train(
             model,
