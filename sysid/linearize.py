@@ -118,9 +118,9 @@ def steady_state(f, x0, u=None, *, tol=1e-10, max_iter=50, t=None):
 def zoh_discretize(a, b, dt):
     """Exact ZOH discretisation (eq. 1.55 with u constant over a step).
 
-    a (*batch, n, n), b (*batch, n, m), dt a float or tensor broadcasting against ``*batch``.
-    Returns (Ad, Bd) = (e^{A dt}, int_0^dt e^{A s} ds B) from one matrix exponential of the
-    augmented matrix [[A, B], [0, 0]] dt.
+    a (*batch, n, n), b (*batch, n, m) (finite), dt a float or tensor broadcasting against
+    ``*batch`` (finite, > 0). Returns (Ad, Bd) = (e^{A dt}, int_0^dt e^{A s} ds B) from one
+    matrix exponential of the augmented matrix [[A, B], [0, 0]] dt.
     """
     a, b = torch.as_tensor(a), torch.as_tensor(b)
     if a.dim() < 2 or b.dim() < 2 or a.shape[-1] != a.shape[-2] or b.shape[-2] != a.shape[-1]:
@@ -128,8 +128,21 @@ def zoh_discretize(a, b, dt):
             f"zoh_discretize: A must be (*, n, n) and B (*, n, m), got {tuple(a.shape)}, "
             f"{tuple(b.shape)} (a single input column is B[:, None])."
         )
+    for name, x in (("A", a), ("B", b)):
+        if not bool(torch.isfinite(x).all()):
+            idx = tuple(int(i) for i in torch.nonzero(~torch.isfinite(x))[0])
+            raise InputValidationError(
+                f"zoh_discretize: {name} has a non-finite entry ({float(x[idx])} at index {idx}); "
+                "the matrix exponential of a system with inf/NaN coefficients is undefined."
+            )
     n, m = b.shape[-2], b.shape[-1]
     dt = torch.as_tensor(dt, dtype=a.dtype, device=a.device)
+    bad = ~(torch.isfinite(dt) & (dt > 0))
+    if bool(bad.any()):
+        raise InputValidationError(
+            f"zoh_discretize: the step dt must be finite and > 0 (in the time units of A), "
+            f"got {float(dt[bad][0])} (dt {tuple(dt.shape)}, first bad entry)."
+        )
     try:
         batch = torch.broadcast_shapes(a.shape[:-2], b.shape[:-2], dt.shape)
     except RuntimeError as exc:
@@ -147,11 +160,11 @@ def zoh_discretize(a, b, dt):
 def simulate_lti_zoh(a, b, x0, u, dt, c=None, d=None):
     """Exact samples of xdot = A x + B u with u held constant over each step (reference).
 
-    a (*batch, n, n), b (*batch, n, m), dt a float or tensor (*batch), x0 (*batch, n),
-    u (*batch, T, m), c (*batch, p, n) and d (*batch, p, m) or None: the batch shapes
-    broadcast against each other (e.g. an unbatched x0 (n,) and u (T, m) start every system
-    of a batched A or dt). Returns x (*batch, T + 1, n) (x_0 .. x_T) and, when c is given,
-    y_k = C x_k + D u_k (*batch, T, p) (D = 0 when d is None).
+    a (*batch, n, n), b (*batch, n, m) (finite), dt a float or tensor (*batch) (finite,
+    > 0), x0 (*batch, n), u (*batch, T, m), c (*batch, p, n) and d (*batch, p, m) or None:
+    the batch shapes broadcast against each other (e.g. an unbatched x0 (n,) and u (T, m)
+    start every system of a batched A or dt). Returns x (*batch, T + 1, n) (x_0 .. x_T)
+    and, when c is given, y_k = C x_k + D u_k (*batch, T, p) (D = 0 when d is None).
     """
     ad, bd = zoh_discretize(a, b, dt)
     n, m = bd.shape[-2], bd.shape[-1]

@@ -1,6 +1,8 @@
 """sysid.linearize: Jacobians along trajectories and at steady states (eq. 1.33-1.42), and the
 exact ZOH discretisation (eq. 1.55) against scipy and python-control."""
 
+import math
+
 import control
 import numpy as np
 import pytest
@@ -113,6 +115,34 @@ def test_zoh_discretisation_is_batched_over_systems_and_steps():
         ref = zoh_discretize(a[i], b[i], float(dt[i]))
         torch.testing.assert_close(ad[i], ref[0])
         torch.testing.assert_close(bd[i], ref[1])
+
+
+@pytest.mark.parametrize("dt", [0.0, -0.1, math.nan, math.inf, [0.1, -0.1]])
+def test_zoh_refuses_a_step_that_is_not_finite_and_positive(dt):
+    """dt = 0 gave Ad = I, dt < 0 the backward map and dt = NaN NaN matrices, silently."""
+    a, b = (torch.tensor(x) for x in _random_lti(0))
+    with pytest.raises(InputValidationError, match="dt must be finite and > 0"):
+        zoh_discretize(a, b, torch.tensor(dt, dtype=DT))
+    with pytest.raises(InputValidationError, match="dt must be finite and > 0"):
+        simulate_lti_zoh(a, b, torch.zeros(3, dtype=DT), torch.zeros(5, 2, dtype=DT), dt)
+
+
+@pytest.mark.parametrize("name", ["A", "B"])
+@pytest.mark.parametrize("value", [math.nan, math.inf])
+def test_zoh_refuses_a_non_finite_system(name, value):
+    """A NaN or inf coefficient gave NaN matrices; the entry is named. A finite system with
+    a positive step still matches scipy's cont2discrete."""
+    a, b = (torch.tensor(x) for x in _random_lti(1))
+    bad = (a, b)[name == "B"].clone()
+    bad[1, 0] = value
+    args = (bad, b) if name == "A" else (a, bad)
+    with pytest.raises(InputValidationError, match=rf"{name} has a non-finite entry .* \(1, 0\)"):
+        zoh_discretize(*args, 0.1)
+    ad, _ = zoh_discretize(a, b, 1e-3)
+    ad_s, *_ = scipy.signal.cont2discrete(
+        (a.numpy(), b.numpy(), np.eye(3), np.zeros((3, 2))), 1e-3, "zoh"
+    )
+    np.testing.assert_allclose(ad.numpy(), ad_s, rtol=1e-12, atol=1e-14)
 
 
 def test_zoh_simulation_matches_scipy_dlsim_and_lsim():
