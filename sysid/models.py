@@ -100,16 +100,17 @@ def _order(value, name: str) -> int:
     return int(value)
 
 
-def _batch_shape(batch_shape) -> torch.Size:
-    """``batch_shape`` (an integer or a sequence of integers, each >= 0) as a ``torch.Size``."""
+def _batch_shape(batch_shape, what: str = "models") -> torch.Size:
+    """``batch_shape`` (an integer or a sequence of integers, each >= 0) as a ``torch.Size``;
+    ``what`` the batch holds, for the message."""
     try:
         sizes = [batch_shape] if _is_integer(batch_shape) else list(batch_shape)
     except TypeError:  # not iterable
         sizes = [batch_shape]
     if isinstance(batch_shape, str) or not all(_is_integer(n) and n >= 0 for n in sizes):
         raise InputValidationError(
-            f"batch_shape must be an integer >= 0 or a sequence of them (the number of models "
-            f"along each batch dimension, one per data set), got {batch_shape!r}."
+            f"batch_shape must be an integer >= 0 or a sequence of them (the number of {what} "
+            f"along each batch dimension), got {batch_shape!r}."
         )
     return torch.Size(int(n) for n in sizes)
 

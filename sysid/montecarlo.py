@@ -22,7 +22,7 @@ from integrators.errors import InputValidationError
 
 from .data import IOData
 from .filters import iir_filter, poly_mul
-from .models import PolynomialModel
+from .models import PolynomialModel, _batch_shape
 
 __all__ = [
     "INPUT_KINDS",
@@ -67,23 +67,6 @@ def _check_float_dtype(dtype) -> None:
         raise InputValidationError(
             f"dtype must be a real floating torch dtype (e.g. torch.float64), got {dtype}."
         )
-
-
-def _batch_shape(batch_shape) -> torch.Size:
-    """``batch_shape`` (an integer or a sequence of integers, each >= 0) as a ``torch.Size``."""
-    sizes = (batch_shape,) if isinstance(batch_shape, numbers.Integral) else batch_shape
-    try:
-        sizes = tuple(sizes)
-    except TypeError:
-        sizes = None
-    if sizes is None or not all(
-        isinstance(n, numbers.Integral) and not isinstance(n, bool) and n >= 0 for n in sizes
-    ):
-        raise InputValidationError(
-            f"batch_shape must be an integer >= 0 or a sequence of them (the number of data "
-            f"sets along each batch dimension), got {batch_shape!r}."
-        )
-    return torch.Size(int(n) for n in sizes)
 
 
 def input_signal(
@@ -140,7 +123,7 @@ def input_signal(
         if not isinstance(value, numbers.Integral) or value < 1:
             raise InputValidationError(f"{name} must be an integer >= 1, got {value!r}.")
     _check_float_dtype(dtype)
-    batch_shape = _batch_shape(batch_shape)
+    batch_shape = _batch_shape(batch_shape, "data sets")
     shape = (*batch_shape, N, n_inputs)
     g = _generator(generator, seed, device)
     to = dict(dtype=dtype, device=device)

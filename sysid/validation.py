@@ -52,7 +52,6 @@ the noise variance):
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -114,6 +113,12 @@ def _model_and_data(first, second, func: str) -> tuple[object, IOData] | None:
             return first, second
         model = first.model if isinstance(first, FitResult) else first
         if isinstance(model, PolynomialModel):
+            if model.Ts not in (models.DEFAULT_TS, second.Ts):
+                raise InputValidationError(
+                    f"{func}: the model has Ts = {model.Ts} s but the data Ts = {second.Ts} s: "
+                    "a discrete-time model describes one sampling; compare it on data sampled "
+                    "as its estimation data were."
+                )
             return first, second
         if isinstance(first, FitResult) and isinstance(model, GreyBoxModel):
             return first, second
@@ -671,7 +676,7 @@ def select_order(
     if not orders or any(len(o) != len(names) for o in orders):
         raise InputValidationError(f"orders must be tuples {names} for structure {structure!r}.")
     for o in orders:
-        if not all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in o):
+        if not all(models._is_integer(v) for v in o):
             raise InputValidationError(
                 f"select_order: the candidate orders {names} = {o} are not all integers; "
                 "orders count coefficients, so give whole numbers (a float such as 1.7 is "
