@@ -436,3 +436,20 @@ def test_training_result_model_forms_score_the_free_run_after_n_init():
     for criterion in (aic, fpe):
         with pytest.raises(InputValidationError, match="TrainingResult.*network weights"):
             criterion(result, data)
+
+
+def test_model_forms_refuse_data_of_another_sample_time():
+    """fit refuses a model whose Ts differs from the data's; the model forms of fit_percent
+    and residual_test do the same for a polynomial model whose Ts was set (e.g. by fit)."""
+    import sysid
+
+    g = torch.Generator().manual_seed(3)
+    u = torch.randn(200, 1, generator=g, dtype=torch.float64)
+    y = torch.randn(200, 1, generator=g, dtype=torch.float64)
+    result = sysid.fit(sysid.ARX(1, 1, 1), sysid.IOData(u, y, Ts=0.1))
+    other = sysid.IOData(u, y, Ts=0.5)
+    for check in (sysid.fit_percent, sysid.residual_test):
+        with pytest.raises(InputValidationError, match=r"Ts = 0.1 s but the data Ts = 0.5 s"):
+            check(result, other)
+    assert torch.isfinite(sysid.fit_percent(result, sysid.IOData(u, y, Ts=0.1))).all()
+    assert torch.isfinite(sysid.fit_percent(sysid.ARX(1, 1, 1), other)).all()  # Ts not set
