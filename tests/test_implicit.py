@@ -183,6 +183,45 @@ def test_adaptive_radau_with_the_full_linear_solver_equals_the_default(batch):
     torch.testing.assert_close(full.z, exact**2, rtol=1e-8, atol=1e-8)
 
 
+def _stiff_forced(t, x):
+    """x0' = -1000 (x0 - cos t), x1' = x0 - x1 (stiffness ratio 1000)."""
+    forcing = torch.cos(torch.as_tensor(t, dtype=x.dtype)).reshape(-1)[0]
+    return torch.stack([-1000.0 * (x[..., 0] - forcing), x[..., 0] - x[..., 1]], -1)
+
+
+@pytest.mark.parametrize("stages", [13, 15])
+def test_adaptive_radau_with_many_stages_takes_the_full_solver_and_meets_scipy(stages):
+    """Radau IIA with s >= 13 stages (whose A is not diagonalised well enough for the
+    transformed solve, and whose determinant, 3e-17 at s = 13, is tiny although A is well
+    conditioned) runs adaptively on the full factorisation with the error filter's real block,
+    for an ODE (against scipy's Radau at rtol 1e-12) and a DAE (against its closed form)."""
+    t = torch.linspace(0.0, 1.0, 5, dtype=torch.float64)
+    x0 = torch.tensor([0.0, 1.0], dtype=torch.float64)
+    kw = dict(method="radau_iia", stages=stages, rtol=1e-10, atol=1e-12)
+    sol = odeint(_stiff_forced, x0, t, **kw)
+    assert sol.stats.extra["linear_solver"] == "full"
+    assert int(sol.status) == 0
+    sp = solve_ivp(
+        lambda tt, y: [-1000.0 * (y[0] - np.cos(tt)), y[0] - y[1]],
+        (0.0, 1.0),
+        x0.numpy(),
+        method="Radau",
+        rtol=1e-12,
+        atol=1e-14,
+        t_eval=t.numpy(),
+    )
+    np.testing.assert_allclose(sol.x.numpy(), sp.y.T, rtol=0, atol=1e-9)
+
+    # x' = -z x, 0 = z - x^2: x = x0 / sqrt(1 + 2 x0^2 t), z = x^2
+    dae = SemiExplicitDAE(lambda t, x, z: -z * x, lambda t, x, z: z - x**2)
+    x0 = torch.tensor([[1.0], [0.5]], dtype=torch.float64)
+    dsol = daeint(dae, x0, x0**2, t, stages=stages, rtol=1e-10, atol=1e-12)
+    assert dsol.stats.extra["linear_solver"] == "full"
+    exact = x0[..., None, :] / torch.sqrt(1 + 2 * x0[..., None, :] ** 2 * t[:, None])
+    torch.testing.assert_close(dsol.x, exact, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(dsol.z, exact**2, rtol=1e-9, atol=1e-9)
+
+
 def test_radau3_error_estimate_matches_radau5_constants():
     """Our Vandermonde-derived embedded weights e reproduce Hairer-Wanner/scipy's for s = 3:
     scipy uses f0 + Z^T E / h with Z = h A K, i.e. e = A^T E / gamma."""
