@@ -68,6 +68,18 @@ def check_positive(value, name: str, what: str = "") -> float:
     return float(value)
 
 
+def check_nonnegative(value, name: str, what: str = "") -> float:
+    """A finite real number ``>= 0`` (a Python/numpy number or a one-element tensor)."""
+    if isinstance(value, torch.Tensor) and value.numel() == 1:
+        value = value.detach().item()
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+        value, (bool, np.bool_)
+    )
+    if not ok or not math.isfinite(value) or value < 0:
+        raise InputValidationError(f"{name} must be a finite number >= 0{what}, got {value!r}.")
+    return float(value)
+
+
 def check_state_dtype(dtype, label: str = "x0") -> None:
     """Refuse state dtypes other than float32 and float64 (half precisions included)."""
     if dtype not in STATE_DTYPES:

@@ -34,7 +34,7 @@ from enum import IntEnum
 import torch
 from torch.autograd import forward_ad
 
-from ._options import check_state
+from ._options import check_int, check_nonnegative, check_positive, check_state
 from .block_jacobian import BlockJacobian
 from .block_tridiagonal import BorderedBlockTridiagonal
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
@@ -59,7 +59,7 @@ class NewtonStatus(IntEnum):
     CONVERGED = 0
     MAX_ITER = 1  # the iteration budget ran out
     SINGULAR = 2  # the (approximate) Jacobian / Hessian could not be factorised
-    NON_FINITE = 3  # phi or the iterate became inf/nan
+    NON_FINITE = 3  # phi (at every trial step of "damped"), its Jacobian or the iterate: inf/nan
     LINE_SEARCH_FAILED = 4  # no step length in (0, 1] decreased the merit function
     DIVERGED = 5  # the residual grew by more than ``divergence_ratio`` in one iteration
     INTERRUPTED = 6  # a KeyboardInterrupt stopped :func:`minimize` (``catch_interrupt=True``)
@@ -408,9 +408,9 @@ def newton(
             4, eq. 3.33-3.35) or "simplified" (Jacobian evaluated and factorised once at
             ``x0``, or taken from ``factorization``, then reused: Theorem 6).
         tol: convergence when ``||phi(x)||_inf <= tol`` (the notes' test). Default
-            ``max(1e-10, 100 eps)`` of the dtype.
+            ``max(1e-10, 100 eps)`` of the dtype; 0 only together with ``xtol > 0``.
         xtol: also converge when ``||dx||_inf <= xtol * (1 + ||x||_inf)`` (0 disables).
-        max_iter: iteration budget per member.
+        max_iter: iteration budget per member (an integer >= 0).
         factorization: ``(LU, pivots)`` from ``torch.linalg.lu_factor`` of an approximate
             Jacobian to reuse (simplified Newton only), e.g. ``result.factorization``.
         divergence_ratio: stop a member (status DIVERGED) when its residual grows by more than
@@ -427,7 +427,9 @@ def newton(
 
     Raises:
         InputValidationError: bad shapes, non-finite ``x0``, unknown method, forward-mode
-            (dual) tensors among ``x0``, ``args`` and ``params``.
+            (dual) tensors among ``x0``, ``args`` and ``params``, a ``tol`` or ``xtol`` that
+            is not a finite number >= 0 (or both 0), a ``divergence_ratio`` that is not a
+            finite number > 0, a ``max_iter`` that is not an integer >= 0.
         ConvergenceError: with ``raise_on_failure=True`` when any member failed.
     """
     if method not in ("full", "damped", "simplified"):
@@ -436,6 +438,22 @@ def newton(
         )
     if factorization is not None and method != "simplified":
         raise InputValidationError("newton: factorization= is only used by method='simplified'.")
+    xtol = check_nonnegative(xtol, "newton: xtol", " (0 disables the step test)")
+    if tol is not None:
+        tol = check_nonnegative(
+            tol, "newton: tol", " (the residual tolerance; None for the default)"
+        )
+        if tol == 0 and xtol == 0:
+            raise InputValidationError(
+                "newton: tol = 0 with xtol = 0 leaves no convergence test a rounded residual "
+                "can pass; pass tol > 0 (None for the default), or xtol > 0 to stop on the "
+                "step size."
+            )
+    max_iter = check_int(max_iter, "newton: max_iter", minimum=0)
+    if divergence_ratio is not None:
+        divergence_ratio = check_positive(
+            divergence_ratio, "newton: divergence_ratio", " (None disables the divergence test)"
+        )
     params = tuple(params)
     _refuse_forward_mode((x0, *args, *params))
     x = check_state(x0, "newton: x0").detach()
@@ -461,7 +479,7 @@ def newton(
                 f"{tuple(x.shape)}; phi must map (*batch, n) to (*batch, n)."
             ) from exc
     x = x.to(fx.dtype)
-    tol = _default_tol(x.dtype) if tol is None else float(tol)
+    tol = _default_tol(x.dtype) if tol is None else tol
     batch = x.shape[:-1]
     dev = x.device
     counts = {"phi": 1, "jac": 0, "lu": 0}
@@ -484,9 +502,17 @@ def newton(
         J = jacobian if isinstance(jacobian, torch.Tensor) else jacobian(z, *frozen)
         return _matrix_of_batch(J, batch, x.shape[-1], "jacobian", x.dtype, dev)
 
-    def factorise(z):
+    def factorise(z, status, active):
+        """LU factors of the iteration matrix at ``z``; of the ``active`` members, those whose
+        matrix has an inf / NaN get status NON_FINITE, those whose matrix is singular
+        SINGULAR. Returns the factors and the members still active."""
         counts["lu"] += 1
-        return _lu(iteration_matrix(z))
+        M = iteration_matrix(z)
+        LU, pivots, ok = _lu(M)
+        finite = torch.isfinite(M).flatten(-2).all(-1)
+        status.masked_fill_(active & ~finite, NewtonStatus.NON_FINITE)
+        status.masked_fill_(active & finite & ~ok, NewtonStatus.SINGULAR)
+        return LU, pivots, active & ok
 
     with torch.no_grad():
         status = torch.full(batch, NewtonStatus.MAX_ITER, dtype=torch.int8, device=dev)
@@ -506,16 +532,12 @@ def newton(
                 LU = _matrix_of_batch(LU, batch, x.shape[-1], "factorization", x.dtype, dev)
                 pivots = pivots.expand(*batch, pivots.shape[-1])
             else:
-                LU, pivots, ok = factorise(x)
-                status.masked_fill_(active & ~ok, NewtonStatus.SINGULAR)
-                active &= ok
+                LU, pivots, active = factorise(x, status, active)
         for _ in range(max_iter):
             if not bool(active.any()):
                 break
             if not frozen_matrix:
-                LU, pivots, ok = factorise(x)
-                status.masked_fill_(active & ~ok, NewtonStatus.SINGULAR)
-                active &= ok
+                LU, pivots, active = factorise(x, status, active)
             dx = _lu_solve(LU, pivots, fx)  # the Newton step is -dx
             x_new = x - dx
             f_new = residual(x_new)
@@ -528,8 +550,9 @@ def newton(
                     retry = active & ~accept
                     if not bool(retry.any()):
                         break
-                    if attempt == _MAX_BACKTRACKS:
-                        status.masked_fill_(retry, NewtonStatus.LINE_SEARCH_FAILED)
+                    if attempt == _MAX_BACKTRACKS:  # NON_FINITE where phi is inf / NaN there
+                        status.masked_fill_(retry & f_ok, NewtonStatus.LINE_SEARCH_FAILED)
+                        status.masked_fill_(retry & ~f_ok, NewtonStatus.NON_FINITE)
                         active &= ~retry
                         break
                     t = torch.where(retry, t / 2, t)
@@ -837,14 +860,29 @@ def minimize(
         methods ``J`` and the residual at the solution (e.g. for the covariance
         ``sigma^2 (J'J)^{-1}``), and for Levenberg-Marquardt the final ``lam`` in ``damping``.
         A line-search failure has status ``LINE_SEARCH_FAILED``.
+
+    Raises:
+        InputValidationError: unknown method, options the method does not use, a
+            ``regularization``, ``tol``, ``xtol`` or ``ftol`` that is not a finite number
+            >= 0, a ``damping`` that is not a finite number > 0, a ``max_iter`` or
+            ``max_backtracks`` that is not an integer >= 0.
+        ConvergenceError: with ``raise_on_failure=True`` when any problem failed.
     """
     if method not in MINIMIZE_METHODS:
         raise InputValidationError(
             f"minimize: unknown method {method!r}; use one of {', '.join(MINIMIZE_METHODS)}."
         )
     adaptive = method == "levenberg_marquardt"
-    if regularization < 0:
-        raise InputValidationError(f"minimize: regularization must be >= 0, got {regularization}.")
+    regularization = check_nonnegative(regularization, "minimize: regularization")
+    if tol is not None:
+        tol = check_nonnegative(
+            tol, "minimize: tol", " (the gradient tolerance; None for the default)"
+        )
+    xtol = check_nonnegative(xtol, "minimize: xtol")
+    ftol = check_nonnegative(ftol, "minimize: ftol")
+    max_iter = check_int(max_iter, "minimize: max_iter", minimum=0)
+    if max_backtracks is not None:
+        max_backtracks = check_int(max_backtracks, "minimize: max_backtracks", minimum=0)
     if jacobian is not None and method == "newton":
         raise InputValidationError(
             "minimize: jacobian= is only used by the residual methods 'gauss_newton' and "
@@ -859,18 +897,18 @@ def minimize(
             "minimize: method='levenberg_marquardt' always uses its line search; pass "
             "line_search=True (or use method='gauss_newton' for full steps)."
         )
-    if adaptive and not damping > 0:
-        raise InputValidationError(f"minimize: damping must be > 0, got {damping}.")
+    if adaptive:
+        damping = check_positive(damping, "minimize: damping")
     theta = check_state(theta0, "minimize: theta0").detach()
     frozen = _detach(args)
     batch, dev, n = theta.shape[:-1], theta.device, theta.shape[-1]
     eps = torch.finfo(theta.dtype).eps
     if adaptive:
-        tol = 1e-12 if tol is None else float(tol)
+        tol = 1e-12 if tol is None else tol
         xtol, ftol = max(xtol, 10 * eps), max(ftol, 10 * eps)  # reachable in float32 too
         trials = 1 + (11 if max_backtracks is None else max_backtracks)
     else:
-        tol = max(1e-8, 1e3 * eps) if tol is None else float(tol)
+        tol = max(1e-8, 1e3 * eps) if tol is None else tol
         trials = 1 + (_MAX_BACKTRACKS if max_backtracks is None else max_backtracks)
         trials = trials if line_search else 1
     n_evals = 1

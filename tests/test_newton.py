@@ -216,6 +216,79 @@ def test_singular_jacobian_is_flagged():
     assert bool(torch.all(res.status == NewtonStatus.SINGULAR))
 
 
+def test_a_non_finite_jacobian_or_residual_is_reported_non_finite_not_singular():
+    """A member whose Jacobian is NaN where phi is finite (x^2 - 4 + 0 sqrt(x - 1.5) at
+    x = 1, the sqrt branch masked off) or whose residual is NaN at every trial step of the
+    damped line search gets NON_FINITE (it was SINGULAR / LINE_SEARCH_FAILED); a finite
+    singular Jacobian stays SINGULAR and the healthy member converges to sqrt(2)."""
+
+    def phi(x, c, s):  # x^2 - c, plus 0 sqrt(x - s) whose derivative is NaN for x <= s
+        return x**2 - c + 0 * torch.where(x > s, torch.sqrt(x - s), torch.zeros_like(x))
+
+    c = torch.tensor([[4.0], [-1.0], [2.0]], dtype=F64)
+    s = torch.tensor([[1.5], [-10.0], [-10.0]], dtype=F64)
+    res = newton(phi, torch.tensor([[1.0], [0.0], [1.0]], dtype=F64), c, s)
+    assert res.status.tolist() == [
+        NewtonStatus.NON_FINITE,
+        NewtonStatus.SINGULAR,
+        NewtonStatus.CONVERGED,
+    ]
+    assert res.messages[0].startswith("sample 0: non_finite")
+    assert float(res.x[2, 0]) == pytest.approx(2**0.5, rel=1e-10)
+
+    def nan_after_x0(x):  # x - 2 at x0 = 1, NaN everywhere else
+        return torch.where(x == 1.0, x - 2.0, torch.full_like(x, float("nan")))
+
+    x0 = torch.ones(1, 1, dtype=F64)
+    for method in ("full", "damped"):
+        res = newton(nan_after_x0, x0, method=method)
+        assert res.status.tolist() == [NewtonStatus.NON_FINITE], method
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        (dict(tol=0.0), "tol = 0 with xtol = 0"),
+        (dict(tol=-1.0), "tol must be a finite number >= 0"),
+        (dict(tol=float("nan")), "tol must be a finite number >= 0"),
+        (dict(divergence_ratio=0.0), "divergence_ratio must be a finite number > 0"),
+        (dict(divergence_ratio=-1.0), "divergence_ratio must be a finite number > 0"),
+        (dict(max_iter=-1), "max_iter must be an integer >= 0"),
+        (dict(max_iter=2.5), "max_iter must be an integer >= 0"),
+        (dict(xtol=-1.0), "xtol must be a finite number >= 0"),
+        (dict(xtol=float("nan")), "xtol must be a finite number >= 0"),
+    ],
+)
+def test_newton_tolerances_and_limits_are_checked(kwargs, match):
+    """Tolerances and limits that would flag every member (tol <= 0 or NaN: MAX_ITER at a
+    residual of 4e-16; divergence_ratio <= 0: DIVERGED) or crash later are refused."""
+    with pytest.raises(InputValidationError, match=f"newton: {match}"):
+        newton(lambda x: x**2 - 2.0, torch.ones(1, 1, dtype=F64), **kwargs)
+    res = newton(lambda x: x**2 - 2.0, torch.ones(1, 1, dtype=F64), max_iter=0, xtol=0.0)
+    assert res.status.tolist() == [NewtonStatus.MAX_ITER]
+    res = newton(lambda x: x**2 - 2.0, torch.ones(1, 1, dtype=F64), tol=0.0, xtol=1e-12)
+    assert res.status.tolist() == [NewtonStatus.CONVERGED]
+    assert float(res.x[0, 0]) == pytest.approx(2**0.5, rel=1e-15)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        (dict(regularization=float("nan")), "regularization must be a finite number >= 0"),
+        (dict(regularization=-1.0), "regularization must be a finite number >= 0"),
+        (dict(tol=-1.0), "tol must be a finite number >= 0"),
+        (dict(ftol=-1.0), "ftol must be a finite number >= 0"),
+        (dict(xtol=float("nan")), "xtol must be a finite number >= 0"),
+        (dict(max_iter=-1), "max_iter must be an integer >= 0"),
+        (dict(max_backtracks=-1), "max_backtracks must be an integer >= 0"),
+        (dict(max_backtracks=1.5), "max_backtracks must be an integer >= 0"),
+    ],
+)
+def test_minimize_tolerances_and_limits_are_checked(kwargs, match):
+    with pytest.raises(InputValidationError, match=f"minimize: {match}"):
+        minimize(lambda th: ((th - 1.0) ** 2).sum(-1), torch.zeros(1, 2, dtype=F64), **kwargs)
+
+
 # ------------------------------------------------------------------------ gradients
 def test_ift_gradient_matches_finite_differences():
     p = torch.tensor([[4.0, 1.0], [2.0, 0.5], [9.0, 2.0]], dtype=F64, requires_grad=True)
