@@ -44,6 +44,11 @@ import torch
 from .errors import TableauError
 
 _DEFAULT_TOL = 1e-10
+#: Range of ``ButcherTableau``'s ``tol``: below ten float64 epsilons the rounding of exact
+#: coefficients (1/3 stored in float64) already fails the order conditions; above 1e-6 a tableau
+#: whose weights sum to 1 + 1e-6 would pass as consistent, a method that integrates
+#: x' = (1 + 1e-6) f instead of x' = f. 1e-6 still admits coefficients printed to 7 digits.
+_TOL_RANGE = (10 * float(np.finfo(np.float64).eps), 1e-6)
 MAX_TREE_ORDER = 12
 """Highest order whose rooted-tree conditions are checked (7813 trees up to it, ~0.1 s)."""
 
@@ -109,12 +114,14 @@ class ButcherTableau:
             :data:`MAX_TREE_ORDER`.
         name: a label used in messages and tables.
         tol: absolute tolerance on each rooted-tree condition and on each equation of the
-            simplifying assumptions (in their Legendre form, see ``simplifying_assumptions``).
+            simplifying assumptions (in their Legendre form, see ``simplifying_assumptions``);
+            a number from ``2.2e-15`` (ten float64 epsilons) to ``1e-6``.
 
     Raises:
-        TableauError: non-square ``A``, inconsistent lengths, non-finite entries,
-            ``c_i != sum_j a_ij``, weights that do not sum to 1 (an inconsistent method,
-            order 0, does not converge), or a claimed order that cannot be verified.
+        TableauError: ``tol`` outside ``[2.2e-15, 1e-6]``, non-square ``A``, inconsistent
+            lengths, non-finite entries, ``c_i != sum_j a_ij``, weights that do not sum to 1
+            (an inconsistent method, order 0, does not converge), or a claimed order that
+            cannot be verified.
 
     ``A``, ``b``, ``c`` and ``b_err`` are read-only, so a tableau handed to a solver is the one
     that was checked.
@@ -122,7 +129,7 @@ class ButcherTableau:
 
     def __init__(self, A, b, c=None, b_err=None, order=None, name=None, tol=_DEFAULT_TOL):
         self.name = name or "custom"
-        self.tol = float(tol)
+        self.tol = self._checked_tol(tol)
         if order is not None and (
             isinstance(order, bool) or not isinstance(order, (int, np.integer)) or order < 1
         ):
@@ -160,6 +167,20 @@ class ButcherTableau:
             if order > self._order:
                 raise TableauError(self._refuted_claim(int(order), exact))
             self._order = int(order)
+
+    def _checked_tol(self, tol) -> float:
+        """``tol`` as a float when it is a real number in ``_TOL_RANGE``, else TableauError."""
+        low, high = _TOL_RANGE
+        number = isinstance(tol, (int, float, np.integer, np.floating)) and not isinstance(
+            tol, (bool, np.bool_)
+        )
+        if not number or not low <= tol <= high:
+            raise TableauError(
+                f"tableau {self.name!r}: tol must be a number from {low:.2g} to {high:g}, got "
+                f"{tol!r}; it bounds the residual of every order condition (a larger one would "
+                "accept weights that do not sum to 1), default 1e-10."
+            )
+        return float(tol)
 
     def _as_array(self, value, label, ndim, length=None) -> np.ndarray:
         if isinstance(value, torch.Tensor):

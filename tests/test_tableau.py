@@ -392,6 +392,24 @@ def test_inconsistent_weights_are_rejected_with_their_sum():
         ButcherTableau([[0.0, 0.0], [1.0, 0.0]], [0.5, 0.5], b_err=[0.9, 0.0])
 
 
+@pytest.mark.parametrize("tol", [1.0, 1e-5, 0.0, -1.0, float("nan"), 1e-20, "1e-10", True])
+def test_tolerance_outside_its_range_is_refused(tol):
+    """tol = 1 accepted rk4 with weights summing to 0.9 as an order-4 tableau; the tolerance
+    must be a number in [10 eps, 1e-6]."""
+    rk4 = tableau("rk4")
+    with pytest.raises(TableauError, match=r"tol must be a number from 2\.2e-15 to 1e-06"):
+        ButcherTableau(rk4.A, 0.9 * rk4.b, tol=tol)
+
+
+def test_largest_tolerance_accepts_coefficients_printed_to_seven_digits():
+    """rk4 with 1/6, 1/3 printed to 7 digits meets its order conditions to 1e-7: tol = 1e-6
+    accepts it as order 4, the default 1e-10 only as order 2 (sum b c = 1/2 exactly)."""
+    rk4 = tableau("rk4")
+    b = np.round(rk4.b, 7)
+    assert ButcherTableau(rk4.A, b, tol=1e-6).order == 4
+    assert ButcherTableau(rk4.A, b).order == 2
+
+
 @settings(max_examples=40, deadline=None)
 @given(
     st.lists(st.floats(min_value=-2.0, max_value=2.0), min_size=1, max_size=6),
