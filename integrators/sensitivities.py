@@ -155,13 +155,45 @@ class SensitivityResult:
 
 
 def _model(f: Callable, has_u: bool, has_p: bool) -> Callable:
-    """``g(t, x, u, p)`` calling the user's ``f(t, x[, u][, p])``."""
+    """``g(t, x, u, p)`` calling the user's ``f(t, x[, u][, p])``; an output that is not a
+    tensor of the shape of ``x`` (broadcasting in the step sums would hide it) raises
+    InputValidationError at that call."""
 
     def g(t, x, u, p):
         args = (t, x) + ((u,) if has_u else ()) + ((p,) if has_p else ())
-        return f(*args)
+        out = f(*args)
+        if getattr(out, "shape", None) != x.shape:
+            got = (
+                f"shape {tuple(out.shape)}" if isinstance(out, torch.Tensor) else type(out).__name__
+            )
+            tt = torch.as_tensor(t).detach()  # one time or the stage times of a step
+            lo, hi = float(tt.min()), float(tt.max())
+            when = f"t = {lo:.6g}" + (f" .. {hi:.6g}" if hi > lo else "")
+            raise InputValidationError(
+                f"sensitivities: the model returned {got} for a state of shape "
+                f"{tuple(x.shape)} at {when}; it must return dx/dt as a tensor of the shape of "
+                "x, (*batch, nx), at every call."
+            )
+        return out
 
     return g
+
+
+def _check_model(g: Callable, x: torch.Tensor, t: torch.Tensor, p, u) -> None:
+    """Call ``g`` once at ``(t_0, x, u(t_0), p)`` so that a model that does not take the
+    arguments it is given (``f(t, x, p)`` with ``p=None``) fails with a message naming the
+    calling convention; ``_model`` checks the shape of its output."""
+    signature = "f(t, x" + (", u" if u is not None else "") + (", p" if p is not None else "") + ")"
+    u0 = None if u is None else (u(t[0]) if callable(u) else u[..., 0, :])
+    try:
+        with torch.no_grad():
+            g(t[0], x, u0, p)
+    except TypeError as exc:
+        raise InputValidationError(
+            f"sensitivities: calling the model as {signature} failed: {exc}. The model gets u "
+            "only when u is given and p only when p is given: pass p (and u) or drop the "
+            "argument from the model."
+        ) from exc
 
 
 def _as_tensor(value, like: torch.Tensor, name: str) -> torch.Tensor:
@@ -617,6 +649,7 @@ def sensitivities(
             "broadcast."
         ) from None
     x = x0.expand(*batch, nx).clone()
+    _check_model(g, x, t, None if p is None else p.expand(*batch, n_p), u)
     eye = torch.eye(nx, dtype=x.dtype, device=x.device)
     T, nw = t.shape[0], (inputs.size if inputs.parameterised else 0)
     nq = n_p + nw
@@ -845,6 +878,7 @@ def variational_sensitivities(
     nx, n_p = x0.shape[-1], (0 if p is None else p.shape[-1])
     batch = torch.broadcast_shapes(x0.shape[:-1], () if p is None else p.shape[:-1])
     x0 = x0.expand(*batch, nx)
+    _check_model(g, x0, t, None if p is None else p.expand(*batch, n_p), u)
     eye = torch.eye(nx, dtype=x0.dtype, device=x0.device)
 
     def augmented(tt, z, *uu):

@@ -241,6 +241,31 @@ def test_x0_and_t_are_checked_as_odeint_checks_them():
         sensitivities(pendulum_free, X0, t, P)
 
 
+@pytest.mark.parametrize("method", ["rk4", "dopri5", "radau_iia"])
+def test_a_model_of_the_wrong_shape_or_signature_is_named(method):
+    """An output of another shape than the state, at t0 or later (rk4 / dopri5 broadcast
+    (1, 1) against the (1, 2) state or raised a raw RuntimeError), and a model f(t, x, p)
+    called without p (a raw TypeError) raise InputValidationError naming the shapes or the
+    calling convention, for the discrete and the variational sensitivities."""
+    x0 = torch.tensor([[1.0, 0.5]], dtype=torch.float64)
+    t = torch.linspace(0.0, 1.0, 5, dtype=torch.float64)
+    p = torch.tensor([[2.0]], dtype=torch.float64)
+    shape = r"the model returned shape \(1, 1\) for a state of shape \(1, 2\) at t = 0;"
+    for run in (sensitivities, variational_sensitivities):
+        with pytest.raises(InputValidationError, match=shape):
+            run(lambda t, x, p: -p * x[..., :1], x0, t, p, method=method)
+        with pytest.raises(InputValidationError, match=r"calling the model as f\(t, x\) failed"):
+            run(lambda t, x, p: -p * x, x0, t, None, method=method)
+
+    def late_change(t, x, p):  # the state's shape up to t = 0.5, then one column
+        return -p * (x if float(torch.as_tensor(t).max()) < 0.5 else x[..., :1])
+
+    # the first call after t = 0.5, or the stacked stages of the implicit step reaching it
+    late = r"shape \((3, )?1, 1\) for a state of shape \((3, )?1, 2\) at t = 0\.(5;|2.* \.\. 0\.5)"
+    with pytest.raises(InputValidationError, match=late):
+        sensitivities(late_change, x0, t, p, method=method)
+
+
 @pytest.mark.parametrize("substeps", [2.0, 0, True, "2"])
 def test_substeps_must_be_a_positive_integer(substeps):
     """substeps is checked as odeint checks it: an int >= 1, not a float, bool or string."""
