@@ -6,6 +6,7 @@ import torch
 
 from .errors import InputValidationError
 from .implicit import daeint
+from .problems import ImplicitDAE, ImplicitODE, SemiExplicitDAE
 
 
 class DAELayer(torch.nn.Module):
@@ -19,7 +20,8 @@ class DAELayer(torch.nn.Module):
         problem: :class:`~integrators.problems.ImplicitODE`,
             :class:`~integrators.problems.SemiExplicitDAE` or
             :class:`~integrators.problems.ImplicitDAE`; its functions that are ``nn.Module``
-            are registered as submodules ``fn0, fn1`` so their parameters train.
+            are registered as submodules ``fn0, fn1`` so their parameters train. Anything
+            else (a bare function ``f(t, x)``: use ``ODELayer``) raises InputValidationError.
         t: (T,) default output times (a buffer) or None to require ``t`` in ``forward``.
         return_solution: True returns the Solution, False only ``x`` (*batch, T, n).
         **daeint_kwargs: further ``daeint`` options (``method``, ``rtol``, ``substeps``...).
@@ -27,6 +29,12 @@ class DAELayer(torch.nn.Module):
 
     def __init__(self, problem, t=None, return_solution=True, **daeint_kwargs):
         super().__init__()
+        if not isinstance(problem, ImplicitODE | SemiExplicitDAE | ImplicitDAE):
+            raise InputValidationError(
+                f"DAELayer expects an ImplicitODE, SemiExplicitDAE or ImplicitDAE as problem, "
+                f"got {type(problem).__name__}; wrap the residual or the (f, g) pair in one of "
+                "them (integrators.problems), or use ODELayer for an explicit ODE x' = f(t, x)."
+            )
         self.problem = problem
         self.fns = torch.nn.ModuleList(problem.modules())
         self.return_solution = return_solution

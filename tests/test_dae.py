@@ -571,6 +571,14 @@ def test_layers_keep_output_times_given_as_a_list_exact():
     torch.testing.assert_close(sol.x, ref.x, rtol=0, atol=0)
 
 
+def test_dae_layer_refuses_a_bare_function_by_name():
+    """DAELayer(f) with f(t, x) a plain function raised AttributeError ('function' object has
+    no attribute 'modules'); it names the problem classes it needs and ODELayer."""
+    t = torch.linspace(0.0, 1.0, 3)
+    with pytest.raises(InputValidationError, match=r"DAELayer expects an ImplicitODE.*ODELayer"):
+        DAELayer(lambda t, x: -x, t=t)
+
+
 @pytest.mark.parametrize("method", ["gauss_legendre", "radau_iia"])
 def test_gradient_reaches_a_sampled_input_through_the_algebraic_state(method):
     """x' = -2 x + z, 0 = z - u: the algebraic state is the input, so the DAE is the ODE
