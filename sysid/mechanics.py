@@ -38,6 +38,7 @@ arbitrary leading batch dimensions, and samples must not interact.
 """
 
 import contextlib
+import math
 import threading
 import warnings
 from collections.abc import Callable, Sequence
@@ -72,6 +73,31 @@ def spring_potential(p_a, p_b, stiffness, rest_length=0.0):
     apart = sq > 0
     norm = torch.where(apart, torch.sqrt(torch.where(apart, sq, torch.ones_like(sq))), 0.0)
     return 0.5 * stiffness * (norm - rest_length) ** 2
+
+
+def _checked_baumgarte(alpha):
+    """The Baumgarte gain ``alpha`` (eq. 2.186): None, a finite number >= 0 or a real tensor
+    (e.g. (*batch, 1)) of such entries, returned as given (0 is no stabilisation, as None);
+    anything else raises InputValidationError (alpha < 0 makes the constraint drift grow
+    instead of decay)."""
+    if alpha is None:
+        return None
+    if isinstance(alpha, torch.Tensor):
+        ok = alpha.is_floating_point() and bool((torch.isfinite(alpha) & (alpha >= 0)).all())
+    else:
+        ok = (
+            isinstance(alpha, (int, float, np.integer, np.floating))
+            and not isinstance(alpha, (bool, np.bool_))
+            and math.isfinite(alpha)
+            and alpha >= 0
+        )
+    if not ok:
+        raise InputValidationError(
+            f"baumgarte must be None or a finite number >= 0 (or a float tensor of them), got "
+            f"{alpha!r}: the gain alpha of cddot + 2 alpha cdot + alpha^2 c = 0 (eq. 2.186) "
+            "damps the constraint drift for alpha > 0 (0: no stabilisation, as None)."
+        )
+    return alpha
 
 
 def distributed_body(mass, position: Callable, n_nodes: int = 4):
@@ -288,7 +314,7 @@ class LagrangianSystem(nn.Module):
     e.g. (0, -9.81) with the vertical axis up, giving V = -sum m_i g . p_i (eq. 2.21, needs
     point masses); ``generalized_force(q, qdot, u) -> (*batch, nq)``; forces at points:
     ``force_points(q) -> (*batch, n_f, D)`` with ``point_forces(q, qdot, u) -> (*batch, n_f,
-    D)`` (eq. 2.115); ``constraints(q) -> (*batch, nc)``; ``baumgarte`` alpha > 0 (eq. 2.186)
+    D)`` (eq. 2.115); ``constraints(q) -> (*batch, nc)``; ``baumgarte`` alpha >= 0 (eq. 2.186)
     used by the index-1 forms unless overridden per call (a float, or a tensor (*batch, 1)
     broadcasting against the batch, e.g. several stabilisation gains in one simulation).
 
@@ -347,7 +373,7 @@ class LagrangianSystem(nn.Module):
         self._force_points = force_points
         self._point_forces = point_forces
         self._constraints = constraints
-        self.baumgarte = baumgarte
+        self.baumgarte = _checked_baumgarte(baumgarte)
         if (force_points is None) != (point_forces is None):
             raise InputValidationError("give both force_points and point_forces, or neither")
         if self.nq < 1 or self.nu < 0:
@@ -757,7 +783,7 @@ class LagrangianSystem(nn.Module):
     def kkt_solve(self, q, qdot, u=None, baumgarte: float | None = None):
         """(qddot, z) of the index-1 form (eq. 2.168) with cddot + 2 alpha cdot + alpha^2 c = 0
         (eq. 2.186) when alpha = ``baumgarte`` (default ``self.baumgarte``; None: cddot = 0)."""
-        alpha = self.baumgarte if baumgarte is None else baumgarte
+        alpha = self.baumgarte if baumgarte is None else _checked_baumgarte(baumgarte)
         mass, rhs = self.lagrange_terms(q, qdot, u)
         c, a, cdot, curv = self.constraint_terms(q, qdot)
         b = -curv
@@ -834,7 +860,7 @@ class LagrangianSystem(nn.Module):
     def index1_dae(self, baumgarte: float | None = None):
         """Semi-explicit index-1 DAE (eq. 2.166-2.168, 2.187): (f, g) with the same f as
         :meth:`index3_dae` and g = a vdot + (d(a v)/dq) v + 2 alpha cdot + alpha^2 c."""
-        alpha = self.baumgarte if baumgarte is None else baumgarte
+        alpha = self.baumgarte if baumgarte is None else _checked_baumgarte(baumgarte)
 
         def g(t, x, z, u=None):
             xdot, c, a, cdot, curv = self._dynamics_with_multipliers(x, z, u)

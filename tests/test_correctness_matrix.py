@@ -524,6 +524,83 @@ def test_a_flat_vector_of_per_member_scalars_is_refused_at_construction(plant, a
     assert getattr(cls(**{arg: values[:, None]}), arg).shape == (3, 1)
 
 
+# Scalar constructor arguments of the zoo that must be > 0: masses, lengths (L0 the elastic
+# cranes' rest length), the singular-perturbation scales eps, and TwoMassSystem's K (its
+# reductions divide by it). Every other scalar argument may take any finite value.
+POSITIVE_PARAMETERS = {
+    ("SingularlyPerturbedLinear", "eps"),
+    ("TwoMassSystem", "m1"),
+    ("TwoMassSystem", "m2"),
+    ("TwoMassSystem", "K"),
+    ("Bowl", "m"),
+    ("Crane", "M"),
+    ("Crane", "m"),
+    ("Crane", "L"),
+    ("DistributedRod", "m"),
+    ("DistributedRod", "L"),
+    ("ElasticCraneCartesian", "M"),
+    ("ElasticCraneCartesian", "m"),
+    ("ElasticCraneCartesian", "L0"),
+    ("ElasticCranePolar", "M"),
+    ("ElasticCranePolar", "m"),
+    ("ElasticCranePolar", "L0"),
+    ("HangingChain", "m"),
+    ("RigidCraneCartesian", "M"),
+    ("RigidCraneCartesian", "m"),
+    ("RigidCraneCartesian", "L"),
+    ("SpringMass", "m"),
+    ("SpringMassDamper", "m"),
+    ("TwoPendulumCraneCartesian", "m"),
+    ("TwoPendulumCraneCartesian", "L"),
+    ("TwoPendulumCranePolar", "m"),
+    ("TwoPendulumCranePolar", "L"),
+    ("StiffLinear", "eps"),
+    ("StiffVanDerPol", "eps"),
+}
+
+
+@pytest.mark.parametrize("plant,arg,default", list(_scalar_constructor_arguments()))
+def test_positive_parameters_and_non_numbers_are_refused_at_construction(plant, arg, default):
+    """The parameters of POSITIVE_PARAMETERS are refused at 0 and below, naming them
+    (TwoMassSystem(m2=-1) simulated to 4e29 with status SUCCESS; StiffLinear(eps=-1) ran),
+    the others accept a negative value; a string is refused by name for every one (it raised
+    a raw TypeError)."""
+    cls = getattr(sysid.zoo, plant)
+    if (plant, arg) in POSITIVE_PARAMETERS:
+        for bad in (0.0, -default, torch.tensor([[default], [-default]], dtype=DT)):
+            with pytest.raises(InputValidationError, match=rf"parameter '{arg}' must be > 0"):
+                cls(**{arg: bad})
+    else:
+        assert float(getattr(cls(**{arg: -default - 1.0}), arg).detach()) == -default - 1.0
+    with pytest.raises(InputValidationError, match=rf"parameter '{arg}' must be a number"):
+        cls(**{arg: "a"})
+
+
+def test_counts_baumgarte_gains_and_matrix_shapes_are_checked_at_construction():
+    """Node and mass counts must be integers >= 1 (DistributedRod(n_nodes=0) failed in the
+    simulation), a Baumgarte gain a finite number >= 0 or a tensor of them (Bowl(baumgarte=-1)
+    ran with a growing drift, 'x' failed in kkt_solve), UnitSphereDAE's A square and b of its
+    size (A of shape (1, 3) raised a RuntimeError in f)."""
+    for bad in (0, 2.5):
+        with pytest.raises(InputValidationError, match="DistributedRod: n_nodes must be an int"):
+            sysid.zoo.DistributedRod(n_nodes=bad)
+        with pytest.raises(InputValidationError, match="HangingChain: n_masses must be an int"):
+            sysid.zoo.HangingChain(n_masses=bad)
+    for plant in ("Bowl", "RigidCraneCartesian", "TwoPendulumCraneCartesian"):
+        cls = getattr(sysid.zoo, plant)
+        for bad in (-1.0, float("nan"), "x", torch.tensor([[1.0], [-1.0]], dtype=DT)):
+            with pytest.raises(InputValidationError, match="baumgarte must be None or a finite"):
+                cls(baumgarte=bad)
+        assert cls(baumgarte=5.0).baumgarte == 5.0
+        assert cls(baumgarte=0.0).baumgarte == 0.0  # no stabilisation, as None
+    bowl = sysid.zoo.Bowl()
+    with pytest.raises(InputValidationError, match="baumgarte must be None or a finite"):
+        bowl.index1_dae(baumgarte=-2.0)
+    for A, b in ((((1.0, 2.0, 3.0),), (1.0, 0.5)), (((0.0, 1.0), (-1.0, 0.0)), (1.0,))):
+        with pytest.raises(InputValidationError, match="UnitSphereDAE: A must be a square"):
+            sysid.zoo.UnitSphereDAE(A=A, b=b)
+
+
 def test_every_zoo_plant_has_a_scenario():
     """A new plant of the zoo joins the matrix through a scenario, or is listed with the
     reason it cannot be simulated as given (and ``daeint`` must refuse it)."""

@@ -21,7 +21,8 @@ def as_parameter(value, name: str, positive: bool = False, vector: bool = False)
     scalar parameter (the default) has shape ``()`` or ``(*batch, 1)``, one value per plant.
 
     Raises:
-        InputValidationError: a non-finite or non-positive entry; a scalar parameter with a
+        InputValidationError: a value that is not numeric (a string, None), a non-finite or
+            non-positive entry; a scalar parameter with a
             last axis longer than 1 (``(B,)`` for ``B`` plants would broadcast against the
             state's components instead of the batch).
     """
@@ -30,7 +31,17 @@ def as_parameter(value, name: str, positive: bool = False, vector: bool = False)
         if not tensor.is_floating_point():
             tensor = tensor.to(torch.float64)
     else:
-        tensor = torch.as_tensor(value, dtype=torch.float64)
+        try:
+            tensor = torch.as_tensor(value, dtype=torch.float64)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise InputValidationError(
+                f"parameter {name!r} must be a number, an array or a tensor of numbers, got "
+                f"{value!r} of type {type(value).__name__}."
+            ) from exc
+    if tensor.is_complex() or tensor.dtype == torch.bool:
+        raise InputValidationError(
+            f"parameter {name!r} must be real, got dtype {tensor.dtype} ({value!r})."
+        )
     if not torch.isfinite(tensor).all():
         raise InputValidationError(f"parameter {name!r} must be finite, got {value!r}")
     if positive and not bool((tensor > 0).all()):

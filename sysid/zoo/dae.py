@@ -11,6 +11,8 @@ algebraic ones z; the first line of each class docstring gives the same order.
 import torch
 from torch import nn
 
+from integrators.errors import InputValidationError
+
 from ._params import as_parameter, cat_columns, input_or_zero, like
 
 
@@ -117,7 +119,13 @@ class UnitSphereDAE(nn.Module):
         super().__init__()
         self.A = as_parameter(A, "A", vector=True)
         self.b = as_parameter(b, "b", vector=True)
-        self.nx = self.A.shape[-1]
+        n = self.A.shape[-1] if self.A.dim() == 2 else 0
+        if n == 0 or self.A.shape != (n, n) or self.b.shape != (n,):
+            raise InputValidationError(
+                f"UnitSphereDAE: A must be a square (n, n) matrix and b an (n,) vector, n >= 1, "
+                f"got A of shape {tuple(self.A.shape)} and b of shape {tuple(self.b.shape)}."
+            )
+        self.nx = n
         self.state_names = tuple(f"x{i + 1}" for i in range(self.nx))
 
     def f(self, t, x, z, u=None):
@@ -144,6 +152,7 @@ class TwoMassSystem(nn.Module):
     (rho/K) x1' = x2 - 2 x1 + u/K (``ode_543``, s = (x1, x2, x2dot)); rho/K -> 0 gives the DAE
     (5.44) with x1 algebraic: 0 = x2 - 2 x1 + u/K (``f_544``/``g_544``, x = (x2, x2dot),
     z = x1). Typo fixed: eq. (5.43a) and (5.44a) divide eq. (5.42a) by K but keep u; it is u/K.
+    The masses m1, m2 and the stiffness K must be > 0 (InputValidationError).
     """
 
     nx, nu = 4, 1
@@ -151,8 +160,9 @@ class TwoMassSystem(nn.Module):
 
     def __init__(self, m1=1e-2, m2=1.0, K=1e3, rho=1.0):
         super().__init__()
-        self.m1, self.m2 = as_parameter(m1, "m1"), as_parameter(m2, "m2")
-        self.K, self.rho = as_parameter(K, "K"), as_parameter(rho, "rho")
+        self.m1 = as_parameter(m1, "m1", positive=True)
+        self.m2 = as_parameter(m2, "m2", positive=True)
+        self.K, self.rho = as_parameter(K, "K", positive=True), as_parameter(rho, "rho")
 
     def forward(self, t, s, u=None):
         m1, m2, k, rho = (like(p, s) for p in (self.m1, self.m2, self.K, self.rho))
@@ -184,14 +194,14 @@ class SingularlyPerturbedLinear(nn.Module):
     """Eq. (5.36) as an ODE in the state (x1, x2): x1' = -x1 + x2, eps x2' = x1 - a x2 + u.
 
     Its limit eps -> 0 is the DAE (5.37) and, for a != 0, the ODE (5.38) with x2 = (x1 + u)/a.
-    Theorem 8 applies for a > 0."""
+    Theorem 8 applies for a > 0. eps must be > 0 (InputValidationError)."""
 
     nx, nu = 2, 1
     state_names = ("x1", "x2")
 
     def __init__(self, eps=1e-2, a=2.0):
         super().__init__()
-        self.eps, self.a = as_parameter(eps, "eps"), as_parameter(a, "a")
+        self.eps, self.a = as_parameter(eps, "eps", positive=True), as_parameter(a, "a")
 
     def forward(self, t, x, u=None):
         eps, a = like(self.eps, x), like(self.a, x)

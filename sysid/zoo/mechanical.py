@@ -13,13 +13,17 @@ Inputs (``u`` of shape (*batch, 1)): the notes give no inputs for most plants; w
 has one here it is a horizontal force on the cart (crane family) or a force on the mass, added
 through eq. (2.115) and documented as an addition.
 
-Masses and rigid rod lengths must be > 0 at construction (InputValidationError otherwise). A
+Masses, rigid rod lengths and the elastic cranes' rest lengths L0 must be > 0, the counts
+n_masses and n_nodes integers >= 1 and a Baumgarte gain >= 0, at construction
+(InputValidationError otherwise). A
 fit that drives one to zero or below is not stopped: a singular W(q) then gives NaN
 accelerations for the affected batch members (with an RKIdentWarning where W is not diagonal;
 inf/NaN from the division where it is), which the integrators report as NON_FINITE.
 """
 
 import torch
+
+from integrators._options import check_int
 
 from ..mechanics import LagrangianSystem, distributed_body, spring_potential
 from ._params import as_parameter, like, like_component, stack_last
@@ -176,7 +180,8 @@ class ElasticCranePolar(_CartCrane):
     def __init__(self, M=1.0, m=0.5, L0=1.0, K=50.0, g=9.81):
         super().__init__(nq=3, nu=1, coordinate_names=("x", "theta", "L"))
         self.M, self.m = as_parameter(M, "M", positive=True), as_parameter(m, "m", positive=True)
-        self.L0, self.K, self.g = as_parameter(L0, "L0"), as_parameter(K, "K"), as_parameter(g, "g")
+        self.L0 = as_parameter(L0, "L0", positive=True)
+        self.K, self.g = as_parameter(K, "K"), as_parameter(g, "g")
 
     def point_masses(self):
         return stack_last(self.M, self.m)
@@ -237,7 +242,8 @@ class ElasticCraneCartesian(LagrangianSystem):
     def __init__(self, M=1.0, m=0.5, L0=1.0, K=50.0, g=9.81):
         super().__init__(nq=3, nu=1, coordinate_names=("x", "p1", "p2"))
         self.M, self.m = as_parameter(M, "M", positive=True), as_parameter(m, "m", positive=True)
-        self.L0, self.K, self.g = as_parameter(L0, "L0"), as_parameter(K, "K"), as_parameter(g, "g")
+        self.L0 = as_parameter(L0, "L0", positive=True)
+        self.K, self.g = as_parameter(K, "K"), as_parameter(g, "g")
 
     def diagonal_mass(self):
         return stack_last(self.M, self.m, self.m)
@@ -490,9 +496,10 @@ class HangingChain(LagrangianSystem):
     def __init__(
         self, n_masses=10, m=0.1, K=10.0, g=9.81, p_start=(0.0, 0.0, 0.0), p_end=(1.0, 0.0, 0.0)
     ):
-        names = [f"{axis}{k + 1}" for k in range(int(n_masses)) for axis in "xyz"]
+        n_masses = check_int(n_masses, "HangingChain: n_masses")
+        names = [f"{axis}{k + 1}" for k in range(n_masses) for axis in "xyz"]
         super().__init__(nq=3 * n_masses, coordinate_names=names)
-        self.n_masses = int(n_masses)
+        self.n_masses = n_masses
         self.m, self.K, self.g = (
             as_parameter(m, "m", positive=True),
             as_parameter(K, "K"),
@@ -594,7 +601,7 @@ class DistributedRod(LagrangianSystem):
             as_parameter(L, "L", positive=True),
             as_parameter(g, "g"),
         )
-        self.n_nodes = n_nodes
+        self.n_nodes = check_int(n_nodes, "DistributedRod: n_nodes")
 
     def _body(self):
         def position(q, s):

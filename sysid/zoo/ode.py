@@ -69,7 +69,8 @@ class StiffVanDerPol(nn.Module):
     y1' = y2,   eps y2' = (1 - y1^2) y2 - y1,
 
     stiff for small eps (default 1e-6): the fast variable y2 relaxes on a time scale eps to the
-    slow manifold y2 = y1 / (1 - y1^2) (the DAE limit of Theorem 8, §5.4).
+    slow manifold y2 = y1 / (1 - y1^2) (the DAE limit of Theorem 8, §5.4). eps must be > 0
+    (InputValidationError).
     """
 
     nx = 2
@@ -77,7 +78,7 @@ class StiffVanDerPol(nn.Module):
 
     def __init__(self, eps=1e-6):
         super().__init__()
-        self.eps = as_parameter(eps, "eps")
+        self.eps = as_parameter(eps, "eps", positive=True)
 
     def forward(self, t, x, u=None):
         check_state(x, 2, "StiffVanDerPol")
@@ -122,7 +123,8 @@ class StiffLinear(nn.Module):
     to dt ~ 1.5e-3). Dividing by eps instead gives the fast eigenvalues (-0.1 +- i)/eps =
     -200 +- 2000 i, and RK4 with dt = 1.5e-3 then sits at lambda dt = -0.3 +- 3i, on the edge of
     its stability region, exactly as the figure says. This is the singularly perturbed form
-    eps z' = g(x, z) of eq. (5.33) with x = (x1, x2), z = (x3, x4).
+    eps z' = g(x, z) of eq. (5.33) with x = (x1, x2), z = (x3, x4). eps must be > 0
+    (InputValidationError).
     """
 
     nx = 4
@@ -130,7 +132,7 @@ class StiffLinear(nn.Module):
 
     def __init__(self, eps=5e-4):
         super().__init__()
-        self.eps = as_parameter(eps, "eps")
+        self.eps = as_parameter(eps, "eps", positive=True)
 
     def matrix(self, like_tensor: torch.Tensor | None = None) -> torch.Tensor:
         """A(eps), shape (*pb, 4, 4) for a tensor eps of shape (*pb, 1), (4, 4) for a scalar."""
