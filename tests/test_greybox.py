@@ -566,6 +566,33 @@ def test_a_trial_point_whose_stage_equations_fail_is_rejected_not_fatal(monkeypa
     torch.testing.assert_close(result.theta, reference.theta, rtol=1e-8, atol=1e-10)
 
 
+def test_simulate_warns_naming_a_data_set_whose_simulation_blows_up():
+    """x' = a x^2 (a = 1) from x0 = 0.1 and 10: the second escapes to infinity at t = 0.1
+    and its outputs became 1.5e176 then NaN without a status, message or warning. It now
+    issues an UnstableModelWarning naming data set 1 and the time; data set 0 follows the
+    closed form x0 / (1 - a x0 t) and is not named; a healthy run stays silent."""
+    from sysid.errors import UnstableModelWarning
+
+    def quadratic(t, x, u, p):
+        return (p["a"] * x[..., 0] ** 2 + u[..., 0])[..., None]
+
+    x0 = torch.tensor([[0.1], [10.0]], dtype=torch.float64)
+    model = GreyBoxModel(quadratic, {"a": 1.0}, nx=1, output=[0], x0=x0)
+    zeros = torch.zeros(2, 20, 1, dtype=torch.float64)
+    data = IOData(zeros, zeros, Ts=0.1)
+    with pytest.warns(
+        UnstableModelWarning, match=r"non-finite .* for data set 1 between t = "
+    ) as rec:
+        y = model.simulate(data)
+    assert len(rec) == 1 and "data set 0" not in str(rec[0].message)
+    t = 0.1 * torch.arange(20, dtype=torch.float64)
+    torch.testing.assert_close(y[0, :, 0], 0.1 / (1 - 0.1 * t), rtol=1e-8, atol=0)
+    assert bool(y[1, -1].isnan().all())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        model.simulate(data, x0=x0[:1])
+
+
 def test_a_singular_fit_names_the_parameters_of_its_flat_direction():
     """dx/dt = -(a1 + a2) x + b u: only a1 + a2 is identifiable, the covariance is inf and
     the warning named a pair from inf/inf correlations (('b', 'a1') here). It now names the

@@ -28,6 +28,7 @@ error, many for multiple shooting, one-interval segments for the one-step error)
 from __future__ import annotations
 
 import copy
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -46,6 +47,7 @@ from integrators.newton import newton
 from integrators.tableau import ButcherTableau
 
 from ..data import IOData
+from ..errors import UnstableModelWarning
 from .intersample import input_between_samples, stage_fractions
 from .params import Param
 
@@ -413,7 +415,10 @@ class GreyBoxModel:
         Returns:
             dict with ``y`` (*batch, S, L+1, ny), ``dy_dP`` (*batch, S, L+1, ny, n_params),
             ``dy_dx0`` (*batch, S, L+1, ny, nx), ``x_end`` (*batch, S, nx), ``dxend_dP`` and
-            ``dxend_dx0``, and ``stats`` (the integrator's statistics).
+            ``dxend_dx0``, ``stats`` (the integrator's statistics), ``status`` (*batch, S)
+            (:class:`~integrators.Status` codes: NON_FINITE where a segment's simulation
+            became inf / NaN, its outputs NaN from there on) and ``messages`` (one per
+            failed segment).
         """
         tab = self._tableau(method)
         L = segments.length
@@ -448,7 +453,14 @@ class GreyBoxModel:
         if not derivatives:
             Pb = P[..., None, None, :].expand(*x.shape[:-1], P.shape[-1])
             y = h(x, u_seg, Pb)
-            return {"y": y, "x_end": x[..., -1, :], "x": x, "stats": sens.stats}
+            return {
+                "y": y,
+                "x_end": x[..., -1, :],
+                "x": x,
+                "stats": sens.stats,
+                "status": sens.status,
+                "messages": sens.messages,
+            }
         A, B = sens.A, sens.B
         n_p = P.shape[-1]
         idx_out = self.output_indices(ny)
@@ -472,6 +484,8 @@ class GreyBoxModel:
             "dxend_dx0": A[..., -1, :, :],
             "x": x,
             "stats": sens.stats,
+            "status": sens.status,
+            "messages": sens.messages,
         }
 
     def simulate(self, data: IOData, params: dict | None = None, x0=None):
@@ -487,7 +501,10 @@ class GreyBoxModel:
 
         Returns:
             (*batch, N, ny) simulated outputs (experiments concatenated along time, like
-            ``data.y``).
+            ``data.y``). A data set whose simulation becomes inf / NaN (the model escapes to
+            infinity, or the fixed step is too large for stability) has NaN outputs from
+            that sample of the experiment on, and an :class:`~sysid.errors.UnstableModelWarning`
+            names it, the experiment and the time.
         """
         if not isinstance(data, IOData):
             raise InputValidationError(
@@ -502,7 +519,7 @@ class GreyBoxModel:
                 )
             values.update(params)
         starts = initial_states(x0 if x0 is not None else self.x0, self.nx, data.n_experiments)
-        parts = []
+        parts, failures = [], []
         for e, part in enumerate(data.experiment_list):
             vals = [self._value(n, values[n], e, part.dtype) for n in self.names]
             x_e = starts[e]
@@ -530,6 +547,24 @@ class GreyBoxModel:
                     P, nodes, u, part.Ts, part.intersample, seg, data.ny, method, False
                 )
             parts.append(out["y"][..., 0, :, :])
+            failures += _failed_runs(
+                out["status"][..., 0],
+                out["x"][..., 0, :, :],
+                part.Ts,
+                e if data.n_experiments > 1 else None,
+            )
+        if failures:
+            shown = "; ".join(failures[:5]) + (
+                f"; and {len(failures) - 5} more" if len(failures) > 5 else ""
+            )
+            warnings.warn(
+                f"simulate: the simulation became non-finite (inf/nan) for {shown}; the "
+                "outputs from there on are NaN. The model escapes to infinity with these "
+                "parameters and initial state, or the fixed step is too large for stability: "
+                "check them, or use more substeps or an implicit method.",
+                UnstableModelWarning,
+                stacklevel=2,
+            )
         return torch.cat(parts, -2)
 
     def _value(self, name: str, value, experiment: int, dtype) -> torch.Tensor:
@@ -562,6 +597,27 @@ class GreyBoxModel:
 
 
 # ---------------------------------------------------------------------------- helpers
+def _failed_runs(status: torch.Tensor, x: torch.Tensor, Ts: float, experiment) -> list[str]:
+    """One line per data set whose simulation failed: ``status`` (*batch,) Status codes,
+    ``x`` (*batch, N, nx) the simulated states (NaN from the failure on), ``Ts`` the sample
+    time, ``experiment`` the experiment's index (None for data of one experiment)."""
+    failed = status != 0
+    if not bool(failed.any()):
+        return []
+    bad = ~torch.isfinite(x).all(-1)  # (*batch, N)
+    first = bad.to(torch.int8).argmax(-1)
+    where = "" if experiment is None else f", experiment {experiment},"
+    lines = []
+    for idx in torch.nonzero(failed.reshape(failed.shape or (1,))).tolist():
+        k = int(first.reshape(failed.shape or (1,))[tuple(idx)])
+        name = f"data set {tuple(idx) if len(idx) > 1 else idx[0]}" if status.dim() else "the run"
+        lines.append(
+            f"{name}{where} between t = {(k - 1) * Ts:.6g} and {k * Ts:.6g} (NaN from sample "
+            f"{k} on)"
+        )
+    return lines
+
+
 def _kind(f) -> str:
     if isinstance(f, SemiExplicitDAE):
         return "dae_problem"
