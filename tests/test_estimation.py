@@ -1078,3 +1078,38 @@ def test_iterative_fits_start_with_a_non_exciting_member(structure):
         alone = fit(model, data[i])
         torch.testing.assert_close(result.theta[i], alone.theta, rtol=1e-7, atol=1e-9)
         assert bool(result.converged[i]) and bool(alone.converged)
+
+
+def test_options_that_do_not_apply_are_refused_not_ignored():
+    """fit names an option the model or method would ignore: x0 / segment_length for a
+    polynomial model, init for a direct solve, alpha without a tuned loss, weights / init for
+    a grey-box fit; xtol reaches the grey-box fit (a loose one stops earlier)."""
+    from sysid.continuous import GreyBoxModel
+
+    g = torch.Generator().manual_seed(21)
+    u = torch.randn(120, 1, generator=g, dtype=DT)
+    y = iir_filter(torch.tensor([0.0, 1.0], dtype=DT), torch.tensor([-0.5], dtype=DT), u[:, 0])
+    data = IOData(u, y.unsqueeze(-1) + 0.05 * torch.randn(120, 1, generator=g, dtype=DT), Ts=0.1)
+    for kwargs, names in [
+        ({"x0": "zero"}, "x0"),
+        ({"segment_length": 5}, "segment_length"),
+        ({"method": "lls", "init": torch.zeros(2)}, "init"),
+        ({"method": "lls", "max_iter": 3}, "max_iter"),
+        ({"method": "gauss_newton", "x0": "zero", "segment_length": 3}, "segment_length, x0"),
+    ]:
+        with pytest.raises(InputValidationError, match=rf"fit: {names} do\(es\) not apply"):
+            fit(ARX(1, 1, 1), data, **kwargs)
+    with pytest.raises(InputValidationError, match="alpha tunes the fair and Huber"):
+        fit(ARX(1, 1, 1), data, method="mle", loss="laplace", alpha=1.0)
+    model = GreyBoxModel(
+        lambda t, x, u, p: -p["a"] * x + p["b"] * u, {"a": 1.0, "b": 1.0}, nx=1, output=[0]
+    )
+    for kwargs, names in [
+        ({"weights": torch.ones(120)}, "weights"),
+        ({"init": torch.ones(2)}, "init"),
+        ({"segment_length": 5}, "segment_length"),
+    ]:
+        with pytest.raises(InputValidationError, match=rf"fit: {names} do\(es\) not apply"):
+            fit(model, data, **kwargs)
+    tight, loose = fit(model, data), fit(model, data, xtol=1e-2, ftol=1e-2)
+    assert int(loose.iterations) < int(tight.iterations)

@@ -48,8 +48,8 @@ def fit(
     criterion: str = "prediction",
     init=None,
     max_iter: int = 100,
-    xtol: float = 1e-8,
-    ftol: float = 1e-10,
+    xtol: float | None = None,
+    ftol: float | None = None,
     iv_iterations: int = 2,
     x0=None,
     segment_length: int | None = None,
@@ -88,7 +88,9 @@ def fit(
         init: starting parameters ``(*batch, p)``, ``"model"`` (the model's current values) or
             ``None`` (automatic: ARX least squares / instrumental variables, stabilised; a
             model with both A and F starts from its current values, one without B from 0).
-        max_iter, xtol, ftol: iteration limit and step/relative-decrease tolerances.
+        max_iter, xtol, ftol: iteration limit and step / relative-decrease tolerances of the
+            iterative fits (None: 1e-8 and 1e-10 for polynomial models, 1e-10 and 1e-12 for
+            grey-box models).
         iv_iterations: instrument refinements of ``"iv"`` (and of the automatic start).
         x0: grey-box models: the initial state, ``"zero"``, ``"estimate"`` (one per
             experiment), a tensor (nx,) / (*batch, nx) for every experiment or a list of
@@ -118,13 +120,44 @@ def fit(
 
     Raises:
         InputValidationError: among others, a polynomial model whose ``Ts`` was set to
-            another value than the data's.
+            another value than the data's, an option that does not apply to the model or the
+            method (e.g. ``x0`` for a polynomial model, ``weights`` for a grey-box one,
+            ``alpha`` with a loss that has no tuning constant).
     """
     from ..continuous.greybox import GreyBoxModel  # the continuous package builds on this one
 
     neural = not isinstance(model, (GreyBoxModel, PolynomialModel)) and isinstance(
         model, torch.nn.Module
     )
+    given = {
+        "alpha": alpha is not None,
+        "weights": weights is not None,
+        "init": init is not None,
+        "max_iter": max_iter != 100,
+        "xtol": xtol is not None,
+        "ftol": ftol is not None,
+        "iv_iterations": iv_iterations != 2,
+        "x0": x0 is not None,
+        "segment_length": segment_length is not None,
+    }
+    if neural or method in ("adam", "lbfgs"):
+        kind = "training a neural model (sysid.continuous.training.train)"
+        _refuse_options(given, {"x0"}, kind)
+    elif isinstance(model, GreyBoxModel):
+        applies = {"alpha", "max_iter", "xtol", "ftol", "x0"}
+        if criterion == "multiple_shooting":
+            applies.add("segment_length")
+        _refuse_options(
+            given,
+            applies,
+            f"a grey-box fit with criterion={criterion!r} (it starts from the model's "
+            "parameter values)",
+        )
+    if alpha is not None and loss not in ("fair", "huber"):
+        raise InputValidationError(
+            f"alpha tunes the fair and Huber losses; loss={loss!r} has no tuning constant: "
+            "leave alpha out."
+        )
     if neural or method in ("adam", "lbfgs"):
         from ..continuous.training import train
 
@@ -170,6 +203,9 @@ def fit(
             segment_length=segment_length,
             max_iter=max_iter,
             progress=progress,
+            **{
+                name: value for name, value in (("xtol", xtol), ("ftol", ftol)) if value is not None
+            },
         )
     if not isinstance(model, PolynomialModel):
         raise InputValidationError(f"model must be a sysid model, got {type(model).__name__}.")
@@ -188,6 +224,10 @@ def fit(
         method = "mle" if loss != "gaussian" else ("lls" if linear else "gauss_newton")
     if method not in METHODS:
         raise InputValidationError(f"method must be one of {METHODS}, got {method!r}.")
+    applies = {"alpha", "weights", "init", "max_iter", "xtol", "ftol", "iv_iterations"}
+    if method in ("lls", "iv"):  # direct solves
+        applies = {"weights"} | ({"iv_iterations"} if method == "iv" else set())
+    _refuse_options(given, applies, f"a polynomial model with method={method!r}")
     if method in ("lls", "iv", "gauss_newton") and loss != "gaussian":
         raise InputValidationError(
             f"method {method!r} minimises squared errors; use method='mle' for loss={loss!r}."
@@ -224,7 +264,18 @@ def fit(
         result = _fit_iv(model, data, iv_iterations)
     else:
         result = _fit_iterative(
-            model, data, method, loss, alpha, w, criterion, init, linear, max_iter, xtol, ftol
+            model,
+            data,
+            method,
+            loss,
+            alpha,
+            w,
+            criterion,
+            init,
+            linear,
+            max_iter,
+            1e-8 if xtol is None else xtol,
+            1e-10 if ftol is None else ftol,
         )
     result.parameter_names = names
     model.set_parameter_vector(result.theta)
@@ -298,6 +349,18 @@ def _diagnose(result: FitResult, model: PolynomialModel) -> None:
                 category,
                 stacklevel=3,
             )
+
+
+def _refuse_options(given: dict[str, bool], applies: set[str], kind: str) -> None:
+    """Raise naming the options of ``given`` (name -> set by the caller) that ``kind`` does not
+    use (``applies``): they would be ignored."""
+    unused = sorted(name for name, set_ in given.items() if set_ and name not in applies)
+    if unused:
+        raise InputValidationError(
+            f"fit: {', '.join(unused)} do(es) not apply to {kind} and would be ignored; leave "
+            f"{'it' if len(unused) == 1 else 'them'} out (its options here: "
+            f"{', '.join(sorted(applies)) or 'none of these'})."
+        )
 
 
 def _indices(mask: torch.Tensor) -> list[tuple[int, ...]]:
