@@ -430,7 +430,9 @@ def daeint(
 
     Returns:
         :class:`Solution` with ``x`` (*batch, T, n) and ``z`` (*batch, T, m) (None for
-        ImplicitODE).
+        ImplicitODE). With a zero-order-hold input ``z`` at an output time ``t_j`` is the
+        end of the interval ending there: it solves ``g(x_j, z_j, u_{j-1}) = 0`` (the hold
+        of ``[t_{j-1}, t_j]``, closed), every method alike; ``z`` at ``t_0`` uses ``u_0``.
 
     Raises:
         InputValidationError: options as in :func:`solve_implicit_ode`.

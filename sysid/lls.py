@@ -385,6 +385,7 @@ def lls(
     if method not in ("qr", "cholesky"):
         raise InputValidationError(f"lls: method must be 'qr' or 'cholesky', got {method!r}.")
     _check_singular_option("lls", singular)
+    _check_cond_warn("lls", cond_warn)
     batch = _batch_shape("lls", A, "A", 2, y)
     _check_finite("A", A)
     _check_finite("y", y)
@@ -716,6 +717,18 @@ def _check_singular_option(where: str, singular) -> None:
         raise InputValidationError(f"{where}: singular must be 'raise' or 'nan', got {singular!r}.")
 
 
+def _check_cond_warn(where: str, cond_warn) -> None:
+    if (
+        isinstance(cond_warn, bool)
+        or not isinstance(cond_warn, (int, float))
+        or not (cond_warn >= 1)
+    ):
+        raise InputValidationError(
+            f"{where}: cond_warn (the condition number above which it warns) must be a number "
+            f">= 1 (math.inf never warns), got {cond_warn!r}."
+        )
+
+
 def _singular_members(mask: torch.Tensor, singular: str) -> torch.Tensor | None:
     """``mask`` (``(*batch,)``, True where a problem is numerically singular), or None where it
     is all False; raises :class:`SingularMatrixError` with ``singular="raise"``."""
@@ -890,6 +903,7 @@ def fir_lls(
             f"fir_lls: need nb >= 1, nk >= 0 and N > nb; got {nb}, {nk}, {N}."
         )
     _check_singular_option("fir_lls", singular)
+    _check_cond_warn("fir_lls", cond_warn)
     batch = _batch_shape("fir_lls", u, "u", 1, y)
     w = F.pad(u, (nk, 0))[..., :N] if nk else u
     r = _lagged_products(w, w, nb)

@@ -526,3 +526,15 @@ def test_rows_of_weight_zero_are_not_counted_as_observations():
     W[1, 3:] = 0.0
     with pytest.raises(InputValidationError, match=r"problem \(1,\) has 3 rows with a positive"):
         lls(A, y, W=W)
+
+
+@pytest.mark.parametrize("cond_warn", [-1, 0.5, float("nan"), "1e8", True])
+def test_cond_warn_out_of_range_is_refused(cond_warn):
+    """cond_warn = -1 warned at a condition number of 2, NaN never warned: both refused."""
+    from sysid.lls import fir_lls
+
+    A, y = torch.randn(10, 2, dtype=DT), torch.randn(10, dtype=DT)
+    with pytest.raises(InputValidationError, match="cond_warn .* must be a number >= 1"):
+        lls(A, y, cond_warn=cond_warn)
+    with pytest.raises(InputValidationError, match="cond_warn .* must be a number >= 1"):
+        fir_lls(y, y, 2, cond_warn=cond_warn)
