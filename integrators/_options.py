@@ -153,18 +153,21 @@ def refuse_time_gradient(t, method: str) -> None:
         )
 
 
-def raise_shape_change(out, x: torch.Tensor, t) -> None:
+def raise_shape_change(out, x: torch.Tensor, t, who: str = "", changed: bool = True) -> None:
     """Raise for a model output ``out`` whose shape is not that of the state ``x`` it was
-    evaluated at, at time(s) ``t`` (a number or a tensor of per-sample or stage times). The
-    solvers check this at every evaluation: broadcasting in the step sums would otherwise
-    hide a model whose output changes shape during the run."""
+    evaluated at, at time(s) ``t`` (a number or a tensor of per-sample or stage times);
+    ``who`` prefixes the message, ``changed`` says the model returned the state's shape at
+    t0. The solvers check this at every evaluation: broadcasting in the step sums would
+    otherwise hide a model whose output changes shape during the run."""
+    got = f"shape {tuple(out.shape)}" if isinstance(out, torch.Tensor) else type(out).__name__
     tt = torch.as_tensor(t).detach()
     lo, hi = float(tt.min()), float(tt.max())
     when = f"t = {lo:.6g}" + (f" .. {hi:.6g}" if hi > lo else "")
+    since = " (it returned the state's shape at t0)" if changed else ""
     raise InputValidationError(
-        f"the model returned shape {tuple(getattr(out, 'shape', ()))} for a state of shape "
-        f"{tuple(x.shape)} in an evaluation at {when} (it returned the state's shape at t0): "
-        "f(t, x) must return dx/dt of the shape of x at every call."
+        f"{who}the model returned {got} for a state of shape {tuple(x.shape)} at {when}"
+        f"{since}; it must return dx/dt as a tensor of the shape of x, (*batch, nx), at every "
+        "call."
     )
 
 

@@ -88,7 +88,7 @@ from torch.func import jvp, vmap
 from ._fast import compiled_stepper
 from ._irk_core import StageInputs, stacked_call_agrees
 from ._irk_dense import extrapolation_matrix
-from ._options import check_int, check_state, check_times, sample_indices
+from ._options import check_int, check_state, check_times, raise_shape_change, sample_indices
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
 from .explicit import _failure_messages
 from .inputs import CollocationInput
@@ -162,18 +162,8 @@ def _model(f: Callable, has_u: bool, has_p: bool) -> Callable:
     def g(t, x, u, p):
         args = (t, x) + ((u,) if has_u else ()) + ((p,) if has_p else ())
         out = f(*args)
-        if getattr(out, "shape", None) != x.shape:
-            got = (
-                f"shape {tuple(out.shape)}" if isinstance(out, torch.Tensor) else type(out).__name__
-            )
-            tt = torch.as_tensor(t).detach()  # one time or the stage times of a step
-            lo, hi = float(tt.min()), float(tt.max())
-            when = f"t = {lo:.6g}" + (f" .. {hi:.6g}" if hi > lo else "")
-            raise InputValidationError(
-                f"sensitivities: the model returned {got} for a state of shape "
-                f"{tuple(x.shape)} at {when}; it must return dx/dt as a tensor of the shape of "
-                "x, (*batch, nx), at every call."
-            )
+        if getattr(out, "shape", None) != x.shape:  # t: one time or a step's stage times
+            raise_shape_change(out, x, t, "sensitivities: ", changed=False)
         return out
 
     return g

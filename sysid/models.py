@@ -72,23 +72,33 @@ def _is_integer(value) -> bool:
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
-def _per_input(value, n_inputs: int, name: str) -> list[int]:
-    """``value`` (an integer or one per input) as a list of ``n_inputs`` integers >= 0."""
+def _integer_list(value, repeat: int, message: str) -> list[int]:
+    """``value`` (an integer, taken ``repeat`` times, or a sequence of integers) as a list of
+    integers >= 0; raises InputValidationError with ``message`` otherwise (a bool, a float such
+    as 2.0, a string)."""
     try:
-        values = [value] * n_inputs if _is_integer(value) else list(value)
+        values = [value] * repeat if _is_integer(value) else list(value)
     except TypeError:  # not iterable
         values = [value]
     if isinstance(value, str) or not all(_is_integer(v) and v >= 0 for v in values):
-        raise InputValidationError(
-            f"{name} must be an integer >= 0 or a list of them (one per input), got "
-            f"{value!r}: orders count coefficients and nk counts samples, so they are whole "
-            "numbers (a bool or a float such as 2.0 is refused, not rounded)."
-        )
+        raise InputValidationError(message)
+    return [int(v) for v in values]
+
+
+def _per_input(value, n_inputs: int, name: str) -> list[int]:
+    """``value`` (an integer or one per input) as a list of ``n_inputs`` integers >= 0."""
+    values = _integer_list(
+        value,
+        n_inputs,
+        f"{name} must be an integer >= 0 or a list of them (one per input), got {value!r}: "
+        "orders count coefficients and nk counts samples, so they are whole numbers (a bool or "
+        "a float such as 2.0 is refused, not rounded).",
+    )
     if len(values) != n_inputs:
         raise InputValidationError(
             f"{name} has {len(values)} entries but the model has {n_inputs} inputs."
         )
-    return [int(v) for v in values]
+    return values
 
 
 def _order(value, name: str) -> int:
@@ -103,16 +113,14 @@ def _order(value, name: str) -> int:
 def _batch_shape(batch_shape, what: str = "models") -> torch.Size:
     """``batch_shape`` (an integer or a sequence of integers, each >= 0) as a ``torch.Size``;
     ``what`` the batch holds, for the message."""
-    try:
-        sizes = [batch_shape] if _is_integer(batch_shape) else list(batch_shape)
-    except TypeError:  # not iterable
-        sizes = [batch_shape]
-    if isinstance(batch_shape, str) or not all(_is_integer(n) and n >= 0 for n in sizes):
-        raise InputValidationError(
+    return torch.Size(
+        _integer_list(
+            batch_shape,
+            1,
             f"batch_shape must be an integer >= 0 or a sequence of them (the number of {what} "
-            f"along each batch dimension), got {batch_shape!r}."
+            f"along each batch dimension), got {batch_shape!r}.",
         )
-    return torch.Size(int(n) for n in sizes)
+    )
 
 
 def _monic(tail: torch.Tensor) -> torch.Tensor:

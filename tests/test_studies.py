@@ -402,6 +402,12 @@ def test_reordered_factors_repeated_values_and_summary_names_are_refused(tmp_pat
             Study(simulate_white, {"fir_ls": fir_ls}, {"N": [40], name: [1, 2]})
 
 
+def summary_row(summary, N, estimator, parameter):
+    """The summary row of one grid point N, estimator and parameter."""
+    at = (summary["N"] == N) & (summary["estimator"] == estimator)
+    return summary[at & (summary["parameter"] == parameter)].iloc[0]
+
+
 def test_failed_trials_leave_every_statistic_but_their_count(tmp_path):
     """Trials whose estimate is NaN (a failed fit) count in trials and converged only; trials
     with a finite estimate but a NaN standard error leave mean_se and coverage. Against
@@ -424,11 +430,7 @@ def test_failed_trials_leave_every_statistic_but_their_count(tmp_path):
     rows = study.results
     z = 1.959963984540054
     for (N, name, parameter), group in rows.groupby(["N", "estimator", "parameter"]):
-        row = summary[
-            (summary["N"] == N)
-            & (summary["estimator"] == name)
-            & (summary["parameter"] == parameter)
-        ].iloc[0]
+        row = summary_row(summary, N, name, parameter)
         estimate, se = group["estimate"].to_numpy(), group["se"].to_numpy()
         ok = np.isfinite(estimate)
         both = ok & np.isfinite(se)
@@ -480,11 +482,7 @@ def test_undetermined_and_unconverged_estimates_follow_one_rule_in_every_statist
         summary = study.summary(converged_only=converged_only)
         errors = study.normalized_errors(converged_only)
         for (N, name, parameter), group in rows.groupby(["N", "estimator", "parameter"]):
-            row = summary[
-                (summary["N"] == N)
-                & (summary["estimator"] == name)
-                & (summary["parameter"] == parameter)
-            ].iloc[0]
+            row = summary_row(summary, N, name, parameter)
             estimate, se = group["estimate"].to_numpy(), group["se"].to_numpy()
             use = (group["trial"] % 4 != 0).to_numpy()
             if converged_only:
@@ -495,11 +493,8 @@ def test_undetermined_and_unconverged_estimates_follow_one_rule_in_every_statist
             assert row["std"] == pytest.approx(estimate[use].std(ddof=1), rel=1e-12)
             assert row["mean_se"] == pytest.approx(se[use].mean(), rel=1e-12)
             assert row["coverage"] == pytest.approx(np.mean(np.abs(error) <= z95 * se[use]))
-            mine = errors[
-                (errors["N"] == N)
-                & (errors["estimator"] == name)
-                & (errors["parameter"] == parameter)
-            ]
+            keep = (errors["N"] == N) & (errors["estimator"] == name)
+            mine = errors[keep & (errors["parameter"] == parameter)]
             np.testing.assert_allclose(np.sort(mine["z"]), np.sort(error / se[use]), rtol=1e-12)
         for i, point in enumerate(study.points):
             for name in study.estimators:
