@@ -16,8 +16,9 @@ or (TOML)::
     N = [250, 1000, 4000]
     sigma = [0.5]
 
-Keys left out take the kind's defaults. The study's chunks go to ``DIR/study`` (Parquet, one
-file per finished chunk, and ``manifest.json``), its report (Markdown, CSV, figures) to
+Keys left out take the kind's defaults (a grid, when given, names every factor of the
+kind). The study's chunks go to ``DIR/study`` (Parquet, one file per finished chunk, and
+``manifest.json``), its report (Markdown, CSV, figures) to
 ``DIR/report``. A run refuses a ``DIR/study`` that already holds results (chunk files) unless
 ``--resume`` is given; with ``--resume`` it computes only the missing chunks of the same
 declaration, and a different declaration (grid, trials, seed, chunk, kind, options) is
@@ -173,7 +174,7 @@ def main(argv=None):
         f"study {declaration['kind']}: {len(study.points)} grid points x {study.trials} trials, "
         f"{study.n_chunks} chunk(s) each, {args.workers} worker(s)"
     )
-    from sysid.errors import StudyDeclarationError
+    from sysid.errors import InputValidationError
 
     try:
         if args.workers > 1:
@@ -185,8 +186,8 @@ def main(argv=None):
                 study.run(folder, client=client)
         else:
             study.run(folder)
-    except StudyDeclarationError as err:  # --resume on another declaration's results
-        parser.error(str(err))
+    except InputValidationError as err:  # another declaration's results (--resume), or a
+        parser.error(f"{args.declaration}: {err}")  # grid value its data generator refuses
     report = study.report(out / "report")
     finish(out, report.read_text())
     return study

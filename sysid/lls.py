@@ -296,7 +296,7 @@ def _degrees_of_freedom(wkind: str, W, M: int, p: int, batch: torch.Size):
         )
     if bool((rows == rows.reshape(-1)[0]).all()):
         return int(rows.reshape(-1)[0]) - p
-    return (rows - p).to(W.dtype)
+    return rows - p
 
 
 def _cholesky_upper_of_weights(W: torch.Tensor) -> torch.Tensor:

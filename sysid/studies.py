@@ -39,8 +39,9 @@ Failures. An estimator that raises one of the project's errors
 (:class:`~sysid.errors.RKIdentError`, e.g. a :class:`~sysid.errors.ConvergenceError` for a
 batch) on a chunk is called again on each half of it, down to single trials, so the trials
 that make it fail are found: their rows hold NaN, ``converged`` False and the error's message,
-the other trials their estimates. Where it fails for every trial of the chunk the error is
-raised (a mistake in the declaration, not a property of some data sets).
+the other trials their estimates, whatever the chunk size (the rows of a chunk it fails for
+entirely take the parameter names of the other chunks). Where it fails for every trial of the
+study the error is raised (a mistake in the declaration, not a property of some data sets).
 """
 
 from __future__ import annotations
@@ -406,8 +407,11 @@ class Study:
             parts.append(data if start + n <= trials.stop else data[: trials.stop - start])
         return parts[0] if len(parts) == 1 else IOData.cat(parts)
 
-    def _compute_chunk(self, point: int, chunk: int):
-        """The results rows of one chunk (all estimators), as a DataFrame."""
+    def _compute_chunk(self, point: int, chunk: int, names: dict | None = None):
+        """The results rows of one chunk (all estimators), as a DataFrame. ``names``: estimator
+        -> its parameter names, for the rows of an estimator that fails for every trial of the
+        chunk (raises :class:`_NamesUnknown` where they are not known yet, the error itself
+        where they never can be: every trial of the study failed)."""
         pd = _pandas()
         data = self.data(point, chunk)
         trials = np.asarray(self._chunk_trials(chunk))
@@ -419,13 +423,17 @@ class Study:
             results = [r for _, _, r, error in parts if error is None]
             for result in results:
                 _check_result(name, result)
-            names = list(results[0].parameter_names) if results else None
-            if names is None:  # every trial failed: not a property of some data sets
+            if results:
+                estimator_names = list(results[0].parameter_names)
+            elif names is None:  # every trial of the chunk failed: names from other chunks
+                raise _NamesUnknown(parts[0][3])
+            elif name not in names:  # every trial failed: not a property of some data sets
                 raise parts[0][3]
+            else:
+                estimator_names = names[name]
+            seconds = elapsed / len(trials)
             for lo, hi, result, error in parts:
-                frames.append(
-                    _rows(name, names, trials[lo:hi], result, error, elapsed / len(trials))
-                )
+                frames.append(_rows(name, estimator_names, trials[lo:hi], result, error, seconds))
         out = pd.concat(frames, ignore_index=True)
         for position, (factor, value) in enumerate(self.points[point].items()):
             out.insert(position, factor, value)
@@ -444,8 +452,8 @@ class Study:
         except Exception as err:  # any unreadable file (truncated, not Parquet, ...)
             reason = f"{type(err).__name__}: {err}"
         else:
-            if ok:
-                return frame
+            if ok:  # files written before the error column: no trial failed
+                return frame if "error" in frame else frame.assign(error="")
             reason = "it does not hold this chunk's trials of every estimator"
         warnings.warn(
             f"chunk file {path} cannot be used ({reason}); recomputing that chunk.",
@@ -508,12 +516,19 @@ class Study:
         try:
             with progress_bar(len(coordinates), "study chunks", progress, unit="chunk") as bar:
                 bar.update(len(done))
+                deferred = []  # chunks an estimator failed for entirely before its names were known
                 if client is None:
                     for key in pending:
-                        finish(key, self._compute_chunk(*key))
-                        bar.update(1)
+                        try:
+                            finish(key, self._compute_chunk(*key))
+                            bar.update(1)
+                        except _NamesUnknown:
+                            deferred.append(key)
                 else:
-                    self._run_dask(client, pending, finish, bar)
+                    deferred = self._run_dask(client, pending, finish, bar)
+                for key in deferred:  # here, with the parameter names of the finished chunks
+                    finish(key, self._compute_chunk(*key, names=_parameter_names(done)))
+                    bar.update(1)
         finally:
             if writer is not None:
                 writer.shutdown(wait=True)
@@ -534,12 +549,17 @@ class Study:
         task = copy.copy(self)
         task._results = None
         futures = {client.submit(task._compute_chunk, *key, pure=False): key for key in pending}
+        deferred = []
         try:
             for future in as_completed(futures):
-                finish(futures[future], future.result())
-                bar.update(1)
+                try:
+                    finish(futures[future], future.result())
+                    bar.update(1)
+                except _NamesUnknown:
+                    deferred.append(futures[future])
         finally:
             client.cancel(list(futures))
+        return deferred
 
     # ------------------------------------------------------------------ results
     @property
@@ -573,6 +593,7 @@ class Study:
                     ) from err
                 rows.append({**point, "parameter": parameter, "truth": value})
         table = pd.DataFrame(rows, columns=[*self.factors, "parameter", "truth"])
+        table["truth"] = table["truth"].astype(float)  # also when empty (no truth declared)
         known = set(self.results["parameter"])
         unknown = sorted(set(table["parameter"]) - known)
         if unknown:
@@ -1050,6 +1071,22 @@ class Study:
         ax.legend(fontsize=7)
         fig.tight_layout()
         return fig, "se_vs_std.png", "reported SE vs empirical std"
+
+
+class _NamesUnknown(Exception):
+    """An estimator failed for every trial of a chunk computed before any chunk told its
+    parameter names (``args[0]``: the error); the chunk is computed again at the end of
+    :meth:`Study.run`."""
+
+
+def _parameter_names(done: dict) -> dict:
+    """Estimator -> its parameter names, from the finished chunks' rows ``done``."""
+    names = {}
+    for frame in done.values():
+        for estimator, rows in frame.groupby("estimator", sort=False):
+            if estimator not in names:
+                names[estimator] = list(dict.fromkeys(rows["parameter"]))
+    return names
 
 
 def _fit_or_split(estimator, data: IOData, lo: int, hi: int) -> list[tuple]:

@@ -1095,6 +1095,7 @@ def test_options_that_do_not_apply_are_refused_not_ignored():
         ({"segment_length": 5}, "segment_length"),
         ({"method": "lls", "init": torch.zeros(2)}, "init"),
         ({"method": "lls", "max_iter": 3}, "max_iter"),
+        ({"method": "mle", "init": torch.zeros(2)}, "init"),  # Gaussian, linear: direct solve
         ({"method": "gauss_newton", "x0": "zero", "segment_length": 3}, "segment_length, x0"),
     ]:
         with pytest.raises(InputValidationError, match=rf"fit: {names} do\(es\) not apply"):

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
@@ -373,6 +374,20 @@ def test_truth_that_names_no_parameter_warns_and_a_non_number_is_refused(tmp_pat
         wrong.summary()
 
 
+def test_summary_without_truth_and_chunk_files_without_the_error_column(tmp_path):
+    """Without a declared truth the summary has NaN bias, RMSE and coverage (it raised a
+    TypeError on an object column); chunk files written before the error column read back with
+    an empty error (no trial failed), not NaN."""
+    study = Study(simulate_white, {"fir_ls": fir_ls}, {"N": [40]}, 4, seed=1, chunk=2)
+    summary = study.run(tmp_path, progress=False).summary()
+    assert summary[["bias", "rmse", "coverage"]].isna().all().all()
+    assert (summary["std"] > 0).all()
+    for path in (tmp_path / "chunks").glob("*.parquet"):
+        pd.read_parquet(path).drop(columns="error").to_parquet(path)
+    again = Study(simulate_white, {"fir_ls": fir_ls}, {"N": [40]}, 4, seed=1, chunk=2)
+    assert (again.run(tmp_path, progress=False).results["error"] == "").all()
+
+
 def test_invalid_declarations_are_refused():
     with pytest.raises(InputValidationError, match="multiple of block"):
         small_study(chunk=5, block=2)
@@ -544,6 +559,14 @@ def test_an_estimator_error_is_narrowed_down_to_the_trials_that_cause_it(tmp_pat
     )
     summary = study.summary()
     assert summary[summary["estimator"] == "fragile"]["estimated"].sum() == (~bad).sum()
+    # chunks of one trial: a chunk the estimator fails for entirely takes the parameter names
+    # of the others, so the table is that of chunks of 8 (to rounding of the batched fits)
+    single = small_study(trials=24, chunk=1, estimators={"fragile": fragile, "fir_ls": fir_ls})
+    single_rows = single.run(progress=False).results.sort_values(["N", "estimator", "trial"])
+    eight = rows.sort_values(["N", "estimator", "trial"])
+    for column in ("parameter", "converged", "error"):
+        assert single_rows[column].tolist() == eight[column].tolist()
+    np.testing.assert_allclose(single_rows["estimate"], eight["estimate"], rtol=1e-10)
 
     def hopeless(data):
         raise ConvergenceError("never")

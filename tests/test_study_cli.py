@@ -115,6 +115,11 @@ def test_resume_with_another_declaration_is_refused(cli_run, tmp_path, capsys):
             "'noise' takes values among",
         ),
         ('{"kind": "fat_tails", "chunk": 0}', "chunk must be an integer >= 1"),
+        (
+            '{"kind": "fir_covariance", "grid": {"N": ["100"], "sigma": [0.5], '
+            '"input": ["white"]}, "trials": 4, "chunk": 2}',
+            "N must be an integer >= 1, got '100'",
+        ),
     ],
 )
 def test_bad_declarations_are_named(tmp_path, capsys, text, words):

@@ -225,7 +225,7 @@ def fit(
     if method not in METHODS:
         raise InputValidationError(f"method must be one of {METHODS}, got {method!r}.")
     applies = {"alpha", "weights", "init", "max_iter", "xtol", "ftol", "iv_iterations"}
-    if method in ("lls", "iv"):  # direct solves
+    if method in ("lls", "iv") or (method == "mle" and linear and loss == "gaussian"):  # direct
         applies = {"weights"} | ({"iv_iterations"} if method == "iv" else set())
     _refuse_options(given, applies, f"a polynomial model with method={method!r}")
     if method in ("lls", "iv", "gauss_newton") and loss != "gaussian":

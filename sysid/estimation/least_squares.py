@@ -4,10 +4,10 @@
 * ``method="lls"`` (FIR, ARX): the prediction-error method is a linear least-squares problem,
   ``theta = argmin 1/2 ||M theta - y||^2`` with the regressor ``M`` of eq. 4.111 (eq. 4.112),
   solved by :func:`sysid.lls.lls` with covariance ``sigma^2 (M'M)^{-1}`` (eq. 4.101 form).
-  Where a data set's regressors are linearly dependent (``M'M`` singular, e.g. a zero input)
-  its estimate is the minimum-norm least-squares solution and the parameters the data do not
-  determine get an infinite covariance, as in the iterative fits
-  (:func:`~sysid.estimation.results.inverse_normal_matrix_and_rank`), with a
+  Where a data set's regressors are linearly dependent (``M'M`` numerically singular, e.g. a
+  zero input) its estimate is the least-squares solution of minimum norm in the column-scaled
+  parameters and the parameters the data do not determine get an infinite covariance, as in
+  the iterative fits (:func:`~sysid.estimation.results.inverse_normal_matrix_and_rank`), with a
   :class:`PoorExcitationWarning` naming the data sets; the others are as if fitted alone.
 * ``method="iv"`` (ARX structure): instrumental variables. The instruments are the regressors
   built from the noise-free simulated output ``x = B/A u`` of a previous estimate instead of
@@ -34,9 +34,10 @@ from .results import FitResult, inverse_normal_matrix_and_rank
 
 def _least_squares(Phi: torch.Tensor, target: torch.Tensor, W: torch.Tensor | None = None):
     """:func:`~sysid.lls.lls` of ``(Phi, target)`` (diagonal weights ``W``), batched over data
-    sets; where a data set's ``Phi'W Phi`` is singular, its minimum-norm solution.
+    sets; where a data set's ``Phi'W Phi`` is numerically singular (:func:`~sysid.lls.lls`'s
+    test), its least-squares solution of minimum norm in the column-scaled parameters.
 
-    The minimum-norm solution comes from the pseudo-inverse of the column-scaled
+    That solution comes from the pseudo-inverse of the column-scaled
     ``W^{1/2} Phi`` with the null space of :func:`inverse_normal_matrix_and_rank` (scaled
     eigenvalues below ``eps M`` times the largest), whose covariance is ``inf`` for the
     parameters with a component along it; ``sigma^2 = r'Wr / (M - rank)``. Warns
