@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 
+from ._options import check_flag
 from .errors import InputValidationError
 from .implicit import daeint
 from .problems import ImplicitDAE, ImplicitODE, SemiExplicitDAE
@@ -37,7 +38,7 @@ class DAELayer(torch.nn.Module):
             )
         self.problem = problem
         self.fns = torch.nn.ModuleList(problem.modules())
-        self.return_solution = return_solution
+        self.return_solution = check_flag(return_solution, "DAELayer: return_solution")
         self.daeint_kwargs = daeint_kwargs
         if t is not None and not isinstance(t, torch.Tensor):  # a list: exact float64 times
             t = torch.as_tensor(t, dtype=torch.float64)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 
+from ._options import check_flag
 from .errors import InputValidationError
 from .odeint import odeint
 
@@ -26,7 +27,7 @@ class ODELayer(torch.nn.Module):
         super().__init__()
         self.f = f
         self.method = method
-        self.return_solution = return_solution
+        self.return_solution = check_flag(return_solution, "ODELayer: return_solution")
         self.odeint_kwargs = odeint_kwargs
         if t is not None and not isinstance(t, torch.Tensor):  # a list: exact float64 times
             t = torch.as_tensor(t, dtype=torch.float64)

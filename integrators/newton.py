@@ -34,7 +34,7 @@ from enum import IntEnum
 import torch
 from torch.autograd import forward_ad
 
-from ._options import check_int, check_nonnegative, check_positive, check_state
+from ._options import check_flag, check_int, check_nonnegative, check_positive, check_state
 from .block_jacobian import BlockJacobian
 from .block_tridiagonal import BorderedBlockTridiagonal
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
@@ -439,6 +439,7 @@ def newton(
     if factorization is not None and method != "simplified":
         raise InputValidationError("newton: factorization= is only used by method='simplified'.")
     xtol = check_nonnegative(xtol, "newton: xtol", " (0 disables the step test)")
+    raise_on_failure = check_flag(raise_on_failure, "newton: raise_on_failure")
     if tol is not None:
         tol = check_nonnegative(
             tol, "newton: tol", " (the residual tolerance; None for the default)"
@@ -874,6 +875,7 @@ def minimize(
         )
     adaptive = method == "levenberg_marquardt"
     regularization = check_nonnegative(regularization, "minimize: regularization")
+    raise_on_failure = check_flag(raise_on_failure, "minimize: raise_on_failure")
     if tol is not None:
         tol = check_nonnegative(
             tol, "minimize: tol", " (the gradient tolerance; None for the default)"

@@ -133,3 +133,30 @@ def test_solver_arguments_of_the_wrong_shape_are_named_errors(call):
     the others'), and batches that do not broadcast raise InputValidationError."""
     with pytest.raises(integrators.InputValidationError):
         call()
+
+
+@pytest.mark.parametrize("value", ["yes", "no", 1, 0])
+def test_flags_that_are_not_bools_are_refused(value):
+    """A string such as "no" would count as true and a number as a flag: ODELayer's and
+    DAELayer's return_solution, newton's and minimize's raise_on_failure, Param's free and
+    per_experiment take a bool only."""
+    from integrators import ODELayer
+    from integrators.dae_layer import DAELayer
+    from integrators.errors import InputValidationError
+    from integrators.newton import minimize, newton
+    from integrators.problems import ImplicitODE
+    from sysid.continuous import Param
+
+    x0 = torch.ones(1, dtype=torch.float64)
+    problem = ImplicitODE(lambda t, x, xdot: xdot + x)
+    calls = [
+        (lambda: ODELayer(lambda t, x: -x, return_solution=value), "return_solution"),
+        (lambda: DAELayer(problem, return_solution=value), "return_solution"),
+        (lambda: newton(lambda x: x - 1, x0, raise_on_failure=value), "raise_on_failure"),
+        (lambda: minimize(lambda x: x - 1, x0, raise_on_failure=value), "raise_on_failure"),
+        (lambda: Param(1.0, free=value), "free"),
+        (lambda: Param(1.0, per_experiment=value), "per_experiment"),
+    ]
+    for call, name in calls:
+        with pytest.raises(InputValidationError, match=rf"{name} must be one of True, False"):
+            call()

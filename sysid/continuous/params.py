@@ -18,6 +18,7 @@ import math
 import numpy as np
 import torch
 
+from integrators._options import check_flag
 from integrators.errors import InputValidationError
 
 __all__ = ["Param"]
@@ -40,6 +41,8 @@ class Param:
     """
 
     def __init__(self, value, *, free: bool = True, min=None, max=None, per_experiment=False):
+        free = check_flag(free, "Param: free")
+        per_experiment = check_flag(per_experiment, "Param: per_experiment")
         try:
             values = torch.as_tensor(value, dtype=torch.float64).detach().reshape(-1)
         except (TypeError, ValueError, RuntimeError):
