@@ -55,7 +55,6 @@ extrapolated before the remaining steps run; a run that would not fit raises
 
 from __future__ import annotations
 
-import functools
 import math
 import time
 from dataclasses import dataclass
@@ -464,7 +463,10 @@ def solve_explicit(
             (id(tab), tab.A.tobytes(), tab.b.tobytes(), kind, id(u_fn), m),
             compile=mode,
             x0=x0,
-            make_chunk=functools.partial(_make_chunk, f, kind, u_fn, scheme, m),
+            make_chunk=lambda slots, n, major: _make_chunk(
+                slots[0], kind, slots[1], scheme, m, n, major
+            ),
+            callables=(f, u_fn),
             n_out=_outputs_per_chunk(x0, m),
             f_at_start=f_at_start,
             n_steps=n_steps,

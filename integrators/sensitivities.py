@@ -76,7 +76,6 @@ and "``Delta w``" is ``Delta K``.
 
 from __future__ import annotations
 
-import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -669,7 +668,10 @@ def sensitivities(
                 config,
                 compile=mode,
                 x0=x,
-                make_chunk=functools.partial(_interval_kernel, g, tab, substeps),
+                make_chunk=lambda slots, *layout: _interval_kernel(
+                    _model(slots[0], u is not None, p is not None), tab, substeps, *layout
+                ),
+                callables=(f,),
                 n_out=1,
             )
         if not stepper.active:

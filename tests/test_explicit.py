@@ -567,6 +567,68 @@ def _raise_on_call(*args):
     raise RuntimeError("no C++ compiler")
 
 
+class _Damped(torch.nn.Module):
+    """x' = -k x, k a parameter; ``rhs`` the same as a bound method of the module."""
+
+    def __init__(self, k):
+        super().__init__()
+        self.k = torch.nn.Parameter(torch.tensor(k, dtype=torch.float64))
+
+    def forward(self, t, x):
+        return -self.k * x
+
+    def rhs(self, t, x, u):
+        return -self.k * x + u
+
+
+@pytest.mark.parametrize("call", ["module", "bound method with a callable input", "sensitivities"])
+def test_compiled_models_are_reused_while_alive_and_freed_after(call, monkeypatch):
+    """A compiled model runs again without compiling (same numbers), and once the caller drops
+    it the model and its cache entry are freed: the cache holds no reference to the model it is
+    keyed by (it once kept every compiled model, its parameters and kernels, for the life of
+    the process). x' = -k x (+ u) against its closed form."""
+    import gc
+    import weakref
+
+    from integrators import explicit
+    from integrators._fast import compiled as compiled_module
+    from integrators.sensitivities import sensitivities
+
+    monkeypatch.setattr(explicit, "CHUNK_STEPS", 2)  # small graphs: quick compiles
+    t = torch.linspace(0.0, 1.0, 11, dtype=torch.float64)
+    x0 = torch.tensor([[1.0], [2.0]], dtype=torch.float64)
+    model = _Damped(0.7)
+    u = 0.25  # constant input: x = u / k + (x0 - u / k) exp(-k t)
+    if call == "module":
+        f, kwargs, exact = model, {}, x0[:, None] * torch.exp(-0.7 * t)[:, None]
+    else:
+        f = model.rhs if call.startswith("bound") else model.forward
+        kwargs = {"u": lambda s: torch.full((2, 1), u, dtype=torch.float64)}
+        exact = u / 0.7 + (x0[:, None] - u / 0.7) * torch.exp(-0.7 * t)[:, None]
+
+    def run():
+        if call == "sensitivities":
+            sol = sensitivities(f, x0, t, method="rk4", substeps=4, compile=True)
+            return sol.x, sol.stats.extra
+        with torch.no_grad():
+            sol = odeint(f, x0, t, method="rk4", substeps=4, compile=True, **kwargs)
+        return sol.x, sol.stats.extra
+
+    first, stats = run()
+    if not stats["compiled"]:
+        pytest.skip(f"compilation unavailable: {stats['compile_fallback']}")
+    again, again_stats = run()
+    assert again_stats["compiled"] and again_stats["compile_s"] == 0.0
+    torch.testing.assert_close(again, first, rtol=0, atol=0)
+    if call != "sensitivities":
+        torch.testing.assert_close(first, exact, rtol=1e-7, atol=0)
+    alive, entries = weakref.ref(model), len(compiled_module._CACHE)
+    del model, f, kwargs, first, again
+    gc.collect()
+    assert alive() is None
+    assert len(compiled_module._CACHE) == entries - 1
+
+
 @pytest.mark.parametrize("grad", [False, True])
 def test_compiled_linear_model_matches_matrix_exponential(grad, monkeypatch):
     """x' = A x through a matrix product, compiled: the interleaved layout (the model mixes

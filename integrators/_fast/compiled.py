@@ -3,7 +3,10 @@
 The solver (``integrators/explicit.py``) builds a chunk function that advances several steps
 and asks :func:`compiled_stepper` for a compiled version of it. Compiled chunks are cached per
 model (weakly: they go with the model) and configuration, so the one-off compile time is paid
-once per model and state shape. Compilation is given up, and the run continues with the
+once per model and state shape. A cached chunk reaches the model (and any other callable of
+the run) through a :class:`_Slot` filled only while it runs: the cache never holds the model
+it is keyed by, so a model that is no longer used is freed with its compiled chunks.
+Compilation is given up, and the run continues with the
 solver's eager chunks, when ``torch.compile`` fails, when the first call of a compiled chunk
 gives other numbers than the eager chunk (a compiler fault: the compiled graph of a model that
 takes second derivatives inside ``f`` can silently drop them), or when the compiled graph
@@ -17,6 +20,7 @@ whose graph also goes through the cat-forwarding pass (``cat_forwarding``).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 import types
@@ -85,10 +89,30 @@ def _same_numbers(compiled, eager) -> bool:
     return torch.allclose(compiled.detach(), eager, rtol=tol, atol=tol * scale, equal_nan=True)
 
 
+class _Slot:
+    """A stand-in for one callable of a run (the model, an input function), called like it.
+
+    The chunks an entry compiles call their callables through slots, which
+    :meth:`Stepper.__call__` fills for the duration of a call and empties after it (the last
+    of concurrent calls empties it). Dynamo guards on the object a slot holds when a compiled
+    chunk is called, as it would on a callable the chunk closed over.
+    """
+
+    __slots__ = ("target", "users")
+
+    def __init__(self):
+        self.target = None
+        self.users = 0
+
+    def __call__(self, *args):
+        return self.target(*args)
+
+
 class _Entry:
     """Compiled chunk functions for one model/configuration, and their usage counters."""
 
-    def __init__(self):
+    def __init__(self, n_slots: int):
+        self.slots = tuple(_Slot() for _ in range(n_slots))
         # per state shape, dtype and device (each compiles a kernel of its own, so each pays
         # the one-off compile time of "auto" by itself): wall time and steps of the eager
         # runs reported by the solver
@@ -116,16 +140,17 @@ def _is_componentwise(entry: _Entry, f_at_start, x0: torch.Tensor) -> bool:
     return entry.componentwise
 
 
-def _cache_entry(f, config) -> _Entry:
-    """The cache entry of model ``f`` (bound methods are keyed by their instance)."""
+def _cache_entry(f, config, n_slots: int) -> _Entry:
+    """The cache entry of model ``f`` (bound methods are keyed by their instance), its chunks
+    calling ``n_slots`` callables of the run through slots."""
     owner = getattr(f, "__self__", None) if hasattr(f, "__func__") else None
     key_obj = owner if owner is not None else f
     key = (getattr(f, "__func__", None), config)
     try:
         per_model = _CACHE.setdefault(key_obj, {})
     except TypeError:  # not weak-referenceable: nothing is kept between calls
-        return _Entry()
-    return per_model.setdefault(key, _Entry())
+        return _Entry(n_slots)
+    return per_model.setdefault(key, _Entry(n_slots))
 
 
 def clear_compile_cache() -> None:
@@ -141,8 +166,9 @@ class Stepper:
     a (nx, *batch) tensor; ``compile_s``: wall time spent compiling during this run.
     """
 
-    def __init__(self, f, entry: _Entry, want, active, key, compile_s, threshold):
+    def __init__(self, f, callables, entry: _Entry, want, active, key, compile_s, threshold):
         self._f, self._entry, self._want, self._active = f, entry, want, active
+        self._callables = callables
         self._state = key[2:]  # the state's shape, dtype and device: the "auto" account
         self._key, self._chunk, self._reference = (
             key,
@@ -177,6 +203,20 @@ class Stepper:
         entry = self._entry
         return self._active and not entry.failed and not (self._grad_mode and entry.backward_failed)
 
+    @contextlib.contextmanager
+    def _slots_filled(self):
+        """The entry's slots hold this run's callables while the block runs."""
+        slots = self._entry.slots
+        for slot, target in zip(slots, self._callables, strict=True):
+            slot.target, slot.users = target, slot.users + 1
+        try:
+            yield
+        finally:
+            for slot in slots:
+                slot.users -= 1
+                if not slot.users:
+                    slot.target = None
+
     def __call__(self, x: torch.Tensor, *args):
         """The compiled chunk's ``(x_new, outputs)`` for ``chunk(x, *args)``, or None: nothing
         is compiled, or the compiled chunk failed now or before (the caller then runs the
@@ -190,12 +230,13 @@ class Stepper:
         signature = (self._key, self._grad_mode, x.requires_grad)
         fresh = signature not in entry.signatures
         try:
-            if fresh:  # copies: a chunk may write its outputs into a buffer in ``args``
-                devices = [x.device] if x.device.type == "cuda" else []
-                with torch.no_grad(), torch.random.fork_rng(devices):  # the user's stream
-                    reference = [_copy(y) for y in self._reference(x, *args)]
-            tic = time.perf_counter()
-            x_new, ys = self._chunk(x, *args)
+            with self._slots_filled():
+                if fresh:  # copies: a chunk may write its outputs into a buffer in ``args``
+                    devices = [x.device] if x.device.type == "cuda" else []
+                    with torch.no_grad(), torch.random.fork_rng(devices):  # the user's stream
+                        reference = [_copy(y) for y in self._reference(x, *args)]
+                tic = time.perf_counter()
+                x_new, ys = self._chunk(x, *args)
         except Exception as exc:  # compilation unavailable: fall back to eager, remember it
             entry.failed = True
             entry.failure = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
@@ -232,6 +273,7 @@ def compiled_stepper(
     compile,
     x0: torch.Tensor,
     make_chunk,
+    callables: tuple,
     n_out: int,
     f_at_start=None,
     n_steps: int = 0,
@@ -255,8 +297,12 @@ def compiled_stepper(
             its own: a model compiled once for a shape runs compiled in every later
             ``"auto"`` run of that shape, and a new shape starts eager.
         x0: (*batch, nx) initial state; the chunk is compiled for its shape, dtype and device.
-        make_chunk: ``make_chunk(n_out, component_major)``, the chunk function to compile
-            (interleaved (*batch, nx) or component-major (nx, *batch) state).
+        make_chunk: ``make_chunk(slots, n_out, component_major)``, the chunk function to
+            compile (interleaved (*batch, nx) or component-major (nx, *batch) state); it must
+            call the run's callables only through ``slots``, stand-ins for ``callables`` in
+            the same order (the cached chunk must not hold them).
+        callables: this run's callables the chunk calls (the model first, or a function of
+            the model only: the cache is keyed by ``f`` and ``config``).
         n_out: output intervals per compiled chunk.
         f_at_start: ``x -> f`` at the first output time with the input there, traced once per
             cache entry to decide the layout (runs without autograd, at most
@@ -268,7 +314,7 @@ def compiled_stepper(
         A :class:`Stepper`, called like the chunk; it returns None wherever the caller must run
         the chunk eagerly, and reports ``compiled``, ``compile_fallback`` and ``compile_s``.
     """
-    entry = _cache_entry(f, config)
+    entry = _cache_entry(f, config, len(callables))
     state = (tuple(x0.shape), x0.dtype, x0.device)
     threshold = AUTO_COMPILE_EAGER_SECONDS if compile == "auto" else math.inf
     # compiled once for this state: no more eager "auto" runs
@@ -295,11 +341,11 @@ def compiled_stepper(
         tic = time.perf_counter()  # the first torch.compile imports dynamo/inductor (seconds)
         from .passes import ChunkGraphPass
 
-        entry.reference[key] = make_chunk(n_out, component_major)
+        entry.reference[key] = make_chunk(entry.slots, n_out, component_major)
         entry.compiled[key] = torch.compile(
             _with_own_code(entry.reference[key]),
             dynamic=False,
             options={"post_grad_custom_pre_pass": ChunkGraphPass(forward_cats=component_major)},
         )
         compile_s += time.perf_counter() - tic
-    return Stepper(f, entry, want, active, key, compile_s, threshold)
+    return Stepper(f, callables, entry, want, active, key, compile_s, threshold)
