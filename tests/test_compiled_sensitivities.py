@@ -98,6 +98,39 @@ def test_multiple_shooting_compiles_with_parameters_broadcast_over_segments():
     torch.testing.assert_close(J1, J0, rtol=1e-12, atol=1e-13)
 
 
+def _damped_pendulum(t, x, u, p):
+    acc = -p["a"] * torch.sin(x[..., 0]) - p["b"] * x[..., 1] + u[..., 0]
+    return torch.stack([x[..., 1], acc], -1)
+
+
+def test_a_fresh_model_of_the_same_function_runs_the_compiled_kernel_without_compiling():
+    """Grey-box models of one function share its compiled kernel (a study builds a model per
+    chunk; each once compiled again, seconds per model); a model with its parameters in
+    another order still gives the eager numbers."""
+
+    def evaluate(names, compile):
+        values = {"a": 9.0, "b": 0.2}
+        params = {n: Param(values[n]) for n in names}
+        model = GreyBoxModel(_damped_pendulum, params, nx=2, output=[0], compile=compile)
+        u = torch.randn(2, 31, 1, generator=torch.Generator().manual_seed(7), dtype=F64)
+        data = IOData(u, torch.zeros(2, 31, 1, dtype=F64), Ts=0.1)
+        problem = _Problem(model, data, "multiple_shooting", "estimate", 6, "rk4")
+        r, J = problem.residuals_and_jacobian(problem.initial_z() + 0.1)
+        return r, J.dense(), problem.stats[0].extra
+
+    first = evaluate(("a", "b"), True)
+    if not first[2]["compiled"]:
+        pytest.skip(f"compilation unavailable: {first[2]['compile_fallback']}")
+    again = evaluate(("a", "b"), True)
+    assert again[2]["compiled"] and again[2]["compile_s"] == 0.0
+    for got, want in zip(again[:2], first[:2], strict=True):
+        torch.testing.assert_close(got, want, rtol=0, atol=0)
+    swapped, eager = evaluate(("b", "a"), True), evaluate(("b", "a"), False)
+    assert swapped[2]["compiled"]
+    for got, want in zip(swapped[:2], eager[:2], strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-13)
+
+
 def test_a_model_with_autograd_inside_runs_eagerly_and_says_why():
     """A Lagrangian plant forms its equations of motion by autograd: the kernel cannot be
     compiled; the run falls back to the eager recursion with the same numbers."""

@@ -21,6 +21,7 @@ whose graph also goes through the cat-forwarding pass (``cat_forwarding``).
 from __future__ import annotations
 
 import contextlib
+import inspect
 import math
 import time
 import types
@@ -141,8 +142,12 @@ def _is_componentwise(entry: _Entry, f_at_start, x0: torch.Tensor) -> bool:
 
 
 def _cache_entry(f, config, n_slots: int) -> _Entry:
-    """The cache entry of model ``f`` (bound methods are keyed by their instance), its chunks
-    calling ``n_slots`` callables of the run through slots."""
+    """The cache entry of model ``f``, its chunks calling ``n_slots`` callables of the run
+    through slots. A wrapper that names what it wraps (``__wrapped__``, as ``functools.wraps``
+    sets it) is keyed by the wrapped model, a bound method by its instance: dynamo guards on
+    what the chunk calls, so a fresh wrapper of the same code and model reuses the compiled
+    chunk, and one of another model compiles it again."""
+    f = inspect.unwrap(f)
     owner = getattr(f, "__self__", None) if hasattr(f, "__func__") else None
     key_obj = owner if owner is not None else f
     key = (getattr(f, "__func__", None), config)

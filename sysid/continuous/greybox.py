@@ -253,7 +253,8 @@ class GreyBoxModel:
         """``f(t, x, u, P)`` evaluated with the parameter values in ``P`` (*batch, n_params) in
         the order of :attr:`names`; raises :class:`InputValidationError` when ``f`` returns
         another shape than ``x``'s. The same function object for as long as ``f``, the
-        parameter names and ``z0`` stay the same (compiled kernels are cached by it)."""
+        parameter names and ``z0`` stay the same. Compiled kernels are cached by ``f`` itself
+        (its ``__wrapped__``): another model of the same ``f`` runs them without compiling."""
         key = (id(self.f), id(self.z0), tuple(self.names), self.kind, self.nz)
         if self._rhs_cache is not None and self._rhs_cache[0] == key:
             return self._rhs_cache[1]
@@ -272,6 +273,7 @@ class GreyBoxModel:
                 )
             return dx
 
+        checked.__wrapped__ = self.f  # compiled kernels are cached by the user's f
         self._rhs_cache = (key, checked)  # the closure keeps f (and a DAE's z0) alive
         return checked
 
