@@ -622,7 +622,13 @@ def sensitivities(
         SingularMatrixError: the Newton matrix of an implicit step is singular.
     """
     x0, t, p, u = _prepare(x0, t, p, u)
-    tab = resolve_method(method).tableau(stages)
+    resolved = resolve_method(method)
+    tab = resolved.tableau(stages)
+    if newton_tol is not None and tab.is_explicit:
+        raise InputValidationError(
+            f"sensitivities: newton_tol={newton_tol!r} applies to implicit methods (their stage "
+            f"equations) only, not to the explicit method {resolved.name!r}: remove newton_tol."
+        )
     substeps = check_int(substeps, "sensitivities: substeps")
     inputs = _InputParameters(u, tab, substeps, differentiated=bool(input_sensitivities))
     g = _model(f, u is not None, p is not None)

@@ -29,6 +29,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from integrators._options import check_positive
 from integrators.errors import InputValidationError
 
 __all__ = ["INTERSAMPLE", "IOData", "as_signal"]
@@ -159,14 +160,7 @@ class IOData:
                 f"batch shapes of u {tuple(u.shape[:-2])} and y {tuple(y.shape[:-2])} do not "
                 "broadcast."
             ) from err
-        try:
-            Ts = float(Ts)
-        except (TypeError, ValueError):
-            raise InputValidationError(
-                f"sample time Ts must be a positive number, got {Ts!r}."
-            ) from None
-        if not np.isfinite(Ts) or Ts <= 0:
-            raise InputValidationError(f"sample time Ts must be finite and > 0, got {Ts}.")
+        Ts = check_positive(Ts, "sample time Ts", " (seconds)")
         _check_finite(u, "u", _experiment)
         _check_finite(y, "y", _experiment)
         self.u = u.expand(*batch, *u.shape[-2:])

@@ -59,6 +59,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from integrators._options import check_positive
 from integrators.errors import InputValidationError
 
 from .data import IOData, as_signal
@@ -228,14 +229,12 @@ class PolynomialModel(nn.Module):
 
     @Ts.setter
     def Ts(self, value) -> None:
-        Ts = value.item() if isinstance(value, torch.Tensor) and value.dim() == 0 else value
-        if isinstance(Ts, bool) or not isinstance(Ts, numbers.Real) or not 0 < Ts < math.inf:
-            raise InputValidationError(
-                f"sample time Ts must be a finite number > 0 (seconds), got {value!r}; "
-                f"leave it out for the default {DEFAULT_TS} s (sysid.fit gives the fitted "
-                "model its data's)."
-            )
-        self._Ts = float(Ts)
+        self._Ts = check_positive(
+            value,
+            "sample time Ts",
+            f" (seconds); leave it out for the default {DEFAULT_TS} s (sysid.fit gives the "
+            "fitted model its data's)",
+        )
 
     # ------------------------------------------------------------------ parameters
     def _blocks(self) -> list[tuple[str, int, nn.Parameter]]:

@@ -606,7 +606,7 @@ def test_compiled_models_are_reused_while_alive_and_freed_after(call, monkeypatc
         kwargs = {"u": lambda s: torch.full((2, 1), u, dtype=torch.float64)}
         exact = u / 0.7 + (x0[:, None] - u / 0.7) * torch.exp(-0.7 * t)[:, None]
 
-    def run():
+    def run(f, kwargs):
         if call == "sensitivities":
             sol = sensitivities(f, x0, t, method="rk4", substeps=4, compile=True)
             return sol.x, sol.stats.extra
@@ -614,10 +614,10 @@ def test_compiled_models_are_reused_while_alive_and_freed_after(call, monkeypatc
             sol = odeint(f, x0, t, method="rk4", substeps=4, compile=True, **kwargs)
         return sol.x, sol.stats.extra
 
-    first, stats = run()
+    first, stats = run(f, kwargs)
     if not stats["compiled"]:
         pytest.skip(f"compilation unavailable: {stats['compile_fallback']}")
-    again, again_stats = run()
+    again, again_stats = run(f, kwargs)
     assert again_stats["compiled"] and again_stats["compile_s"] == 0.0
     torch.testing.assert_close(again, first, rtol=0, atol=0)
     if call != "sensitivities":

@@ -426,6 +426,15 @@ def test_bad_input_gets_named_errors():
     )
     with pytest.raises(InputValidationError, match="one derivative per state"):
         fit(shape_trap, data)
+    # a parameter the model reads but does not declare was a raw KeyError
+    undeclared_f = GreyBoxModel(lambda t, x, u, p: -p["k"] * x, {"c": 1.0}, nx=2, output=[0])
+    with pytest.raises(InputValidationError, match=r"f raised KeyError\('k'\).*\['c'\] only"):
+        fit(undeclared_f, data)
+    undeclared_h = GreyBoxModel(
+        oscillator, bounded(m=1, xi=1, K=2), nx=2, output=lambda x, u, p: p["gain"] * x[..., :1]
+    )
+    with pytest.raises(InputValidationError, match=r"output function h raised KeyError\('gain'"):
+        undeclared_h.simulate(data)
     diverging = GreyBoxModel(
         lambda t, x, u, p: p["a"][..., None] * x**3,
         {"a": 50.0},

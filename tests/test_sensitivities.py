@@ -23,6 +23,7 @@ from integrators import (
     tableau,
 )
 from integrators.inputs import CollocationInput
+from integrators.methods import resolve_method
 from integrators.sensitivities import sensitivities, variational_sensitivities
 
 F64 = torch.float64
@@ -273,6 +274,22 @@ def test_substeps_must_be_a_positive_integer(substeps):
         sensitivities(pendulum_free, X0, T_GRID, P, substeps=substeps)
 
 
+def _tight_newton(method, tol=1e-13) -> dict:
+    """``newton_tol=tol`` for an implicit method, nothing for an explicit one (refused)."""
+    tab = resolve_method(method).tableau() if isinstance(method, str) else method
+    return {} if tab.is_explicit else {"newton_tol": tol}
+
+
+def test_newton_tol_of_an_explicit_method_is_refused():
+    """newton_tol applies to the stage equations of implicit methods; with an explicit one it
+    was ignored (as odeint refuses it); an implicit method takes it."""
+    with pytest.raises(InputValidationError, match="newton_tol=0.001 applies to implicit"):
+        sensitivities(pendulum_free, X0, T_GRID, P, method="rk4", newton_tol=1e-3)
+    tight = sensitivities(pendulum_free, X0, T_GRID, P, method="radau_iia", newton_tol=1e-12)
+    default = sensitivities(pendulum_free, X0, T_GRID, P, method="radau_iia")
+    torch.testing.assert_close(tight.x, default.x, rtol=1e-9, atol=1e-10)
+
+
 # ------------------------------------------------- inputs by collocation (eq. 8.32-8.33)
 GEN = torch.Generator().manual_seed(8)
 P_IN = {q: torch.randn(len(T_GRID) - 1, q, 1, generator=GEN, dtype=F64) for q in (1, 2, 3)}
@@ -343,7 +360,7 @@ def test_collocation_input_sensitivities_equal_autograd(tab, q, substeps, nodes)
     P_in = P_IN[q]
     u = CollocationInput(P_in, T_GRID, nodes)
     res = sensitivities(
-        pendulum, X0, T_GRID, P, method=tab, u=u, substeps=substeps, newton_tol=1e-13
+        pendulum, X0, T_GRID, P, method=tab, u=u, substeps=substeps, **_tight_newton(tab)
     )
     ref_nodes = u.nodes.tolist()
 
@@ -394,7 +411,9 @@ def test_implicit_stages_stack_with_their_inputs(kind, method):
     for f in (_forced, _forced_first_axis_only):
         model = (lambda t, x, p, f=f: f(t, x, None, p)) if u is None else f
         runs.append(
-            sensitivities(model, X0, T_GRID, P, u=u, method=method, substeps=2, newton_tol=1e-13)
+            sensitivities(
+                model, X0, T_GRID, P, u=u, method=method, substeps=2, **_tight_newton(method)
+            )
         )
     stacked, by_stage = runs
     assert stacked.stats.extra["stacked_stages"] and not by_stage.stats.extra["stacked_stages"]
@@ -484,7 +503,7 @@ def test_collocation_input_sensitivities_match_central_finite_differences(method
     P_in = P_IN[3]
     x0 = X0[1]
     u = CollocationInput(P_in, T_GRID, "legendre")
-    res = sensitivities(pendulum, x0, T_GRID, P, method=method, u=u, newton_tol=1e-14)
+    res = sensitivities(pendulum, x0, T_GRID, P, method=method, u=u, **_tight_newton(method, 1e-14))
     n, step = P_in.numel(), 1e-6
     eye = step * torch.eye(n, dtype=F64).reshape(n, *P_in.shape)
     batch = torch.cat([P_in + eye, P_in - eye])  # (2n, T-1, q, 1)
@@ -495,7 +514,7 @@ def test_collocation_input_sensitivities_match_central_finite_differences(method
         P,
         method=method,
         u=CollocationInput(batch, T_GRID, "legendre"),
-        newton_tol=1e-14,
+        **_tight_newton(method, 1e-14),
     ).x
     fd = ((xs[:n] - xs[n:]) / (2 * step)).movedim(0, -1).reshape(res.C.shape)
     assert float((res.C - fd).abs().max()) <= 1e-6 * float(res.C.abs().max())

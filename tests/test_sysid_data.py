@@ -120,7 +120,8 @@ def test_indexing_selects_data_sets_only():
     for index in [(0, slice(None, 10)), (Ellipsis, 0, 0), (slice(None, None, -1),)]:
         with pytest.raises(InputValidationError):
             d[index]
-    for Ts in ("abc", None, np.array([0.1, 0.2])):
+    # a flag and a string were taken (True as 1 s, "0.1" as 0.1 s)
+    for Ts in ("abc", None, np.array([0.1, 0.2]), True, "0.1", float("inf")):
         with pytest.raises(InputValidationError, match="sample time"):
             IOData(torch.zeros(5, 1), torch.zeros(5, 1), Ts=Ts)
     with pytest.raises(InputValidationError, match="skip must be an integer"):

@@ -80,6 +80,15 @@ class Segments:
     length: int
 
 
+def _undeclared_parameter(exc: KeyError, names, who: str) -> InputValidationError:
+    """The error for a model function ``who`` whose lookup ``p[name]`` raised ``exc``."""
+    return InputValidationError(
+        f"the model's {who} raised KeyError({exc.args[0]!r}) reading its parameters: p holds "
+        f"the declared parameters {list(names)} only; declare the parameter "
+        "(params={..., name: value or Param(...)}) or correct its name."
+    )
+
+
 class GreyBoxModel:
     """A continuous-time model with named physical parameters, fitted by :func:`sysid.fit`.
 
@@ -252,16 +261,23 @@ class GreyBoxModel:
     def rhs(self) -> Callable:
         """``f(t, x, u, P)`` evaluated with the parameter values in ``P`` (*batch, n_params) in
         the order of :attr:`names`; raises :class:`InputValidationError` when ``f`` returns
-        another shape than ``x``'s. The same function object for as long as ``f``, the
-        parameter names and ``z0`` stay the same. Compiled kernels are cached by ``f`` itself
-        (its ``__wrapped__``): another model of the same ``f`` runs them without compiling."""
+        another shape than ``x``'s or reads a parameter ``p`` does not hold. The same function
+        object for as long as ``f``, the parameter names and ``z0`` stay the same. Compiled
+        kernels are cached by ``f`` itself (its ``__wrapped__``): another model of the same
+        ``f`` runs them without compiling."""
         key = (id(self.f), id(self.z0), tuple(self.names), self.kind, self.nz)
         if self._rhs_cache is not None and self._rhs_cache[0] == key:
             return self._rhs_cache[1]
-        call = self._rhs()
+        call, names = self._rhs(), tuple(self.names)
+        reads_dict = self.kind not in ("module", "dae_module")  # f(..., p) with p a dict
 
         def checked(t, x, u, P):
-            dx = call(t, x, u, P)
+            try:
+                dx = call(t, x, u, P)
+            except KeyError as exc:
+                if not reads_dict:
+                    raise
+                raise _undeclared_parameter(exc, names, "f") from exc
             if not isinstance(dx, torch.Tensor) or dx.shape != x.shape:
                 got = tuple(dx.shape) if isinstance(dx, torch.Tensor) else type(dx).__name__
                 raise InputValidationError(
@@ -364,8 +380,8 @@ class GreyBoxModel:
             )
 
     def output_map(self, ny: int) -> Callable:
-        """``h(x, u, P) -> (*batch, ny)``; an output function returning another shape raises
-        :class:`InputValidationError`."""
+        """``h(x, u, P) -> (*batch, ny)``; an output function returning another shape or
+        reading a parameter ``p`` does not hold raises :class:`InputValidationError`."""
         idx = self.output_indices(ny)
         if idx is not None:
             index = torch.tensor(idx)
@@ -377,7 +393,10 @@ class GreyBoxModel:
         names, h = self.names, self.output
 
         def call(x, u, P):
-            y = h(x, u, {n: P[..., j] for j, n in enumerate(names)})
+            try:
+                y = h(x, u, {n: P[..., j] for j, n in enumerate(names)})
+            except KeyError as exc:
+                raise _undeclared_parameter(exc, names, "output function h") from exc
             if not isinstance(y, torch.Tensor) or y.shape != (*x.shape[:-1], ny):
                 got = tuple(y.shape) if isinstance(y, torch.Tensor) else type(y).__name__
                 raise InputValidationError(

@@ -40,6 +40,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from integrators._options import check_positive
 from integrators.errors import InputValidationError
 from integrators.methods import resolve_method
 
@@ -251,11 +252,7 @@ class _Normalizer(nn.Module):
 def _time_scale(Ts, where: str) -> float:
     if Ts is None:
         return 1.0
-    if isinstance(Ts, bool) or not isinstance(Ts, (int, float)) or not math.isfinite(Ts) or Ts <= 0:
-        raise InputValidationError(
-            f"{where}: Ts must be a finite number > 0 (the sample time, in s) or None, got {Ts!r}."
-        )
-    return 1.0 / float(Ts)
+    return 1.0 / check_positive(Ts, f"{where}: Ts", " (the sample time, in s) or None")
 
 
 # ----------------------------------------------------------------------------- NeuralODE
