@@ -507,7 +507,7 @@ class _ImplicitStages:
                 divergence_ratio=_SLOW_CONTRACTION,
             )
             K = res.x.unflatten(-1, (s, nx))
-            used = int(res.iterations.max())
+            used = int(res.iterations.max()) if res.iterations.numel() else 0  # empty batch
             self.n_iter, budget = self.n_iter + used, budget - used
             status = res.status
             if bool(res.converged.all()):
@@ -794,9 +794,21 @@ def sensitivities(
     if fast is not None and not fast.active:
         fast.add_eager_seconds(time.perf_counter() - tic)
     stats = SolverStats(n_f_evals=n_f, n_steps=n_steps, n_jac_evals=n_jac)
-    stats.extra.update(
-        fast.stats() if fast is not None else dict(compiled=False, compile_fallback=None)
-    )
+    if fast is not None:
+        stats.extra.update(fast.stats())
+    else:
+        why = None
+        if compile is True:
+            this = (
+                "an implicit method"
+                if solver is not None
+                else "input sensitivities (pass input_sensitivities=False where C is not needed)"
+            )
+            why = (
+                "compiled kernels serve explicit tableaus without input sensitivities; this run "
+                f"has {this}"
+            )
+        stats.extra.update(compiled=False, compile_fallback=why, compile_s=0.0)
     if solver is not None:
         stats.n_f_evals, stats.n_jac_evals = solver.n_f, solver.n_jac
         stats.n_newton_iters, stats.n_factorizations = solver.n_iter, solver.n_lu

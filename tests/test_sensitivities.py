@@ -274,6 +274,27 @@ def test_substeps_must_be_a_positive_integer(substeps):
         sensitivities(pendulum_free, X0, T_GRID, P, substeps=substeps)
 
 
+@pytest.mark.parametrize("method", ["rk4", "gauss_legendre", "radau_iia", "implicit_euler"])
+def test_an_empty_batch_gives_empty_sensitivities(method):
+    """A batch of no samples gives empty results of the right shapes (implicit methods raised
+    a raw RuntimeError reducing the Newton iterations of no sample)."""
+    res = sensitivities(pendulum_free, X0[:0], T_GRID, P, method=method)
+    T, nx, n_p = len(T_GRID), X0.shape[-1], P.shape[-1]
+    assert res.x.shape == (0, T, nx) and res.A.shape == (0, T, nx, nx)
+    assert res.B.shape == (0, T, nx, n_p)
+
+
+def test_a_compile_that_cannot_apply_says_why():
+    """compile=True with an implicit method or with input sensitivities runs the eager
+    recursion and reports why (compile_fallback was None)."""
+    implicit = sensitivities(pendulum_free, X0, T_GRID, P, method="radau_iia", compile=True)
+    assert implicit.stats.extra["compiled"] is False
+    assert "this run has an implicit method" in implicit.stats.extra["compile_fallback"]
+    u = torch.zeros(len(T_GRID), 1, dtype=F64)
+    forced = sensitivities(pendulum, X0, T_GRID, P, u=u, method="rk4", compile=True)
+    assert "input_sensitivities=False" in forced.stats.extra["compile_fallback"]
+
+
 def _tight_newton(method, tol=1e-13) -> dict:
     """``newton_tol=tol`` for an implicit method, nothing for an explicit one (refused)."""
     tab = resolve_method(method).tableau() if isinstance(method, str) else method
