@@ -26,6 +26,7 @@ and memory does not grow with the number of iterations. ``x0`` receives no gradi
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -635,16 +636,21 @@ def _matrix_of_batch(M, batch, n: int, what: str, dtype, device) -> torch.Tensor
         ) from None
 
 
-def _loss_derivatives(fun, theta, args, method, jacobian=None, loss=None):
+def _loss_derivatives(fun, theta, args, method, jacobian=None, loss=None, members=None):
     """(loss, grad, H, J, r) at ``theta``: exact Newton (eq. 3.50-3.51), or for residuals
     the quadratic model ``H = J' C J``, ``grad = J' psi(r)`` with the curvature weights
-    ``C = loss.curvature(r)`` (``C = 1``, ``psi(r) = r``: Gauss-Newton, eq. 3.58-3.60)."""
+    ``C = loss.curvature(r)`` (``C = 1``, ``psi(r) = r``: Gauss-Newton, eq. 3.58-3.60).
+    ``members`` (an index tensor, ``compact=True`` of :func:`minimize`) is passed on to
+    ``fun``, ``jacobian`` and the loss methods; None passes nothing."""
     batch = theta.shape[:-1]
+    kw = {} if members is None else {"members": members}
+    if kw:
+        fun = functools.partial(fun, **kw)
     if method != "newton":
         if jacobian is None:
             r, J = batch_jacobian(fun, theta, *args)
         else:
-            r, J = jacobian(theta, *args)
+            r, J = jacobian(theta, *args, **kw)
             r, J = r.detach(), J if isinstance(J, BlockJacobian) else J.detach()
             if J.shape != (*r.shape, theta.shape[-1]):
                 raise InputValidationError(
@@ -660,17 +666,17 @@ def _loss_derivatives(fun, theta, args, method, jacobian=None, loss=None):
             if loss is None:
                 value, grad, H = 0.5 * (r * r).sum(-1), J.rmatvec(r), J.normal()
             else:
-                value, grad = loss.rho(r).sum(-1), J.rmatvec(loss.psi(r))
-                H = J.normal(loss.curvature(r))
+                value, grad = loss.rho(r, **kw).sum(-1), J.rmatvec(loss.psi(r, **kw))
+                H = J.normal(loss.curvature(r, **kw))
             if method != "levenberg_marquardt" and isinstance(H, BorderedBlockTridiagonal):
                 H = H.dense()  # the shifted Cholesky of Gauss-Newton works on the matrix
             return value, grad, H, J, r
         Jt = J.transpose(-1, -2)
         if loss is None:
             return 0.5 * (r * r).sum(-1), (Jt @ r.unsqueeze(-1)).squeeze(-1), Jt @ J, J, r
-        H = Jt @ (J * loss.curvature(r).unsqueeze(-1))
-        grad = (Jt @ loss.psi(r).unsqueeze(-1)).squeeze(-1)
-        return loss.rho(r).sum(-1), grad, H, J, r
+        H = Jt @ (J * loss.curvature(r, **kw).unsqueeze(-1))
+        grad = (Jt @ loss.psi(r, **kw).unsqueeze(-1)).squeeze(-1)
+        return loss.rho(r, **kw).sum(-1), grad, H, J, r
     store = {}
 
     def gradient(z):
@@ -689,14 +695,19 @@ def _loss_derivatives(fun, theta, args, method, jacobian=None, loss=None):
     return store["loss"], grad, 0.5 * (H + H.transpose(-1, -2)), None, None
 
 
-def _loss_only(fun, theta, args, method, loss=None, admissible=None):
-    """The objective at ``theta`` (``inf`` where it is not finite or ``theta`` inadmissible)."""
-    value = fun(theta, *args)
+def _loss_only(fun, theta, args, method, loss=None, admissible=None, members=None):
+    """The objective at ``theta`` (``inf`` where it is not finite or ``theta`` inadmissible);
+    ``members`` as for :func:`_loss_derivatives`, also passed to ``admissible``."""
+    kw = {} if members is None else {"members": members}
+    value = fun(theta, *args, **kw)
     if method != "newton":
-        value = 0.5 * (value * value).sum(-1) if loss is None else loss.rho(value).sum(-1)
+        if loss is None:
+            value = 0.5 * (value * value).sum(-1)
+        else:
+            value = loss.rho(value, **kw).sum(-1)
     value = torch.where(torch.isfinite(value), value, torch.full_like(value, math.inf))
     if admissible is not None:
-        value = torch.where(admissible(theta), value, torch.full_like(value, math.inf))
+        value = torch.where(admissible(theta, **kw), value, torch.full_like(value, math.inf))
     return value
 
 
@@ -755,6 +766,18 @@ def _diagonal(H) -> torch.Tensor:
     return H.diagonal(dim1=-2, dim2=-1)
 
 
+def _members_of(mask: torch.Tensor) -> torch.Tensor:
+    """(k,) int64 indices, into the flattened batch, of the members where ``mask`` is True."""
+    return torch.nonzero(mask.reshape(-1)).squeeze(-1)
+
+
+def _replace_rows(full: torch.Tensor, members: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """``full`` (*batch, *tail) with the members ``members`` (k,) of its flattened batch
+    replaced by ``rows`` (k, *tail); a new tensor."""
+    tail = full.shape[full.dim() - rows.dim() + 1 :]
+    return full.reshape(-1, *tail).index_copy(0, members, rows).reshape(full.shape)
+
+
 def minimize(
     fun: Callable,
     theta0,
@@ -774,6 +797,7 @@ def minimize(
     max_backtracks: int | None = None,
     callback: Callable | None = None,
     catch_interrupt: bool = False,
+    compact: bool = False,
 ) -> MinimizeResult:
     """Batched unconstrained minimisation by Newton-type steps (notes §3.5).
 
@@ -854,6 +878,20 @@ def minimize(
             ``callback``) return the last accepted iterate, with its loss, gradient,
             Jacobian and residual, instead of propagating the exception; the problems still
             iterating get status ``INTERRUPTED``.
+        compact: evaluate ``fun``, ``jacobian``, ``admissible`` and the ``loss`` methods only
+            for the members whose values are used: after the first evaluation (every
+            member), the trial points of the members still searching a step and the
+            derivatives of the members that took one, so that an iteration costs the work of
+            the problems still iterating, not of the whole batch. Each of these callables
+            then receives the keyword argument ``members``, a (k,) int64 tensor of indices
+            into the flattened batch (row-major over ``*batch``), with ``theta`` of shape
+            (k, n) (the rows ``members`` of ``theta.reshape(-1, n)``) and ``*args`` unchanged;
+            ``fun`` returns (k, m) residuals ((k,) objective values for "newton"),
+            ``jacobian`` (k, m) and (k, m, n) (a dense ``J``), ``admissible`` (k,) and the
+            ``loss`` methods their values on (k, m) residuals; per-member data (e.g. a data
+            set per problem, a per-problem loss scale) are indexed with ``members``. The
+            result is that of ``compact=False``; ``n_fun_evals`` counts the calls of ``fun``
+            or ``jacobian``, however many members each evaluates.
 
     Returns:
         :class:`MinimizeResult` with the estimate, the loss history, the gradient, the
@@ -866,7 +904,8 @@ def minimize(
         InputValidationError: unknown method, options the method does not use, a
             ``regularization``, ``tol``, ``xtol`` or ``ftol`` that is not a finite number
             >= 0, a ``damping`` that is not a finite number > 0, a ``max_iter`` or
-            ``max_backtracks`` that is not an integer >= 0.
+            ``max_backtracks`` that is not an integer >= 0; with ``compact=True``, a
+            ``jacobian`` that returns a :class:`~integrators.block_jacobian.BlockJacobian`.
         ConvergenceError: with ``raise_on_failure=True`` when any problem failed.
     """
     if method not in MINIMIZE_METHODS:
@@ -913,13 +952,56 @@ def minimize(
         tol = max(1e-8, 1e3 * eps) if tol is None else tol
         trials = 1 + (_MAX_BACKTRACKS if max_backtracks is None else max_backtracks)
         trials = trials if line_search else 1
-    n_evals = 1
-    loss_value, grad, H, J, r = _loss_derivatives(fun, theta, frozen, method, jacobian, loss)
+    compact = check_flag(compact, "minimize: compact")
+    n_evals = 0
+
+    def derivatives(point, move, current):
+        """(loss, grad, H, J, r) of :func:`_loss_derivatives` at ``point`` (*batch, n); with
+        ``compact`` evaluated only for the members in ``move``, the others keeping their
+        values in ``current`` (None: every member is evaluated)."""
+        nonlocal n_evals
+        if not compact:
+            n_evals += 1
+            return _loss_derivatives(fun, point, frozen, method, jacobian, loss)
+        members = _members_of(move)
+        if current is not None and members.numel() == 0:
+            return current
+        n_evals += 1
+        rows = _loss_derivatives(
+            fun, point.reshape(-1, n)[members], frozen, method, jacobian, loss, members
+        )
+        if isinstance(rows[3], BlockJacobian):
+            raise InputValidationError(
+                "minimize: compact=True needs a dense Jacobian (*batch, m, n), not a BlockJacobian."
+            )
+        if current is None:
+            return tuple(None if v is None else v.reshape(batch + v.shape[1:]) for v in rows)
+        return tuple(
+            None if v is None else _replace_rows(c, members, v)
+            for c, v in zip(current, rows, strict=True)
+        )
+
+    def objective(point, pending):
+        """:func:`_loss_only` at ``point`` (*batch, n) for every member, or with ``compact``
+        for the members in ``pending`` (the others: ``inf``)."""
+        nonlocal n_evals
+        n_evals += 1
+        if not compact:
+            return _loss_only(fun, point, frozen, method, loss, admissible)
+        members = _members_of(pending)
+        rows = _loss_only(
+            fun, point.reshape(-1, n)[members], frozen, method, loss, admissible, members
+        )
+        out = torch.full((batch.numel(),), math.inf, dtype=rows.dtype, device=dev)
+        return out.index_copy(0, members, rows).reshape(batch)
+
+    everyone = torch.ones(batch, dtype=torch.bool, device=dev)
+    loss_value, grad, H, J, r = derivatives(theta, everyone, None)
     rounding_terms = math.sqrt(r.shape[-1]) if adaptive else 1.0
     with torch.no_grad():
         status = torch.full(batch, NewtonStatus.MAX_ITER, dtype=torch.int8, device=dev)
         iterations = torch.zeros(batch, dtype=torch.int64, device=dev)
-        active = torch.ones(batch, dtype=torch.bool, device=dev)
+        active = everyone.clone()
         lam = torch.full(batch, float(damping), dtype=theta.dtype, device=dev)
         history = [loss_value]
 
@@ -977,10 +1059,7 @@ def minimize(
                 for attempt in range(trials):
                     if not bool(pending.any()):
                         break
-                    value = _loss_only(
-                        fun, theta + t[..., None] * step, frozen, method, loss, admissible
-                    )
-                    n_evals += 1
+                    value = objective(theta + t[..., None] * step, pending)
                     ok = pending & (value <= loss_value + _ARMIJO * t * slope)
                     ok = ok if line_search else pending
                     accepted |= ok
@@ -1031,10 +1110,9 @@ def minimize(
                         small &= ~(damped & solved & ~still_x & ~still_f)
                 else:
                     small = dtheta.abs().amax(-1) <= xtol * (1 + theta.abs().amax(-1))
-                new = _loss_derivatives(fun, theta + dtheta, frozen, method, jacobian, loss)
+                new = derivatives(theta + dtheta, move, (loss_value, grad, H, J, r))
                 theta = theta + dtheta
                 iterations = iterations + active.to(torch.int64)
-                n_evals += 1
                 keep = ~move
                 loss_value, grad, H = (
                     torch.where(keep, loss_value, new[0]),

@@ -24,4 +24,9 @@ def test_bench_sysid_quick_agreement(tmp_path):
     assert all(r["grad_rel_diff"] < 1e-10 for r in grads)
     # both of our paths (CPU dispatch to scipy, pure-torch block method) are reported
     assert sum(r["method"].startswith("ours") for r in grads) == 2
+    # the compacted batched fits equal the uncompacted batch and the split batches exactly
+    pem = [r for r in rows if r["task"].startswith("16 ")]
+    assert {r["task"] for r in pem} == {"16 BJ(2,1,1,2) fits, N=300", "16 OE(2,2) fits, N=300"}
+    assert len(pem) == 6
+    assert all(r["max_param_diff_vs_uncompacted"] < 1e-12 and r["same_iterations"] for r in pem)
     assert (tmp_path / "bench_sysid.md").exists()

@@ -6,6 +6,7 @@ least_squares (Huber loss), scipy linear programs (LAD and the uniform-noise pol
 brute-force grid search.
 """
 
+import functools
 import math
 import warnings
 
@@ -24,6 +25,7 @@ from integrators.newton import minimize
 from sysid.data import IOData
 from sysid.errors import ConvergenceWarning, PoorExcitationWarning
 from sysid.estimation import fit, uniform_noise_mle_set
+from sysid.estimation import prediction_error as pe
 from sysid.estimation.prediction_error import _OutputError
 from sysid.estimation.results import inverse_normal_matrix_and_rank
 from sysid.filters import iir_filter
@@ -360,6 +362,85 @@ def test_batched_fit_equals_individual_fits():
     for b in range(3):
         single = fit(OE(2, 2, 1), IOData(data.u[b], data.y[b]))
         torch.testing.assert_close(single.theta, batched.theta[b], rtol=1e-7, atol=1e-9)
+
+
+def _compaction_case(name):
+    """A batch of data sets whose fits need different iteration counts: weighted OE on a
+    (2, 3) batch with one unstable plant (its estimate stops at the stability boundary),
+    BJ on a (2, 3) batch, ARMAX with the Huber loss (a threshold per data set) on a (4,)
+    batch."""
+    g = gen(60)
+    if name == "OE":
+        th = torch.tensor([0.5, 0.3, -1.2, 0.5], dtype=DT).expand(2, 3, 4).clone()
+        th[1, 0] = torch.tensor([0.5, 0.3, -2.1, 1.2], dtype=DT)
+        th[0, 2, 2:] = torch.tensor([-1.6, 0.8], dtype=DT)
+        u = input_signal("white", 200, (2, 3), generator=g)
+        data = simulate_data(
+            OE(2, 2, 1, batch_shape=(2, 3)), u, theta=th, noise_std=0.1, generator=g
+        )
+        weights = 0.5 + torch.rand(2, 3, 200, generator=g, dtype=DT)
+        return OE(2, 2, 1), data, {"weights": weights}
+    model, th = TRUE[name]
+    batch = (2, 3) if name == "BJ" else (4,)
+    u = input_signal("white", 200, batch, generator=g)
+    data = simulate_data(
+        model, u, theta=torch.tensor(th), noise_std=0.3, noise="model", generator=g
+    )
+    if name == "BJ":
+        return BJ(2, 1, 1, 2, 1), data, {}
+    return ARMAX(2, 2, 1, 1), data, {"loss": "huber", "method": "mle"}
+
+
+def _uncompacted_minimize(minimize_fn, *args, **kwargs):
+    """:func:`integrators.newton.minimize` with ``compact=False`` (every member evaluated)."""
+    return minimize_fn(*args, **{**kwargs, "compact": False})
+
+
+@pytest.mark.parametrize("name", ["OE", "BJ", "ARMAX"])
+def test_compacted_batched_fit_equals_the_uncompacted_one_and_single_fits(name, monkeypatch):
+    """The prediction-error iteration evaluates only the data sets still iterating
+    (minimize(compact=True)); estimate, covariance, loss history, iteration counts and
+    convergence flags are those of the uncompacted batch and of each data set fitted alone
+    from the same start, with a non-converging member (OE, an unstable plant), two batch
+    dimensions (OE, BJ) and a per-data-set loss scale (ARMAX, Huber)."""
+
+    def same(a, b):
+        for x, y in [
+            (a.theta, b.theta),
+            (a.covariance, b.covariance),
+            (a.sigma2, b.sigma2),
+            (a.loss_history, b.loss_history),
+            (a.info["damping"], b.info["damping"]),
+        ]:
+            torch.testing.assert_close(x, y, rtol=1e-12, atol=1e-14)
+        assert torch.equal(a.iterations, b.iterations)
+        assert torch.equal(a.converged, b.converged)
+
+    model, data, kw = _compaction_case(name)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        compacted = fit(model, data, **kw)
+        with monkeypatch.context() as m:
+            m.setattr(pe, "minimize", functools.partial(_uncompacted_minimize, pe.minimize))
+            full = fit(model, data, **kw)
+        same(compacted, full)
+        iterations = compacted.iterations.flatten()
+        assert int(iterations.max()) > int(iterations.min()) + 2
+        if name == "OE":
+            assert not bool(compacted.converged[1, 0]) and int(compacted.converged.sum()) == 5
+        for index in np.ndindex(*data.batch_shape):
+            start = compacted.info["initial_theta"][index]  # batched ARX/IV: not bitwise
+            own = {k: v[index] if isinstance(v, torch.Tensor) else v for k, v in kw.items()}
+            single = fit(model, data[index], init=start, **own)
+            torch.testing.assert_close(single.theta, compacted.theta[index], rtol=1e-12, atol=1e-14)
+            torch.testing.assert_close(
+                single.covariance, compacted.covariance[index], rtol=1e-10, atol=1e-16
+            )
+            torch.testing.assert_close(
+                single.loss_history[-1], compacted.loss_history[-1][index], rtol=1e-12, atol=0
+            )
+            assert torch.equal(single.iterations, compacted.iterations[index])
+            assert torch.equal(single.converged, compacted.converged[index])
 
 
 def test_float32_fit():

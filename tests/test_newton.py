@@ -4,6 +4,8 @@ Reference values come from closed forms (cube roots, the asymptotic rates of The
 scipy.optimize (fsolve, least_squares) and central finite differences.
 """
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -684,3 +686,149 @@ def test_forward_mode_derivatives_are_refused_not_dropped():
     for strategy in ("vmap", "rows"):
         _, J = batch_jacobian(root, a, strategy=strategy)
         torch.testing.assert_close(J.flatten(), 0.5 / a.sqrt().flatten(), rtol=1e-12, atol=0)
+
+
+# ------------------------------------------------------------------- compaction
+class _MemberHuber(_Huber):
+    """Huber's loss with one threshold per problem, ``c`` (*batch, 1), for ``compact=True``:
+    the methods take ``members`` and use those problems' thresholds."""
+
+    def rho(self, r, members=None):
+        return _Huber(self._rows(members)).rho(r)
+
+    def psi(self, r, members=None):
+        return _Huber(self._rows(members)).psi(r)
+
+    def curvature(self, r, members=None):
+        return _Huber(self._rows(members)).curvature(r)
+
+    def _rows(self, members):
+        return self.c if members is None else self.c.reshape(-1, 1)[members]
+
+
+def _compaction_problem():
+    """Exponential fits over a (2, 3) batch whose members need very different iteration
+    counts (0 to the budget): one starts near its solution, one far away, one has non-finite
+    data (NON_FINITE at the start), and the admissible decay rates (< 1.5) exclude one
+    member's minimum (rate 2.5), which creeps along the boundary until the iteration budget
+    runs out. Returns ``(residual, jacobian, admissible, theta0, y, calls)``; ``calls``
+    collects the number of members each call evaluated."""
+    t = torch.linspace(0, 3, 40, dtype=F64)
+    truth = torch.tensor(
+        [[[2.0, 1.3, 0.5], [1.0, 0.4, -0.2], [3.0, 2.5, 1.0]],
+         [[0.5, 0.2, 0.1], [1.5, 1.0, 0.0], [2.0, 0.7, 0.3]]],
+        dtype=F64,
+    )  # fmt: skip
+    g = torch.Generator().manual_seed(4)
+    y = exp_model(truth, t) + 0.05 * torch.randn(2, 3, 40, generator=g, dtype=F64)
+    y[1, 1, 5] = math.inf
+    theta0 = torch.tensor([1.0, 1.0, 0.0], dtype=F64).expand(2, 3, 3).clone()
+    theta0[0, 1] = truth[0, 1] + 0.01
+    theta0[1, 2] = torch.tensor([8.0, 0.05, -3.0], dtype=F64)
+    calls = []
+
+    def rows(x, members):
+        return x if members is None else x.reshape(-1, x.shape[-1])[members]
+
+    def residual(theta, y, members=None):
+        calls.append(theta.shape[:-1].numel())
+        return exp_model(theta, t) - rows(y, members)
+
+    def jacobian(theta, y, members=None):
+        r = residual(theta, y, members=members)
+        e = torch.exp(-theta[..., 1:2] * t)
+        J = torch.stack([e, -theta[..., 0:1] * t * e, torch.ones_like(e)], -1)
+        return r, J
+
+    def admissible(theta, members=None):
+        return theta[..., 1] < 1.5
+
+    return residual, jacobian, admissible, theta0, y, calls
+
+
+def _assert_same_fit(a, b):
+    for name in ("theta", "loss", "grad", "hessian", "J", "residual", "damping", "loss_history"):
+        torch.testing.assert_close(
+            getattr(a, name), getattr(b, name), rtol=1e-12, atol=1e-14, equal_nan=True
+        )
+    assert torch.equal(a.iterations, b.iterations)
+    assert torch.equal(a.status, b.status)
+
+
+def test_compact_levenberg_marquardt_equals_the_full_batch_and_single_fits():
+    """compact=True evaluates only the members still iterating (fewer rows in all than the
+    full batch) and gives the uncompacted result member by member, and that of each problem
+    fitted alone, over a (2, 3) batch with converging, non-finite and stalling members."""
+    residual, jacobian, admissible, theta0, y, calls = _compaction_problem()
+    loss = _MemberHuber(torch.linspace(0.05, 0.3, 6, dtype=F64).reshape(2, 3, 1))
+    kw = dict(method="levenberg_marquardt", loss=loss, admissible=admissible, max_iter=60)
+    for jac in (None, jacobian):
+        full = minimize(residual, theta0, y, jacobian=jac, **kw)
+        evaluated_full = sum(calls)
+        calls.clear()
+        compact = minimize(residual, theta0, y, jacobian=jac, compact=True, **kw)
+        evaluated_compact = sum(calls)
+        calls.clear()
+        _assert_same_fit(compact, full)
+        assert evaluated_compact < 0.7 * evaluated_full
+        status = compact.status
+        assert status[1, 1] == NewtonStatus.NON_FINITE and status[0, 2] == NewtonStatus.MAX_ITER
+        assert int(compact.iterations[0, 1]) < 10 and int(compact.iterations[0, 2]) == 60
+        for i in range(2):
+            for j in range(3):
+                one = minimize(
+                    residual,
+                    theta0[i, j][None],
+                    y[i, j][None],
+                    jacobian=jac,
+                    compact=True,
+                    **{**kw, "loss": _MemberHuber(loss.c[i, j][None])},
+                )
+                torch.testing.assert_close(
+                    one.theta[0], compact.theta[i, j], rtol=1e-12, atol=1e-14, equal_nan=True
+                )
+                torch.testing.assert_close(
+                    one.loss[0], compact.loss[i, j], rtol=1e-12, atol=0, equal_nan=True
+                )
+                assert int(one.iterations[0]) == int(compact.iterations[i, j])
+                assert int(one.status[0]) == int(compact.status[i, j])
+
+
+@pytest.mark.parametrize("method", ["newton", "gauss_newton"])
+def test_compact_newton_and_gauss_newton_equal_the_full_batch(method):
+    residual, _, _, theta0, y, calls = _compaction_problem()
+    if method == "newton":
+
+        def fun(theta, y, members=None):
+            return 0.5 * residual(theta, y, members=members).square().sum(-1)
+    else:
+        fun = residual
+    full = minimize(fun, theta0, y, method=method)
+    evaluated_full = sum(calls)
+    calls.clear()
+    compact = minimize(fun, theta0, y, method=method, compact=True)
+    assert sum(calls) < evaluated_full
+    for name in ("theta", "loss", "grad", "hessian", "loss_history"):
+        torch.testing.assert_close(
+            getattr(compact, name), getattr(full, name), rtol=1e-12, atol=1e-14, equal_nan=True
+        )
+    assert torch.equal(compact.iterations, full.iterations)
+    assert torch.equal(compact.status, full.status)
+
+
+def test_compact_refuses_a_block_jacobian():
+    from integrators.block_jacobian import BlockJacobian
+
+    def blocks(theta):
+        values = torch.ones(*theta.shape[:-1], 1, 1, 1, dtype=F64)
+        columns = torch.zeros(1, 1, dtype=torch.int64)
+        return theta - 1.0, BlockJacobian([(values, columns)], 1)
+
+    with pytest.raises(InputValidationError, match="BlockJacobian"):
+        minimize(
+            lambda th, members=None: th - 1.0,
+            torch.zeros(2, 1, dtype=F64),
+            method="levenberg_marquardt",
+            jacobian=lambda th, members=None: blocks(th),
+            compact=True,
+        )

@@ -3,7 +3,9 @@ Simulation), §4.3, eq. 4.64 and 4.71-4.75).
 
 Each loss has ``rho(r)`` (the per-residual criterion, ``~ r^2 / 2`` near 0), ``psi(r) = rho'(r)``
 and ``curvature(r)``: the weights ``c_k`` of the quadratic model ``sum c_k (r_k + J_k d)^2 / 2``
-minimised for each step (the loss protocol of :func:`integrators.newton.minimize`). The
+minimised for each step (the loss protocol of :func:`integrators.newton.minimize`); each
+also takes ``members``, the data sets of a batch to evaluate (``minimize(compact=True)``;
+None for all), for which a per-data-set parameter ``(*batch, 1)`` gives its rows. The
 criterion of a fit is ``sum_k rho(r_k)``; for i.i.d. errors of density ``p`` with
 ``-log p = rho / sigma^2 + const`` its minimiser is the maximum-likelihood estimate.
 
@@ -61,18 +63,27 @@ LOSSES = ("gaussian", "fair", "laplace", "huber")
 HUBER_EFFICIENT_C = 1.345
 
 
+def _member_rows(param, members: torch.Tensor | None):
+    """A loss parameter for the problems ``members`` ((k,) indices into the flattened batch):
+    the rows ``(k, 1)`` of a per-data-set ``(*batch, 1)`` tensor; a number, a 0-d tensor, or
+    any parameter for ``members=None``, as it is."""
+    if members is None or not isinstance(param, torch.Tensor) or param.dim() == 0:
+        return param
+    return param.reshape(-1, 1)[members]
+
+
 class GaussianLoss:
     """``rho(r) = r^2 / 2``, ``psi(r) = r``, curvature 1 (Gauss-Newton)."""
 
     name = "gaussian"
 
-    def rho(self, r: torch.Tensor) -> torch.Tensor:
+    def rho(self, r: torch.Tensor, members=None) -> torch.Tensor:
         return 0.5 * r * r
 
-    def psi(self, r: torch.Tensor) -> torch.Tensor:
+    def psi(self, r: torch.Tensor, members=None) -> torch.Tensor:
         return r
 
-    def curvature(self, r: torch.Tensor) -> torch.Tensor:
+    def curvature(self, r: torch.Tensor, members=None) -> torch.Tensor:
         return torch.ones_like(r)
 
 
@@ -89,15 +100,15 @@ class FairLoss:
     def __init__(self, alpha):
         self.alpha = alpha
 
-    def rho(self, r: torch.Tensor) -> torch.Tensor:
-        return 0.5 * r * r / (1 + self.alpha * r.abs())
+    def rho(self, r: torch.Tensor, members=None) -> torch.Tensor:
+        return 0.5 * r * r / (1 + _member_rows(self.alpha, members) * r.abs())
 
-    def psi(self, r: torch.Tensor) -> torch.Tensor:
-        s = self.alpha * r.abs()
+    def psi(self, r: torch.Tensor, members=None) -> torch.Tensor:
+        s = _member_rows(self.alpha, members) * r.abs()
         return 0.5 * r * (2 + s) / (1 + s) ** 2
 
-    def curvature(self, r: torch.Tensor) -> torch.Tensor:
-        return 1.0 / (1 + self.alpha * r.abs()) ** 3
+    def curvature(self, r: torch.Tensor, members=None) -> torch.Tensor:
+        return 1.0 / (1 + _member_rows(self.alpha, members) * r.abs()) ** 3
 
 
 class LaplaceLoss:
@@ -113,14 +124,15 @@ class LaplaceLoss:
     def __init__(self, eps):
         self.eps = eps
 
-    def rho(self, r: torch.Tensor) -> torch.Tensor:
-        return torch.sqrt(r * r + self.eps**2) - self.eps
+    def rho(self, r: torch.Tensor, members=None) -> torch.Tensor:
+        eps = _member_rows(self.eps, members)
+        return torch.sqrt(r * r + eps**2) - eps
 
-    def psi(self, r: torch.Tensor) -> torch.Tensor:
-        return r / torch.sqrt(r * r + self.eps**2)
+    def psi(self, r: torch.Tensor, members=None) -> torch.Tensor:
+        return r / torch.sqrt(r * r + _member_rows(self.eps, members) ** 2)
 
-    def curvature(self, r: torch.Tensor) -> torch.Tensor:
-        return 1.0 / torch.sqrt(r * r + self.eps**2)
+    def curvature(self, r: torch.Tensor, members=None) -> torch.Tensor:
+        return 1.0 / torch.sqrt(r * r + _member_rows(self.eps, members) ** 2)
 
 
 class HuberLoss:
@@ -137,16 +149,16 @@ class HuberLoss:
     def __init__(self, c):
         self.c = c
 
-    def rho(self, r: torch.Tensor) -> torch.Tensor:
-        a = r.abs()
-        return torch.where(a <= self.c, 0.5 * r * r, self.c * a - 0.5 * self.c * self.c)
+    def rho(self, r: torch.Tensor, members=None) -> torch.Tensor:
+        a, c = r.abs(), _member_rows(self.c, members)
+        return torch.where(a <= c, 0.5 * r * r, c * a - 0.5 * c * c)
 
-    def psi(self, r: torch.Tensor) -> torch.Tensor:
-        c = torch.as_tensor(self.c, dtype=r.dtype, device=r.device)
+    def psi(self, r: torch.Tensor, members=None) -> torch.Tensor:
+        c = torch.as_tensor(_member_rows(self.c, members), dtype=r.dtype, device=r.device)
         return torch.maximum(torch.minimum(r, c), -c)
 
-    def curvature(self, r: torch.Tensor) -> torch.Tensor:
-        return torch.clamp(self.c / r.abs(), max=1.0)
+    def curvature(self, r: torch.Tensor, members=None) -> torch.Tensor:
+        return torch.clamp(_member_rows(self.c, members) / r.abs(), max=1.0)
 
     def psi_derivative(self, r: torch.Tensor) -> torch.Tensor:
         """``psi'(r)``: 1 inside ``[-c, c]``, 0 outside (for the sandwich covariance)."""
@@ -171,7 +183,8 @@ def make_loss(name: str, residuals: torch.Tensor, alpha=None):
     * ``"huber"``: :class:`HuberLoss` with ``c = alpha`` (output units) if given, else
       ``c = 1.345 s`` (95 % efficiency for Gaussian errors).
 
-    Per-data-set parameters get a trailing dimension so they broadcast against residuals.
+    Per-data-set parameters are expanded to ``(*batch, 1)``, so they broadcast against the
+    residuals and give each data set's rows.
     """
     if name == "gaussian":
         return GaussianLoss()
@@ -179,10 +192,11 @@ def make_loss(name: str, residuals: torch.Tensor, alpha=None):
         raise InputValidationError(f"loss must be one of {LOSSES}, got {name!r}.")
     scale = robust_scale(residuals).clamp_min(torch.finfo(residuals.dtype).tiny)
     to = dict(dtype=residuals.dtype, device=residuals.device)
+    batch = residuals.shape[:-1]
     if name == "laplace":
         return LaplaceLoss((1e-4 * scale).unsqueeze(-1))
     if name == "fair":
         a = (1.0 / scale) if alpha is None else torch.as_tensor(alpha, **to)
-        return FairLoss(a.unsqueeze(-1) if a.dim() else a)
+        return FairLoss(a.expand(batch).unsqueeze(-1) if a.dim() else a)
     c = HUBER_EFFICIENT_C * scale if alpha is None else torch.as_tensor(alpha, **to)
-    return HuberLoss(c.unsqueeze(-1) if c.dim() else c)
+    return HuberLoss(c.expand(batch).unsqueeze(-1) if c.dim() else c)

@@ -6,8 +6,10 @@
 ``method="levenberg_marquardt"``) on the prediction errors (eq. 4.130–4.132; for OE these are
 the simulation errors, eq. 4.133). Jacobians by forward-mode autograd, all parameter directions
 in one pass (by filtering for models without noise model, :class:`_OutputError`);
-per-data-set damping, step acceptance and convergence. Steps that make the predictor unstable
-are rejected. Asymptotic covariance ``sigma^2 (J'J)^{-1}``.
+per-data-set damping, step acceptance and convergence. The iteration evaluates only the data
+sets still iterating (``minimize(compact=True)``: the criterion takes ``members``), so a batch
+costs the work of its slowest fits, not the batch size times the most iterations. Steps that
+make the predictor unstable are rejected. Asymptotic covariance ``sigma^2 (J'J)^{-1}``.
 
 ``method="mle"``: the same iteration minimises ``sum_k rho(r_k)`` for a loss of
 :mod:`sysid.estimation.losses` (eq. 4.64, 4.73), started from the Gaussian estimate and scaled
@@ -53,6 +55,25 @@ def _max_root_modulus(theta: torch.Tensor, blocks: list[list[int]]) -> torch.Ten
     return out
 
 
+def _select(x, members: torch.Tensor | None, n_batch: int):
+    """The data sets ``members`` ((k,) indices into the flattened batch; None: all of them)
+    of ``x``: a ``(*batch, *tail)`` tensor with ``n_batch`` batch dimensions, giving
+    ``(k, *tail)``, or an :class:`IOData` of that batch shape, giving one of batch ``(k,)``."""
+    if members is None:
+        return x
+    if isinstance(x, IOData):
+        return x._map(lambda u, y: (_select(u, members, n_batch), _select(y, members, n_batch)))
+    return x.reshape(-1, *x.shape[n_batch:])[members]
+
+
+def _same_members(a: torch.Tensor | None, b: torch.Tensor | None) -> bool:
+    """Whether two ``members`` arguments (index tensors, or None for all) name the same data
+    sets."""
+    if a is None or b is None:
+        return a is b
+    return torch.equal(a, b)
+
+
 class _OutputError:
     """Simulation errors and their exact Jacobian for models without A, C, D
     (``y = sum_i q^-nk_i B_i/F_i u_i + e``, eq. 4.133), by filtering, no autograd.
@@ -63,9 +84,11 @@ class _OutputError:
     signals ``u_i`` and ``x_i`` (one batched call) gives every column; ``J = -d yhat/d theta``
     is then a stack of delayed copies. Zero initial conditions in each experiment,
     experiments concatenated in time; ``sw`` (``(*batch, M)`` or None) weights the rows.
+    Both methods take ``members``, the data sets to evaluate (:func:`_select`).
 
     :meth:`linearise` reuses the responses ``x_i`` of the last :meth:`residuals` call when
-    ``theta`` is the same (in Levenberg-Marquardt, the accepted line-search point).
+    ``theta`` and ``members`` are the same (in Levenberg-Marquardt, the accepted line-search
+    point).
     """
 
     def __init__(self, model: PolynomialModel, data: IOData, sw: torch.Tensor | None):
@@ -79,43 +102,53 @@ class _OutputError:
         self.blocks += [(1, i, 1, n) for i, n in enumerate(model.nf)]
         self.blocks = [block for block in self.blocks if block[3]]
         self.top = max((first + n - 1 for _, _, first, n in self.blocks), default=0)
-        self._last: tuple[torch.Tensor, list[torch.Tensor]] | None = None
+        self._last: tuple[torch.Tensor, torch.Tensor | None, list[torch.Tensor]] | None = None
 
-    def _responses(self, theta: torch.Tensor, B, den) -> list[torch.Tensor]:
-        """Per experiment, the responses ``x_i`` ``(*batch, nu, N)``."""
-        if self._last is not None and torch.equal(self._last[0], theta):
-            return self._last[1]
+    def _responses(self, theta: torch.Tensor, B, den, data: IOData, members) -> list[torch.Tensor]:
+        """Per experiment, the responses ``x_i`` ``(*batch, nu, N)`` to the inputs of ``data``
+        (the data sets ``members``)."""
+        last = self._last
+        if last is not None and torch.equal(last[0], theta) and _same_members(last[1], members):
+            return last[2]
         out = [
             iir_filter(B, den, part.u.to(theta.dtype).transpose(-1, -2))
-            for part in self.data.experiment_list  # loop over experiments (usually one)
+            for part in data.experiment_list  # loop over experiments (usually one)
         ]
         if not out[0].requires_grad:
-            self._last = (theta.detach().clone(), out)
+            self._last = (theta.detach().clone(), members, out)
         return out
 
-    def _errors(self, theta: torch.Tensor, responses: list[torch.Tensor]) -> torch.Tensor:
+    def _errors(self, theta: torch.Tensor, responses, data: IOData, sw) -> torch.Tensor:
         parts = [
             part.y[..., 0].to(theta.dtype) - x.sum(-2)
-            for part, x in zip(self.data.experiment_list, responses, strict=True)
+            for part, x in zip(data.experiment_list, responses, strict=True)
         ]
         r = parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
         r = r.expand(*theta.shape[:-1], r.shape[-1])
-        return r if self.sw is None else r * self.sw
+        return r if sw is None else r * sw
 
-    def residuals(self, theta: torch.Tensor) -> torch.Tensor:
+    def _members(self, members) -> tuple[IOData, torch.Tensor | None]:
+        """The data and the row weights of the data sets ``members``."""
+        n_batch = len(self.data.batch_shape)
+        sw = None if self.sw is None else _select(self.sw, members, n_batch)
+        return _select(self.data, members, n_batch), sw
+
+    def residuals(self, theta: torch.Tensor, members=None) -> torch.Tensor:
         """Weighted simulation errors ``(*batch, M)`` (those of ``model.simulation_errors``)."""
+        data, sw = self._members(members)
         B, den = self.model._transfer_polys(theta)
-        return self._errors(theta, self._responses(theta, B, den))
+        return self._errors(theta, self._responses(theta, B, den, data, members), data, sw)
 
-    def linearise(self, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def linearise(self, theta: torch.Tensor, members=None) -> tuple[torch.Tensor, torch.Tensor]:
         """``(r, J)``; ``J`` is the transpose of a contiguous ``(*batch, p, M)`` tensor (a
         faster ``J'J``)."""
+        data, sw = self._members(members)
         with torch.no_grad():
             B, den = self.model._transfer_polys(theta)  # (*b, nu, width), (*b, nu, nf)
             ones = den.new_ones(*den.shape[:-1], 1)  # numerator 1 (den may be empty: nf = 0)
-            responses = self._responses(theta, B, den)
+            responses = self._responses(theta, B, den, data, members)
             jacobians = []
-            for part, x in zip(self.data.experiment_list, responses, strict=True):
+            for part, x in zip(data.experiment_list, responses, strict=True):
                 u = part.u.to(theta.dtype).transpose(-1, -2)
                 both = torch.stack(torch.broadcast_tensors(-u, x), dim=-3)
                 both = iir_filter(ones.unsqueeze(-3), den.unsqueeze(-3), both)  # -v_i, x_i/F_i
@@ -131,9 +164,9 @@ class _OutputError:
                 jacobians.append(torch.cat(last, dim=-2).flip(-2) if last else empty)
             Jt = jacobians[0] if len(jacobians) == 1 else torch.cat(jacobians, dim=-1)
             Jt = Jt.expand(*theta.shape[:-1], *Jt.shape[-2:])
-            if self.sw is not None:
-                Jt = Jt * self.sw.unsqueeze(-2)
-            return self._errors(theta, responses), Jt.transpose(-1, -2)
+            if sw is not None:
+                Jt = Jt * sw.unsqueeze(-2)
+            return self._errors(theta, responses, data, sw), Jt.transpose(-1, -2)
 
 
 def _admissible_fn(model: PolynomialModel, criterion: str):
@@ -144,7 +177,7 @@ def _admissible_fn(model: PolynomialModel, criterion: str):
     blocks = [ix for letter in letters for ix in g[letter] if len(ix)]
     if not blocks:
         return None
-    return lambda th: _max_root_modulus(th, blocks) < 1.0
+    return lambda th, members=None: _max_root_modulus(th, blocks) < 1.0
 
 
 def _bad_init(init, model) -> InputValidationError:
@@ -160,28 +193,33 @@ def _fit_iterative(
     model, data, method, loss, alpha, w, criterion, init, linear, max_iter, xtol, ftol
 ) -> FitResult:
     batch = data.batch_shape
+    n_batch = len(batch)
     p = model.n_params
     sw = None if w is None else w.sqrt()
+    # the criterion of the data sets ``members`` (indices into the flattened batch; None: all)
     if linear:
         Phi, target = model.regression(data)
         if sw is not None:
             rows = _regression_rows(data, target.shape[-1])
             swr = torch.cat([sw[..., sl] for sl in rows], dim=-1)
             Phi, target = Phi * swr.unsqueeze(-1), target * swr
+        Phi = Phi.expand(*batch, *Phi.shape[-2:])
+        target = target.expand(*batch, target.shape[-1])
 
-        def residual_fn(th):
-            return target - (Phi @ th.unsqueeze(-1)).squeeze(-1)
+        def residual_fn(th, members=None):
+            regressors = _select(Phi, members, n_batch)
+            return _select(target, members, n_batch) - (regressors @ th.unsqueeze(-1)).squeeze(-1)
 
-        def jacobian_fn(th):
-            return residual_fn(th), (-Phi).expand(*th.shape[:-1], *Phi.shape[-2:])
+        def jacobian_fn(th, members=None):
+            return residual_fn(th, members), -_select(Phi, members, n_batch)
 
         admissible = None
     else:
         errors = model.prediction_errors if criterion == "prediction" else model.simulation_errors
 
-        def residual_fn(th):
-            e = errors(data, theta=th)[..., 0]
-            return e if sw is None else e * sw
+        def residual_fn(th, members=None):
+            e = errors(_select(data, members, n_batch), theta=th)[..., 0]
+            return e if sw is None else e * _select(sw, members, n_batch)
 
         jacobian_fn = None
         if model.na == model.nc == model.nd == 0:  # H = 1: prediction errors = simulation errors
@@ -222,7 +260,11 @@ def _fit_iterative(
     if jacobian_fn is not None:
         linearise = jacobian_fn
     else:  # residuals (M entries) against a few parameters: columns by forward mode
-        linearise = functools.partial(batch_jacobian, residual_fn, strategy="forward")
+
+        def linearise(th, members=None):
+            fn = functools.partial(residual_fn, members=members)
+            return batch_jacobian(fn, th, strategy="forward")
+
     gauss = GaussianLoss()
     lm = _minimize_criterion(
         residual_fn, theta0, gauss, linearise, admissible, max_iter, xtol, ftol
@@ -274,7 +316,8 @@ def _fit_iterative(
 
 def _minimize_criterion(residual_fn, theta0, loss, linearise, admissible, max_iter, xtol, ftol):
     """:func:`integrators.newton.minimize` by Levenberg–Marquardt on ``sum rho(r(theta))``
-    with the given Jacobian; raises where the criterion is not finite at ``theta0``."""
+    with the given Jacobian, compacted (``residual_fn``, ``linearise``, ``admissible`` and
+    ``loss`` take ``members``); raises where the criterion is not finite at ``theta0``."""
     result = minimize(
         residual_fn,
         theta0,
@@ -285,6 +328,7 @@ def _minimize_criterion(residual_fn, theta0, loss, linearise, admissible, max_it
         max_iter=max_iter,
         xtol=xtol,
         ftol=ftol,
+        compact=True,
     )
     bad = result.status == NewtonStatus.NON_FINITE
     if bool(bad.any()):
