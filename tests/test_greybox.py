@@ -270,6 +270,9 @@ def test_multiple_shooting_reaches_the_truth_where_single_shooting_fails():
     ms = fit(model, data, criterion="multiple_shooting", segment_length=10)
     assert ms.info["criterion"] == "simulation"  # polished by the simulation error
     assert bool(on_truth(ms).all())
+    # loss_history is the reported criterion's (the polish), not the penalty stages' too
+    assert ms.loss_history.shape[0] < int(ms.iterations.max()) + 1
+    torch.testing.assert_close(ms.loss_history[-1], 0.5 * ms.residuals.pow(2).sum(-1))
     assert not bool(on_truth(single).all())
 
 
@@ -540,6 +543,28 @@ def test_known_initial_states_one_per_experiment():
         fit(model, data, x0=starts[:1])
     with pytest.raises(InputValidationError, match="one per experiment"):
         res.model.simulate(one)
+
+
+def test_simulate_refuses_per_experiment_values_of_another_count():
+    """A per-experiment parameter given three values for one experiment (a batch of three
+    data sets) simulated every data set with the first value; fit refused it, simulate now
+    does too, and (*batch, 1) gives each data set its own value (against the steady state
+    d / 4 of x'' = -4 x - 0.5 x' + d)."""
+
+    def forced(t, x, u, p):
+        return torch.stack([x[..., 1], -4.0 * x[..., 0] - 0.5 * x[..., 1] + p["d"]], -1)
+
+    model = GreyBoxModel(forced, {"d": Param(0.0, per_experiment=True)}, nx=2, output=[0])
+    data = IOData(
+        torch.zeros(3, 400, 1, dtype=torch.float64),
+        torch.zeros(3, 400, 1, dtype=torch.float64),
+        Ts=0.1,
+    )
+    d = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    with pytest.raises(InputValidationError, match="3 values for 1 experiment"):
+        model.simulate(data, params={"d": d})
+    y = model.simulate(data, params={"d": d[:, None]})
+    torch.testing.assert_close(y[:, -1, 0], d / 4, rtol=1e-4, atol=0)
 
 
 def test_a_trial_point_whose_stage_equations_fail_is_rejected_not_fatal(monkeypatch):

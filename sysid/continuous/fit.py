@@ -526,36 +526,30 @@ def fit_greybox(
     gauss = GaussianLoss()
     monitor = _Monitor(runs * max_iter, progress)
     with monitor.bar:
-        z_sim, history, iterations = z0, [], 0
+        z_sim, iterations = z0, 0
         if criterion == "multiple_shooting":
-            lm, history, iterations = _multiple_shooting(
-                problem, z0, gauss, max_iter, xtol, ftol, monitor
-            )
+            lm, iterations = _multiple_shooting(problem, z0, gauss, max_iter, xtol, ftol, monitor)
             if _interrupted(lm):
-                return _result(
-                    problem, lm, gauss, method, loss, history, iterations, integrator, reason
-                )
+                return _result(problem, lm, gauss, method, loss, iterations, integrator, reason)
             # polish by the simulation criterion from the fitted parameters and first node
             final = _Problem(model, data, "simulation", x0, None, integrator)
             z_sim = _carry_over(problem, final, lm.theta)
             problem = final
             _check_start(problem, z_sim, simulation_runs)
         lm = _minimise(problem, z_sim, gauss, max_iter, xtol, ftol, monitor)
-        history = history + [lm.loss_history]
         iterations = iterations + lm.iterations
         the_loss = gauss
         if loss != "gaussian" and not _interrupted(lm):
             the_loss = make_loss(loss, lm.residual, alpha)
             budget = max(max_iter, 500) if loss == "laplace" else max_iter
             lm = _minimise(problem, lm.theta, the_loss, budget, xtol, ftol, monitor)
-            history.append(lm.loss_history)
             iterations = iterations + lm.iterations
-    return _result(problem, lm, the_loss, method, loss, history, iterations, integrator, reason)
+    return _result(problem, lm, the_loss, method, loss, iterations, integrator, reason)
 
 
 def _multiple_shooting(problem: _Problem, z0, loss, max_iter, xtol, ftol, monitor):
     """Penalty continuation over :data:`_PENALTY_CONTINUATION` (see the module docstring);
-    returns the last run's result, the loss histories and the iterations."""
+    returns the last run's result and the iterations of all runs."""
     y = problem.data.y
     y_scale = y.std(dim=-2).mean(-1).clamp_min(torch.finfo(y.dtype).tiny)  # (*batch,)
     with torch.no_grad():
@@ -564,16 +558,15 @@ def _multiple_shooting(problem: _Problem, z0, loss, max_iter, xtol, ftol, monito
     # whose node guesses are zero, get 1e-3 of the data set's largest node value
     floor = 1e-3 * nodes.abs().amax((-2, -1)).clamp_min(1.0)  # (*batch,)
     state_scale = nodes.std(dim=-2).clamp_min(floor[..., None])
-    history, iterations, z = [], 0, z0
+    iterations, z = 0, z0
     for mu in _PENALTY_CONTINUATION:
         problem.defect_weight = math.sqrt(mu) * y_scale[..., None] / state_scale
         lm = _minimise(problem, z, loss, max_iter, xtol, ftol, monitor)
         z = lm.theta
-        history.append(lm.loss_history)
         iterations = iterations + lm.iterations
         if _interrupted(lm):
             break
-    return lm, history, iterations
+    return lm, iterations
 
 
 def _carry_over(ms: _Problem, sim: _Problem, z: torch.Tensor) -> torch.Tensor:
@@ -585,7 +578,7 @@ def _carry_over(ms: _Problem, sim: _Problem, z: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def _result(problem, lm, the_loss, method, loss, history, iterations, integrator, reason):
+def _result(problem, lm, the_loss, method, loss, iterations, integrator, reason):
     J, r, z = lm.J.dense(), lm.residual, lm.theta
     failed = lm.status == NewtonStatus.LINE_SEARCH_FAILED
     # columns of J in physical units: divide each parameter column by dp/dz
@@ -619,6 +612,7 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
     d, zstat = remaining_step(J, r, the_loss, factor)
     tiny = d.norm(dim=-1) <= math.sqrt(torch.finfo(d.dtype).eps) * (1 + z.norm(dim=-1))
     interrupted = lm.status == NewtonStatus.INTERRUPTED
+    at_limit = lm.status == NewtonStatus.MAX_ITER
     converged = ((zstat <= STATIONARY_TOL) | tiny) & ~interrupted & ~stalled
     names = [problem.column_names[c] for c in keep]
     at_bound = at_bound[..., keep]
@@ -645,6 +639,8 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
     elif isinstance(problem.x0, str) and problem.x0 == "estimate":
         x0_est = starts  # one-step criterion: every step, the first too, starts measured
     messages = []
+    # the fitted model holds x0 as known: a fit finishing an interrupted one estimates it again
+    again = "fit(result.model, data" + (", x0='estimate')" if x0_est is not None else ")")
     for idx in [
         tuple(i) for i in torch.nonzero(~converged.reshape(converged.shape or (1,))).tolist()
     ]:
@@ -663,14 +659,18 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
                 f"{', '.join(map(repr, stuck))} stalled at a bound although the criterion "
                 "decreases inside it (the bounded coordinate is flat there)"
             )
+        elif bool(at_limit[key]):
+            why = "the iteration limit (max_iter) was reached"
         else:
-            why = "the iteration limit was reached or it stopped away from a stationary point"
+            why = "it stopped away from a stationary point"
+        why += (
+            f"; a Gauss-Newton step would still move the estimate by "
+            f"{float(zstat[key]):.3g} standard errors (converged means <= {STATIONARY_TOL})"
+        )
         messages.append(
-            f"batch index {key}: did not converge: {why}; a Gauss-Newton step would still move "
-            f"the estimate by {float(zstat[key]):.3g} standard errors (converged means <= "
-            f"{STATIONARY_TOL}). "
+            f"batch index {key}: did not converge: {why}. "
             + (
-                "Run the fit again from it (fit(result.model, data)) to finish."
+                f"Run the fit again from it ({again}) to finish."
                 if bool(interrupted[key])
                 else "Start closer (or further from the bounds), raise max_iter, or use "
                 "criterion='multiple_shooting'."
@@ -696,7 +696,7 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
         covariance=cov,
         standard_errors=se,
         sigma2=sigma2,
-        loss_history=torch.cat(history, 0),
+        loss_history=lm.loss_history,
         iterations=torch.as_tensor(iterations),
         converged=converged,
         method=method,
@@ -720,6 +720,7 @@ def _result(problem, lm, the_loss, method, loss, history, iterations, integrator
             "damping": lm.damping,
             "step_in_standard_errors": zstat,
             "line_search_failed": failed,
+            "iteration_limit_reached": at_limit,
             "interrupted": interrupted,
             "at_bound": at_bound,
         },

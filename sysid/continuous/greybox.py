@@ -49,7 +49,7 @@ from integrators.tableau import ButcherTableau
 from ..data import IOData
 from ..errors import UnstableModelWarning
 from .intersample import input_between_samples, stage_fractions
-from .params import Param
+from .params import Param, value_in_experiment
 
 __all__ = ["GreyBoxModel", "initial_states"]
 
@@ -542,7 +542,16 @@ class GreyBoxModel:
         starts = initial_states(x0 if x0 is not None else self.x0, self.nx, data.n_experiments)
         parts, failures = [], []
         for e, part in enumerate(data.experiment_list):
-            vals = [self._value(n, values[n], e, part.dtype) for n in self.names]
+            vals = [
+                value_in_experiment(
+                    torch.as_tensor(values[n], dtype=part.dtype),
+                    self.params[n].per_experiment,
+                    data.n_experiments,
+                    e,
+                    f"simulate: {n!r}",
+                )
+                for n in self.names
+            ]
             x_e = starts[e]
             if x_e is None or isinstance(x_e, str):
                 x_e = torch.zeros(self.nx)
@@ -587,13 +596,6 @@ class GreyBoxModel:
                 stacklevel=2,
             )
         return torch.cat(parts, -2)
-
-    def _value(self, name: str, value, experiment: int, dtype) -> torch.Tensor:
-        """The value of parameter ``name`` in ``experiment``: () or (*batch,)."""
-        v = torch.as_tensor(value, dtype=dtype)
-        if self.params[name].per_experiment and v.numel() > 1:
-            return v[..., experiment]
-        return v.reshape(()) if v.numel() == 1 else v
 
     def with_values(self, values: dict, x0=None) -> GreyBoxModel:
         """A copy whose parameters take ``values`` (name -> float or (*batch,) tensor) and, if

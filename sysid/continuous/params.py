@@ -24,6 +24,25 @@ from integrators.errors import InputValidationError
 __all__ = ["Param"]
 
 
+def value_in_experiment(
+    value: torch.Tensor, per_experiment: bool, n_experiments: int, experiment: int, who="Param"
+) -> torch.Tensor:
+    """A parameter's ``value`` in ``experiment`` of ``n_experiments``: ``()`` or ``(*batch,)``.
+    A per-experiment value has the experiments last (``(*batch, n_experiments)``, or one
+    shared value ``(*batch, 1)``); another last dimension raises
+    :class:`InputValidationError` (``who`` names the caller)."""
+    if per_experiment and value.numel() > 1:
+        if value.shape[-1] not in (1, n_experiments):
+            raise InputValidationError(
+                f"{who}: a per-experiment parameter of shape {tuple(value.shape)} has "
+                f"{value.shape[-1]} values for {n_experiments} experiment(s); its last "
+                "dimension must be 1 (one value for every experiment) or one per experiment: "
+                "(*batch, 1) for one value per data set of a batch."
+            )
+        value = value[..., experiment if value.shape[-1] > 1 else 0]
+    return value.reshape(()) if value.numel() == 1 else value
+
+
 class Param:
     """A named physical parameter of a grey-box model.
 
@@ -96,15 +115,7 @@ class Param:
         ``(*batch,)`` where the values are a fitted model's, one per data set of its batch
         (``GreyBoxModel.with_values``: ``(*batch,)`` shared, ``(*batch, n_experiments)`` per
         experiment)."""
-        value = self.values
-        if self.per_experiment:
-            if value.shape[-1] not in (1, n_experiments):
-                raise InputValidationError(
-                    f"Param: {value.shape[-1]} values for {n_experiments} experiments; give "
-                    "one value or one per experiment."
-                )
-            value = value[..., experiment if value.shape[-1] > 1 else 0]
-        return value.reshape(()) if value.numel() == 1 else value
+        return value_in_experiment(self.values, self.per_experiment, n_experiments, experiment)
 
     def scale(self, start: torch.Tensor) -> torch.Tensor:
         """The scale ``s`` of an unbounded parameter (see the module docstring)."""

@@ -48,11 +48,12 @@ class FitResult:
         standard_errors: ``sqrt(diag(covariance))``, ``(*batch, p)``.
         sigma2: noise variance estimate ``sum r^2 / (N - p)``, ``(*batch,)`` (iterative fits:
             ``N - rank J``, which is ``p`` unless some parameters are not identifiable).
-        loss_history: criterion value per iteration, ``(n_iter + 1, *batch)`` (the value
-            ``sum rho(r_k)``, e.g. ``1/2 ||r||^2`` for the Gaussian loss). An iterative fit
-            with another loss starts with Gaussian iterations: ``iterations`` counts both
-            stages, ``loss_history`` holds the stage of the reported loss only (the start's
-            Gaussian criterion is another function).
+        loss_history: criterion value per iteration of the last stage of the fit,
+            ``(n_last + 1, *batch)`` (the value ``sum rho(r_k)``, e.g. ``1/2 ||r||^2`` for the
+            Gaussian loss): an iterative fit with another loss starts with Gaussian
+            iterations, a grey-box fit by multiple shooting runs penalty stages before its
+            simulation criterion; ``iterations`` counts every stage, ``loss_history`` holds
+            the reported criterion's only (the earlier stages minimise other functions).
         iterations: iterations used per data set, ``(*batch,)`` int64.
         converged: per data set, ``(*batch,)`` bool: for the iterative methods, whether the
             estimate is a stationary point of the criterion to within
@@ -61,7 +62,11 @@ class FitResult:
             parameter stalled at its bound while the criterion decreases inside: a member
             whose estimate rests at a bound with the criterion increasing inside is converged
             and flagged by ``info["at_bound"]``, ``(*batch, p)``); always True for the direct
-            solves (``"lls"``, ``"iv"``).
+            solves (``"lls"``, ``"iv"``). ``info["iteration_limit_reached"]`` flags the fits
+            that ended on ``max_iter``: an estimate drifting where the criterion keeps falling
+            slowly (towards a minimum at infinity, its standard errors growing with it) counts
+            as converged by this local test; check that flag and the size of the standard
+            errors, or fit from another start.
         method, loss: as requested.
         parameter_names: names of the entries of ``theta``.
         n_samples: number of residuals in the criterion.
