@@ -39,6 +39,10 @@ one factorisation serves
 Only the first step, which has no previous factorisation, factorises once more (at its starting
 guess): ``N`` steps cost ``N + 1`` factorisations when no refresh is needed, reported in
 ``SensitivityResult.stats``. ``Phi_k, Psi_k`` then propagate ``A, B`` as above (eq. 8.28).
+Batch members are solved independently: a member whose stage equations fail (Newton budget,
+non-finite stages, a singular Newton matrix) stops with ``Status.NEWTON_FAILED`` and is frozen
+at its initial state (as :func:`~integrators.odeint.odeint` freezes a failed sample), and the
+others get the numbers they get alone.
 
 Inputs are parameterised on the output grid (notes §8.5) and the parameters become columns
 of ``q``:
@@ -88,7 +92,7 @@ from ._fast import compiled_stepper
 from ._irk_core import StageInputs, stacked_call_agrees
 from ._irk_dense import extrapolation_matrix
 from ._options import check_int, check_state, check_times, raise_shape_change, sample_indices
-from .errors import ConvergenceError, InputValidationError, SingularMatrixError
+from .errors import InputValidationError
 from .explicit import _failure_messages
 from .inputs import CollocationInput
 from .jacobians import batch_jacobian
@@ -120,9 +124,11 @@ class SensitivityResult:
             (*batch, T, nx, T-1, q, nu) ``dx_k / dP_{j,i}`` for a
             :class:`~integrators.inputs.CollocationInput` (eq. 8.32); None otherwise.
         status: (*batch,) int8 :class:`~integrators.solution.Status` per sample: SUCCESS,
-            or NON_FINITE where the states or their sensitivities became inf/nan (an explicit
-            run that escapes to infinity); such a sample's ``x``, ``A``, ``B`` and ``C`` are
-            NaN from the first output time that is not finite on, and ``messages`` name it.
+            NON_FINITE where the states or their sensitivities became inf/nan (an explicit
+            run that escapes to infinity), or NEWTON_FAILED where an implicit method's stage
+            equations failed at a step (then the outputs from the end of that output interval
+            on are not finite); such a sample's ``x``, ``A``, ``B`` and ``C`` are NaN from the
+            first output time that is not finite on, and ``messages`` name it.
         messages: one line per failed sample.
         stats: :class:`~integrators.solution.SolverStats`: ``n_steps``, ``n_f_evals`` and
             ``n_jac_evals`` (batched calls of ``f`` and of its stage Jacobian),
@@ -377,10 +383,68 @@ def _stage_inputs(inputs, u, t, tab: ButcherTableau, substeps: int, like) -> tor
     return torch.stack(rows, -4)
 
 
-def _samples(mask: torch.Tensor) -> str:
-    """The batch indices where ``mask`` holds (at most five), for messages."""
-    idx, n = sample_indices(mask, 5)
-    return f"{idx}" + (f" and {n - 5} more" if n > 5 else "")
+class _StageFailures:
+    """The members whose implicit stage equations failed, recorded step by step.
+
+    A member fails at the step where :meth:`_ImplicitStages.step` gives up on it; from then
+    on it is frozen (evaluated at a finite safe state, out of every batch-wide decision) and
+    its outputs from the end of that output interval on are NaN.
+
+    Args:
+        batch: the batch shape; T: the number of output times; like: a tensor of the state's
+            device.
+    """
+
+    def __init__(self, batch: torch.Size, T: int, like: torch.Tensor):
+        self.frozen = torch.zeros(batch, dtype=torch.bool, device=like.device)
+        # host arrays (*batch,): NewtonStatus code (0: none), output index from which the
+        # outputs are NaN, and the step, interval and time of the failure
+        self.reason = np.zeros(batch, dtype=np.int8)
+        self.stop = np.full(batch, T, dtype=np.int64)
+        self.where = np.zeros((*batch, 2), dtype=np.int64)
+        self.time = np.zeros(batch)
+
+    def record(self, failure: torch.Tensor, k: int, m: int, tk: torch.Tensor) -> None:
+        """Freeze the members with a nonzero ``failure`` code (*batch,), failed in step ``m``
+        of interval ``k`` starting at ``tk``."""
+        new = failure != 0
+        if not bool(new.any()):
+            return
+        self.frozen = self.frozen | new
+        new_host = new.cpu().numpy()
+        self.reason[new_host] = failure.cpu().numpy()[new_host]
+        self.stop[new_host] = k + 1
+        self.where[new_host] = (m, k)
+        self.time[new_host] = float(tk)
+
+    @property
+    def all_frozen(self) -> bool:
+        """Whether every member (of a nonempty batch) has failed."""
+        return self.frozen.numel() > 0 and bool(self.frozen.all())
+
+    def messages(self, failed: torch.Tensor, t: torch.Tensor, name: str, tol: float) -> list[str]:
+        """One line per member of ``failed`` (*batch,): its index, where its stage equations
+        failed and why."""
+        reasons = {
+            NewtonStatus.MAX_ITER: (
+                f"did not reach ||r||_inf <= {tol:.3g} in {_MAX_NEWTON_ITER} Newton iterations"
+            ),
+            NewtonStatus.NON_FINITE: "became non-finite",
+            NewtonStatus.SINGULAR: "have a singular Newton matrix I - h A (x) F_x",
+        }
+        t_host = t.detach().cpu().tolist()
+        idx, _ = sample_indices(failed, failed.numel())
+        lines = []
+        for i in idx:
+            at = i if self.reason.ndim else ()
+            m, k = self.where[at].tolist()
+            lines.append(
+                f"sample {i[0] if len(i) == 1 else i}: the stage equations (eq. 8.20) of "
+                f"{name!r} {reasons[NewtonStatus(int(self.reason[at]))]} in step {m} of "
+                f"interval {k} (t = {float(self.time[at]):.6g}); its outputs from t = "
+                f"{t_host[k + 1]:.6g} on are NaN. Try more substeps."
+            )
+        return lines
 
 
 class _ImplicitStages:
@@ -389,7 +453,8 @@ class _ImplicitStages:
 
     Keeps the LU factors of the exact Newton matrix ``M = I - h [a_ij F_x^(i)]`` at the last
     converged stages (the next step's simplified-Newton matrix), the last stages (for the next
-    starting guess) and the work counters.
+    starting guess) and the work counters. Every decision (convergence, refreshing the
+    matrix, the iteration budget) is per member, so a member gets the numbers it gets alone.
 
     Args:
         tab: implicit tableau; like: a tensor of the state dtype and device.
@@ -397,7 +462,7 @@ class _ImplicitStages:
     """
 
     def __init__(self, tab: ButcherTableau, like: torch.Tensor, tol: float):
-        self.tab, self.s, self.tol = tab, tab.stages, tol
+        self.s, self.tol = tab.stages, tol
         self.a = torch.as_tensor(np.array(tab.A), dtype=like.dtype, device=like.device)
         self.c = np.array(tab.c, dtype=np.float64)
         # the previous stage polynomial extrapolates into the step when the nodes are distinct
@@ -445,24 +510,32 @@ class _ImplicitStages:
         """``r(K) = F(K) - K`` of eq. 8.20: (*batch, s, nx)."""
         return self._stage_values(stage_at, stacked, x, h, K, q) - K
 
-    def _factorize(self, stage_at, stacked, x, h, K, q, where):
-        """Linearise at ``K``: keeps the LU of ``M`` and returns ``r(K)`` (*batch, s, nx) and the
-        stage Jacobians ``F_x`` (*batch, s, nx, nx), ``F_q`` (*batch, s, nx, nq)."""
+    def _factorize(self, stage_at, stacked, x, h, K, q, out, update=None):
+        """Linearise at ``K``: keeps the LU of ``M`` (of the members in ``update`` (*batch,)
+        bool, default all) and returns ``r(K)`` (*batch, s, nx), the stage Jacobians ``F_x``
+        (*batch, s, nx, nx), ``F_q`` (*batch, s, nx, nq) and the members (*batch,) bool, not
+        ``out``, whose ``M`` is singular. The members ``out`` of the solve and the singular
+        ones keep the identity as their factors (finite solves, no effect on the others)."""
         nx = x.shape[-1]
         F, J = self._stage_values(stage_at, stacked, x, h, K, q, jacobians=True)
         Fx, Fq = J[..., :nx], J[..., nx:]
         # M[(i, r), (j, c)] = delta_ij delta_rc - h a_ij F_x^(i)[r, c]
         blocks = torch.einsum("ij,...irc->...irjc", self.a, Fx).flatten(-4, -3).flatten(-2, -1)
-        M = torch.eye(self.s * nx, dtype=x.dtype, device=x.device) - h * blocks
+        eye = torch.eye(self.s * nx, dtype=x.dtype, device=x.device)
+        M = torch.where(out[..., None, None], eye, eye - h * blocks)
         lu, piv, info = torch.linalg.lu_factor_ex(M)
         self.n_lu += 1
-        if bool((info != 0).any()):
-            raise SingularMatrixError(
-                f"sensitivities: the Newton matrix I - h A (x) F_x of {self.tab.name!r} is "
-                f"singular {where} for samples {_samples(info != 0)}. Try more substeps."
-            )
+        singular = (info != 0) if update is None else (info != 0) & update
+        keep = singular if update is None else singular | ~update
+        if bool(keep.any()):  # the kept factors, the identity for the singular members
+            base = torch.arange(1, self.s * nx + 1, dtype=piv.dtype, device=piv.device)
+            old_lu, old_piv = (eye, base) if update is None else self.lu
+            lu = torch.where(keep[..., None, None], old_lu, lu)
+            piv = torch.where(keep[..., None], old_piv, piv)
+            lu = torch.where(singular[..., None, None], eye, lu)
+            piv = torch.where(singular[..., None], base, piv)
         self.lu = (lu, piv)
-        return F - K, Fx, Fq
+        return F - K, Fx, Fq, singular
 
     def _solve(self, rhs):
         """``M^{-1} rhs`` for rhs (*batch, s nx, ncols) with the kept factorisation."""
@@ -479,64 +552,91 @@ class _ImplicitStages:
         L = extrapolation_matrix(self.c, float(h / self.h_prev))
         return torch.as_tensor(L, dtype=x.dtype, device=x.device) @ self.K_prev
 
-    def step(self, stage_at, stacked, h, x, q, seed, where):
-        """One step: stages ``K_i`` (*batch, nx) and ``dK_i/d(x_k, q)`` (*batch, nx, nx + nq);
-        ``stage_at``, ``stacked``: the stage functions (see :meth:`_stage_values`).
+    def step(self, stage_at, stacked, h, x, q, seed, frozen, safe):
+        """One step: stages ``K_i`` (*batch, nx), ``dK_i/d(x_k, q)`` (*batch, nx, nx + nq) and
+        the members (*batch,) whose stage equations failed in this step, as a
+        :class:`~integrators.newton.NewtonStatus` code (MAX_ITER, NON_FINITE, SINGULAR; 0
+        elsewhere). ``stage_at``, ``stacked``: the stage functions (see
+        :meth:`_stage_values`); ``frozen`` (*batch,) bool: the members that failed before, at
+        the finite state ``safe`` (*batch, nx) in ``x``.
 
         The stages come from :func:`~integrators.newton.newton` (simplified, with the kept
         factorisation) on ``K - F(K) = 0``; a member whose residual shrinks by less than
-        ``_SLOW_CONTRACTION`` in one iteration stops it, and the matrix is refreshed at the
-        current stages before the iteration resumes (within ``_MAX_NEWTON_ITER`` in all)."""
+        ``_SLOW_CONTRACTION`` in one iteration stops it, its matrix is refreshed at its current
+        stages and its iteration resumes, within ``_MAX_NEWTON_ITER`` iterations of its own.
+        A member fails when that budget runs out, when its stages become non-finite or when
+        its Newton matrix is singular; from then on it is out of the solve: its stages are
+        zero, its residual is zero, its matrix the identity and it evaluates ``f`` at
+        ``safe``, so its failure changes no number of the others. The iterations run in rounds
+        of at most the smallest budget left to a member still solving: a member that
+        reaches the end of a round resumes in the next with the same iterate and matrix,
+        which continues its iteration exactly."""
         s, nx = self.s, x.shape[-1]
+        failure = torch.zeros(frozen.shape, dtype=torch.int8, device=x.device)
+        out = frozen.clone()
+
+        def drop(mask, code):
+            """Take the members of ``mask`` still in the solve out of it, for ``code``."""
+            failure.masked_fill_(mask & ~out, code)
+            out.logical_or_(mask)
+
+        def parked(K):
+            """``K`` and ``x`` with the members out of the solve at zero stages and ``safe``."""
+            return torch.where(out[..., None, None], 0.0, K), torch.where(out[..., None], safe, x)
+
         K = self._guess(stage_at, x, h, q)
+        drop(~torch.isfinite(K).flatten(-2).all(-1), NewtonStatus.NON_FINITE)
         if self.lu is None:  # first step: a starting Newton matrix at the guess
-            self._factorize(stage_at, stacked, x, h, K, q, where)
-
-        def stage_equations(k):  # K - F(K) of eq. 8.20, flattened: (*batch, s nx)
-            return -self._residual(stage_at, stacked, x, h, k.unflatten(-1, (s, nx)), q).flatten(-2)
-
-        budget = _MAX_NEWTON_ITER
+            K, x_run = parked(K)
+            singular = self._factorize(stage_at, stacked, x_run, h, K, q, out)[-1]
+            drop(singular, NewtonStatus.SINGULAR)
+        left = torch.full(frozen.shape, _MAX_NEWTON_ITER, dtype=torch.int64, device=x.device)
+        converged = torch.zeros_like(frozen)
         while True:
+            solving = ~out & ~converged
+            if not bool(solving.any()):
+                break
+            K, x_run = parked(K)
+            skip = out.clone()
+
+            def stage_equations(k, x_run=x_run, skip=skip):  # K - F(K) of eq. 8.20: (*batch, s nx)
+                r = self._residual(stage_at, stacked, x_run, h, k.unflatten(-1, (s, nx)), q)
+                return -torch.where(skip[..., None, None], 0.0, r).flatten(-2)
+
             res = newton(
                 stage_equations,
                 K.flatten(-2),
                 method="simplified",
                 factorization=self.lu,
                 tol=self.tol,
-                max_iter=budget,
+                max_iter=int(left[solving].min()),
                 divergence_ratio=_SLOW_CONTRACTION,
             )
             K = res.x.unflatten(-1, (s, nx))
-            used = int(res.iterations.max()) if res.iterations.numel() else 0  # empty batch
-            self.n_iter, budget = self.n_iter + used, budget - used
-            status = res.status
-            if bool(res.converged.all()):
-                break
-            if bool((status == NewtonStatus.NON_FINITE).any()):
-                raise ConvergenceError(
-                    f"sensitivities: the stage equations (eq. 8.20) of {self.tab.name!r} "
-                    f"became non-finite {where} for samples "
-                    f"{_samples(status == NewtonStatus.NON_FINITE)}. Try more substeps."
-                )
-            if budget <= 0 or bool((status == NewtonStatus.MAX_ITER).any()):
-                raise ConvergenceError(
-                    f"sensitivities: the stage equations (eq. 8.20) of {self.tab.name!r} did "
-                    f"not reach ||r||_inf <= {self.tol:.3g} in {_MAX_NEWTON_ITER} Newton "
-                    f"iterations {where} for samples {_samples(~res.converged)}. "
-                    "Try more substeps."
-                )
-            # the kept matrix contracts too slowly: refresh it at the current stages
-            self._factorize(stage_at, stacked, x, h, K, q, where)
+            left -= res.iterations
+            self.n_iter += int(res.iterations.max())
+            converged = res.converged & ~out
+            drop(res.status == NewtonStatus.NON_FINITE, NewtonStatus.NON_FINITE)
+            drop(~converged & (left <= 0), NewtonStatus.MAX_ITER)
+            # a kept matrix that contracts too slowly: refreshed at the member's stages
+            slow = (res.status == NewtonStatus.DIVERGED) & ~out
+            if bool(slow.any()):
+                K, x_run = parked(K)
+                singular = self._factorize(stage_at, stacked, x_run, h, K, q, out, slow)[-1]
+                drop(singular, NewtonStatus.SINGULAR)
         # the one factorisation of this step, at the converged stages: the last correction and
         # every sensitivity column in one solve (eq. 8.24-8.27)
-        r, Fx, Fq = self._factorize(stage_at, stacked, x, h, K, q, where)
+        K, x_run = parked(K)
+        r, Fx, Fq, singular = self._factorize(stage_at, stacked, x_run, h, K, q, out)
+        drop(singular, NewtonStatus.SINGULAR)
+        r = torch.where(out[..., None, None], 0.0, r)
         rhs = Fx @ seed[..., None, :, :]  # (*batch, s, nx, nx + nq)
         rhs[..., nx:] += Fq
         sol = self._solve(torch.cat([r[..., None], rhs], -1).flatten(-3, -2)).unflatten(-2, (s, nx))
-        K = K + sol[..., 0]
+        K = torch.where(out[..., None, None], 0.0, K + sol[..., 0])
         self.n_iter += 1
         self.K_prev, self.h_prev = K, h
-        return list(K.unbind(-2)), list(sol[..., 1:].unbind(-3))
+        return list(K.unbind(-2)), list(sol[..., 1:].unbind(-3)), failure
 
 
 def sensitivities(
@@ -612,14 +712,18 @@ def sensitivities(
 
     Returns:
         :class:`SensitivityResult` with ``x``, ``A = dx_k/dx_0``, ``B = dx_k/dp``, ``C`` (the
-        input sensitivities, shapes above) and ``stats``.
+        input sensitivities, shapes above), ``stats`` and per sample ``status`` and
+        ``messages``: a sample whose states or sensitivities become inf/nan is NON_FINITE;
+        with an implicit method, a sample whose stage equations fail at a step (not solved
+        within the Newton budget, non-finite, or a singular Newton matrix) is NEWTON_FAILED.
+        Either way its outputs are NaN from the failing output time on, and the other
+        samples get the numbers they get alone (a failed implicit sample is frozen: see
+        :meth:`_ImplicitStages.step`); a run whose samples all fail returns their statuses.
 
     Raises:
         InputValidationError: bad shapes or grid, non-finite data, substeps < 1, a
             CollocationInput on another grid, ``stages`` for a method of fixed stages.
         TableauError: an unknown method or "auto".
-        ConvergenceError: the stage equations of an implicit method did not converge.
-        SingularMatrixError: the Newton matrix of an implicit step is singular.
     """
     x0, t, p, u = _prepare(x0, t, p, u)
     resolved = resolve_method(method)
@@ -661,6 +765,8 @@ def sensitivities(
     if not tab.is_explicit:
         tol = _default_tol(x.dtype) if newton_tol is None else newton_tol
         solver = _ImplicitStages(tab, x, float(tol))
+        stopped = _StageFailures(batch, T, x)
+        safe = x.clone()  # where failed members evaluate f (finite: x0 is validated)
     n_steps = n_f = n_jac = 0
 
     def interval_kernel(mode):
@@ -701,6 +807,13 @@ def sensitivities(
             fast.add_eager_seconds(elapsed)
             fast, stage_u, p_kernel = interval_kernel(True)
             tic = time.perf_counter()
+        if solver is not None and stopped.all_frozen:  # nothing left to solve: outputs held
+            n_steps += substeps
+            xs_out.append(x)
+            As_out.append(A)
+            Bs_out.append(B)
+            Cs_out.append(C)
+            continue
         if fast is not None and fast.active:
             S = torch.cat([A, B], -1)
             h = (t[k + 1] - t[k]) / substeps
@@ -769,16 +882,21 @@ def sensitivities(
                 x, J = batch_jacobian(step, torch.cat([x, q], -1))
                 n_jac += tab.stages
             else:
-                where = f"in step {m} of interval {k} (t = {float(tk):.6g})"
-                Ks, dKs = solver.step(stage_at, stacked_stages, h, x, q, seed, where)
+                Ks, dKs, failure = solver.step(
+                    stage_at, stacked_stages, h, x, q, seed, stopped.frozen, safe
+                )
                 J = seed.clone()
                 for i in range(tab.stages):
                     if tab.b[i] != 0.0:
                         x = x + h * float(tab.b[i]) * Ks[i]
                         if derivatives:
                             J = J + h * float(tab.b[i]) * dKs[i]
+                stopped.record(failure, k, m, tk)
+                # failed members: at the safe state, their A, B, C held (Phi = I, Psi = 0)
+                x = torch.where(stopped.frozen[..., None], safe, x)
                 if not derivatives:
                     continue
+                J = torch.where(stopped.frozen[..., None, None], seed, J)
             Phi, Psi = J[..., :nx], J[..., nx:]  # eq. 8.18b-c / 8.28b-c
             A = Phi @ A
             B = Phi @ B + Psi[..., :n_p]
@@ -821,24 +939,33 @@ def sensitivities(
             B=None if p is None or not derivatives else torch.stack(Bs_out, -3),
             C=None if C is None else torch.stack(Cs_out, -3).unflatten(-1, inputs.shape),
             stats=stats,
-        )
+        ),
+        None if solver is None else (stopped, tab.name, solver.tol),
     )
 
 
-def _with_failures(res: SensitivityResult) -> SensitivityResult:
-    """``res`` with the samples whose states or sensitivities are not finite at some output
-    time marked NON_FINITE, their outputs NaN from that time on (inf/nan are absorbing in a
-    run), and one message each (the wording of :func:`~integrators.odeint.odeint`)."""
+def _with_failures(res: SensitivityResult, stages=None) -> SensitivityResult:
+    """``res`` with its failed samples marked, their outputs NaN from the failure on, and one
+    message each: NON_FINITE where the states or sensitivities are not finite at some output
+    time (inf/nan are absorbing in a run; the wording of :func:`~integrators.odeint.odeint`),
+    NEWTON_FAILED where ``stages`` (a :class:`_StageFailures`, the method's name and the
+    Newton tolerance; implicit methods) says the stage equations failed first."""
     T = res.x.shape[-2]
     bad = ~torch.isfinite(res.x).all(-1)  # (*batch, T)
     for value in (res.A, res.B, res.C):
         if value is not None:  # (*batch, T, ...): every entry of an output time
             tail = tuple(range(res.x.dim() - 1, value.dim()))
             bad = bad | ~torch.isfinite(value).all(dim=tail)
-    failed = bad.any(-1)
+    first = torch.where(bad.any(-1), bad.to(torch.int8).argmax(-1), T)
+    nonfinite = first < T
+    if stages is not None:
+        stop = torch.as_tensor(stages[0].stop, device=first.device).reshape(first.shape)
+        stage_failed = stop < first
+        nonfinite &= ~stage_failed
+        first = torch.minimum(first, stop)
+    failed = first < T
     if not bool(failed.any()):
         return res
-    first = torch.where(failed, bad.to(torch.int8).argmax(-1), T)
     late = torch.arange(T, device=bad.device) >= first.unsqueeze(-1)  # (*batch, T)
 
     def nan_late(value, dims):
@@ -849,8 +976,14 @@ def _with_failures(res: SensitivityResult) -> SensitivityResult:
         value = getattr(res, name)
         if value is not None:
             setattr(res, name, nan_late(value, value.dim() - late.dim()))
-    res.status = torch.where(failed, Status.NON_FINITE.value, res.status).to(torch.int8)
-    res.messages = _failure_messages(failed, first, res.t)
+    res.status = torch.where(nonfinite, Status.NON_FINITE.value, res.status).to(torch.int8)
+    res.messages = []
+    if stages is not None:
+        res.status = torch.where(stage_failed, Status.NEWTON_FAILED.value, res.status).to(
+            torch.int8
+        )
+        res.messages = stages[0].messages(stage_failed, res.t, *stages[1:])
+    res.messages += _failure_messages(nonfinite, first, res.t)
     return res
 
 

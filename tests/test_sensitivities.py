@@ -14,7 +14,6 @@ from _shared_models import pendulum
 
 from integrators import (
     InputValidationError,
-    SingularMatrixError,
     Status,
     TableauError,
     gauss_legendre,
@@ -222,9 +221,6 @@ def test_errors():
         sensitivities(pendulum, X0, T_GRID, P, u=U[:3])
     with pytest.raises(InputValidationError, match="another grid"):
         sensitivities(pendulum, X0, T_GRID, P, u=CollocationInput(P_IN[2], 2 * T_GRID))
-    with pytest.raises(SingularMatrixError, match=r"singular in step 0 of interval 0"):
-        # implicit Euler on x' = x / h: the Newton matrix 1 - h / h vanishes
-        sensitivities(lambda t, x: x / 0.25, X0, T_GRID, method="implicit_euler")
 
 
 def test_x0_and_t_are_checked_as_odeint_checks_them():
@@ -272,6 +268,82 @@ def test_substeps_must_be_a_positive_integer(substeps):
     """substeps is checked as odeint checks it: an int >= 1, not a float, bool or string."""
     with pytest.raises(InputValidationError, match="sensitivities: substeps must be an integer"):
         sensitivities(pendulum_free, X0, T_GRID, P, substeps=substeps)
+
+
+def quadratic(t, x, u, p):
+    """x' = p_0 x^2 + p_1 x + u: escapes to infinity for p_0 > 0 from x_0 > 0."""
+    return p[..., :1] * x**2 + p[..., 1:] * x + u
+
+
+#: method -> {member of the batch below: (interval of its failure, reason in the message)}
+STAGE_FAILURES = {
+    "implicit_euler": {1: (1, "did not reach ||r||_inf"), 2: (0, "singular Newton matrix")},
+    "radau_iia": {1: (4, "did not reach ||r||_inf")},
+    "gauss_legendre": {1: (4, "did not reach ||r||_inf")},
+}
+
+
+@pytest.mark.parametrize("method", list(STAGE_FAILURES))
+def test_a_member_whose_stage_equations_fail_stops_and_leaves_the_others_alone(method):
+    """Members (x' = p_0 x^2 + p_1 x + u, h = 0.2): 0 and 3 are solved; 1 escapes to
+    infinity at t = 1, and near it the stage equations lose their root (implicit Euler's
+    x = x_k + h x^2 has none once x_k > 1 / (4h)); 2 is x' = 5 x, whose implicit Euler
+    Newton matrix 1 - 5 h vanishes. The first failure raised ConvergenceError or
+    SingularMatrixError for the whole batch. Now the failing member alone gets
+    NEWTON_FAILED, NaN x, A, B, C from the end of the failing interval on and a message
+    naming it, the interval, the time and the reason; every member (the failing ones up to
+    their failure) equals its run alone, and derivatives=False the same states."""
+    t = torch.linspace(0.0, 1.0, 6, dtype=F64)
+    x0 = torch.tensor([[0.5], [1.0], [1.0], [-1.0]], dtype=F64)
+    p = torch.tensor([[1.0, 0.0], [1.0, 0.0], [0.0, 5.0], [2.0, -50.0]], dtype=F64)
+    u = 0.01 * torch.cos(3.0 * t)[:, None]
+    res = sensitivities(quadratic, x0, t, p, u=u, method=method)
+    failing = STAGE_FAILURES[method]
+    expected = [Status.NEWTON_FAILED if i in failing else Status.SUCCESS for i in range(4)]
+    assert res.status.tolist() == expected
+    for i in range(4):
+        alone = sensitivities(quadratic, x0[i : i + 1], t, p[i : i + 1], u=u, method=method)
+        assert alone.status.tolist() == expected[i : i + 1]
+        for name in ("x", "A", "B", "C"):
+            torch.testing.assert_close(
+                getattr(res, name)[i : i + 1],
+                getattr(alone, name),
+                rtol=0,
+                atol=1e-14,
+                equal_nan=True,
+            )
+    assert len(res.messages) == len(failing)
+    for (i, (k, reason)), line in zip(failing.items(), res.messages, strict=True):
+        assert line.startswith(f"sample {i}: the stage equations (eq. 8.20)") and reason in line
+        assert (
+            f"interval {k} (t = {float(t[k]):.6g}); its outputs from t = {float(t[k + 1]):.6g} "
+            "on are NaN" in line
+        )
+        for value in (res.x, res.A, res.B, res.C):
+            assert bool(torch.isfinite(value[i, : k + 1]).all())
+            assert bool(value[i, k + 1 :].isnan().all())
+    states = sensitivities(quadratic, x0, t, p, u=u, method=method, derivatives=False)
+    torch.testing.assert_close(states.x, res.x, rtol=0, atol=0, equal_nan=True)
+    assert states.status.tolist() == expected and states.messages == res.messages
+
+
+def test_a_run_whose_members_all_fail_returns_their_statuses():
+    """x' = x^2 from 2 and from 1 by implicit Euler at h = 0.2: the stage equation has no
+    root once x_k > 1 / (4h) = 1.25, at the first step from 2, at the second from 1. Both
+    raised ConvergenceError; now both are NEWTON_FAILED with NaN from there on (the run
+    stops solving once no member is left), and an unbatched run gives a 0-dim status."""
+    t = torch.linspace(0.0, 1.0, 6, dtype=F64)
+    x0 = torch.tensor([[2.0], [1.0]], dtype=F64)
+    res = sensitivities(lambda tt, x: x**2, x0, t, method="implicit_euler")
+    assert res.status.tolist() == [Status.NEWTON_FAILED] * 2
+    assert [line.split(":")[0] for line in res.messages] == ["sample 0", "sample 1"]
+    assert bool(res.x[0, 1:].isnan().all()) and bool(res.x[1, 2:].isnan().all())
+    assert float(res.x[1, 1, 0]) == pytest.approx((1 - math.sqrt(1 - 0.8)) / 0.4, rel=1e-12)
+    assert bool(res.A[1, 2:].isnan().all()) and bool(torch.isfinite(res.A[1, :2]).all())
+    alone = sensitivities(lambda tt, x: x**2, x0[0], t, method="implicit_euler")
+    assert alone.status.shape == () and int(alone.status) == Status.NEWTON_FAILED
+    assert alone.messages[0].startswith("sample 0: the stage equations")
+    torch.testing.assert_close(alone.x, res.x[0], rtol=0, atol=0, equal_nan=True)
 
 
 @pytest.mark.parametrize("method", ["rk4", "gauss_legendre", "radau_iia", "implicit_euler"])

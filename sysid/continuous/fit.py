@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from integrators.block_jacobian import BlockJacobian
-from integrators.errors import ConvergenceError, InputValidationError
+from integrators.errors import InputValidationError
 from integrators.newton import NewtonStatus, minimize
 
 from .._progress import progress_bar
@@ -307,21 +307,16 @@ class _Problem:
         return torch.cat(residuals, -1), J
 
     def residuals(self, z: torch.Tensor) -> torch.Tensor:
-        """``r`` (*batch, M) alone (the same simulation without its derivatives). A trial
-        point (after a first evaluation) where an implicit method's stage equations do not
-        converge (a far step of a stiff parameter) gets infinite residuals, which the line
-        search rejects like a non-finite simulation, for every data set of the batch."""
+        """``r`` (*batch, M) alone (the same simulation without its derivatives). A data set
+        whose simulation fails at ``z`` (it becomes inf/nan, or an implicit method's stage
+        equations are not solved, e.g. at a far trial of a stiff parameter) gets NaN
+        residuals from the failure on; the other data sets get their own numbers, and the
+        line search rejects the trial of that data set alone (a non-finite loss counts as
+        infinite, :func:`~integrators.newton.minimize`)."""
         self.stats = []
-        try:
-            r = torch.cat(
-                [self._experiment(z, e, part, False) for e, part in enumerate(self.parts)], -1
-            )
-        except ConvergenceError:
-            if getattr(self, "_rows", None) is None:
-                raise
-            return z.new_full((*z.shape[:-1], self._rows), math.inf)
-        self._rows = r.shape[-1]
-        return r
+        return torch.cat(
+            [self._experiment(z, e, part, False) for e, part in enumerate(self.parts)], -1
+        )
 
     def _experiment(self, z, e, part, derivatives):
         model, nx, ny = self.model, self.model.nx, self.ny
@@ -458,9 +453,9 @@ def _check_start(problem: _Problem, z0: torch.Tensor, runs: int) -> None:
         raise InputValidationError(
             f"the model's simulation from the starting values is not finite for data set(s) "
             f"{idx} ({int(bad.sum())} in all): the start makes the plant diverge (or a DAE's "
-            "algebraic equations have no solution). Start closer (Param values, x0), use "
-            "criterion='multiple_shooting' with short segments, more substeps or an implicit "
-            "method for a stiff plant."
+            "algebraic equations or an implicit method's stage equations have no solution). "
+            "Start closer (Param values, x0), use criterion='multiple_shooting' with short "
+            "segments, more substeps or an implicit method for a stiff plant."
         )
 
 

@@ -37,7 +37,7 @@ import torch
 from torch import nn
 from torch.func import functional_call
 
-from integrators import SemiExplicitDAE, sensitivities
+from integrators import SemiExplicitDAE, Status, sensitivities
 from integrators.auto import choose_method
 from integrators.errors import HighIndexError, InputValidationError
 from integrators.inputs import CollocationInput
@@ -438,8 +438,9 @@ class GreyBoxModel:
             ``dy_dx0`` (*batch, S, L+1, ny, nx), ``x_end`` (*batch, S, nx), ``dxend_dP`` and
             ``dxend_dx0``, ``stats`` (the integrator's statistics), ``status`` (*batch, S)
             (:class:`~integrators.Status` codes: NON_FINITE where a segment's simulation
-            became inf / NaN, its outputs NaN from there on) and ``messages`` (one per
-            failed segment).
+            became inf / NaN, NEWTON_FAILED where an implicit method's stage equations were
+            not solved; its outputs NaN from there on, the other segments and data sets
+            unaffected) and ``messages`` (one per failed segment).
         """
         tab = self._tableau(method)
         L = segments.length
@@ -523,9 +524,10 @@ class GreyBoxModel:
         Returns:
             (*batch, N, ny) simulated outputs (experiments concatenated along time, like
             ``data.y``). A data set whose simulation becomes inf / NaN (the model escapes to
-            infinity, or the fixed step is too large for stability) has NaN outputs from
-            that sample of the experiment on, and an :class:`~sysid.errors.UnstableModelWarning`
-            names it, the experiment and the time.
+            infinity, or the fixed step is too large for stability) or whose implicit stage
+            equations are not solved at a step has NaN outputs from that sample of the
+            experiment on, and an :class:`~sysid.errors.UnstableModelWarning` names it, the
+            experiment and the time.
         """
         if not isinstance(data, IOData):
             raise InputValidationError(
@@ -588,10 +590,11 @@ class GreyBoxModel:
                 f"; and {len(failures) - 5} more" if len(failures) > 5 else ""
             )
             warnings.warn(
-                f"simulate: the simulation became non-finite (inf/nan) for {shown}; the "
-                "outputs from there on are NaN. The model escapes to infinity with these "
-                "parameters and initial state, or the fixed step is too large for stability: "
-                "check them, or use more substeps or an implicit method.",
+                f"simulate: the simulation became non-finite (inf/nan) or failed for {shown}; "
+                "the outputs from there on are NaN. The model escapes to infinity with these "
+                "parameters and initial state, or the fixed step is too large for stability "
+                "(or for the stage equations of an implicit method): check them, or use more "
+                "substeps or an implicit method.",
                 UnstableModelWarning,
                 stacklevel=2,
             )
@@ -634,9 +637,11 @@ def _failed_runs(status: torch.Tensor, x: torch.Tensor, Ts: float, experiment) -
     for idx in torch.nonzero(failed.reshape(failed.shape or (1,))).tolist():
         k = int(first.reshape(failed.shape or (1,))[tuple(idx)])
         name = f"data set {tuple(idx) if len(idx) > 1 else idx[0]}" if status.dim() else "the run"
+        code = int(status.reshape(failed.shape or (1,))[tuple(idx)])
+        why = ", its implicit stage equations not solved" if code == Status.NEWTON_FAILED else ""
         lines.append(
             f"{name}{where} between t = {(k - 1) * Ts:.6g} and {k * Ts:.6g} (NaN from sample "
-            f"{k} on)"
+            f"{k} on{why})"
         )
     return lines
 
