@@ -128,7 +128,7 @@ def input_signal(
     g = _generator(generator, seed, device)
     to = dict(dtype=dtype, device=device)
     if kind == "white":
-        return amplitude * torch.randn(shape, generator=g, **to)
+        return torch.randn(shape, generator=g, **to).mul_(amplitude)
     if kind == "prbs":
         n_levels = -(-N // hold)
         levels = torch.randint(0, 2, (*batch_shape, n_levels, n_inputs), generator=g, device=device)
@@ -238,7 +238,7 @@ def noise_signal(
     to = dict(dtype=dtype, device=device)
     shape = tuple(shape)
     if kind == "gaussian":
-        return std * torch.randn(shape, generator=g, **to)
+        return torch.randn(shape, generator=g, **to).mul_(std)
     if kind == "student_t":
         if int(df) != df or df < 1:
             raise InputValidationError(f"df must be a positive integer, got {df}.")
