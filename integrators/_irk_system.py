@@ -103,7 +103,8 @@ class StageSystem:
         def equilibrated(v, x):
             return phi(v, x) / scale
 
-        res = newton(equilibrated, guess, xd, method="damped", max_iter=50)
+        # derivatives from root_derivatives, not from the solve
+        res = newton(equilibrated, guess, xd, method="damped", max_iter=50, params=())
         v = root_derivatives(lambda v: phi(v, x), res.x)
         if self.kind == "semi":
             return self.rhs_f(t, x, v, u), v, res

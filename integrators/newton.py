@@ -287,7 +287,11 @@ class _ImplicitSolution(torch.autograd.Function):
         else:
             lam = torch.linalg.lu_solve(LU, pivots, grad_x.unsqueeze(-1), adjoint=True)
             targets = [args[i] if i < ctx.n_args else inputs[i] for i in wanted]
-            grads = torch.autograd.grad(y, targets, -lam.squeeze(-1), allow_unused=True)
+            # retained: the graph of a closure tensor computed outside phi (reached through
+            # its leaves) belongs to the caller, who may differentiate through it again
+            grads = torch.autograd.grad(
+                y, targets, -lam.squeeze(-1), allow_unused=True, retain_graph=True
+            )
         out = [None] * len(inputs)
         for i, g in zip(wanted, grads, strict=True):
             out[i] = torch.zeros_like(inputs[i]) if g is None else g
@@ -367,6 +371,22 @@ def root_with_derivatives(residual: Callable, x_star: torch.Tensor, solve: Calla
 
 
 # ------------------------------------------------------------------------------ newton
+def _graph_leaves(y: torch.Tensor, exclude: torch.Tensor) -> list[torch.Tensor]:
+    """The leaf tensors that require grad and that the autograd graph of ``y`` reaches
+    (``exclude`` left out), in the order a depth-first walk from ``y.grad_fn`` meets them."""
+    leaves, seen, stack = [], set(), [y.grad_fn]
+    while stack:
+        node = stack.pop()
+        if node is None or node in seen:
+            continue
+        seen.add(node)
+        leaf = getattr(node, "variable", None)  # an AccumulateGrad node holds its leaf
+        if leaf is not None and leaf is not exclude and all(leaf is not t for t in leaves):
+            leaves.append(leaf)
+        stack.extend(fn for fn, _ in node.next_functions)
+    return leaves
+
+
 def _evaluate(phi, x, args, shape, what):
     y = phi(x, *args)
     if not isinstance(y, torch.Tensor) or y.shape != shape:
@@ -388,7 +408,7 @@ def newton(
     max_iter: int = 50,
     factorization: tuple[torch.Tensor, torch.Tensor] | None = None,
     divergence_ratio: float | None = None,
-    params: Sequence[torch.Tensor] = (),
+    params: Sequence[torch.Tensor] | None = None,
     raise_on_failure: bool = False,
     return_history: bool = False,
 ) -> NewtonResult:
@@ -416,8 +436,12 @@ def newton(
             Jacobian to reuse (simplified Newton only), e.g. ``result.factorization``.
         divergence_ratio: stop a member (status DIVERGED) when its residual grows by more than
             this factor in one iteration; None disables.
-        params: tensors that ``phi`` reads from its closure (e.g. ``module.parameters()``) and
-            that should also receive IFT gradients.
+        params: the tensors that ``phi`` reads from its closure (e.g. the parameters of a
+            module whose method ``phi`` calls) and that receive IFT gradients. None (default):
+            all of them, found in the autograd graph of ``phi`` at ``x0`` (the leaf tensors
+            that require grad, ``x`` and ``args`` aside), so gradients reach whatever ``phi``
+            reads, as plain autograd would; ``()`` differentiates with respect to ``args``
+            only.
         raise_on_failure: raise :class:`ConvergenceError` naming the failed members instead of
             only flagging them.
         return_history: keep every iterate in ``result.x_history``.
@@ -456,21 +480,24 @@ def newton(
         divergence_ratio = check_positive(
             divergence_ratio, "newton: divergence_ratio", " (None disables the divergence test)"
         )
-    params = tuple(params)
-    _refuse_forward_mode((x0, *args, *params))
+    grad_mode = torch.is_grad_enabled()
+    _refuse_forward_mode((x0, *args, *(params or ())))
     x = check_state(x0, "newton: x0").detach()
     frozen = _detach(args)
     # the autograd Jacobian at x0 (the first one any method takes) comes from the graph of
     # this first evaluation: one evaluation of phi fewer per solve
     start_graph = jacobian is None and factorization is None
     x_start = x.clone().requires_grad_(start_graph)
-    with torch.set_grad_enabled(start_graph):
+    with torch.set_grad_enabled(start_graph or (grad_mode and params is None)):
         fx = phi(x_start, *frozen)
     if not isinstance(fx, torch.Tensor):
         raise InputValidationError(f"newton: phi must return a tensor, got {type(fx).__name__}.")
+    if params is None:
+        params = _graph_leaves(fx, x_start) if grad_mode else ()
+    params = tuple(params)
     # (graph at x0, its output) while unused; None: phi at x0 has no graph through x
     same_layout = fx.shape == x.shape and fx.dtype == x.dtype
-    start = (x_start, fx) if fx.requires_grad and same_layout else None
+    start = (x_start, fx) if start_graph and fx.requires_grad and same_layout else None
     fx = fx.detach()
     if fx.shape != x.shape:
         try:

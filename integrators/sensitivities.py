@@ -611,6 +611,7 @@ class _ImplicitStages:
                 tol=self.tol,
                 max_iter=int(left[solving].min()),
                 divergence_ratio=_SLOW_CONTRACTION,
+                params=(),  # stage values only: their derivatives are propagated separately
             )
             K = res.x.unflatten(-1, (s, nx))
             left -= res.iterations

@@ -459,8 +459,9 @@ class SingularPerturbation(nn.Module):
         """z on the slow manifold g(t, x, z, u) = 0 by batched Newton from z0 (*batch, nz).
 
         Full Newton steps of :func:`integrators.newton.newton` in z (exact dg/dz by autograd);
-        a member stops once ``|g|_inf <= tol``. Differentiable with respect to x and u by the
-        implicit function theorem. Raises SingularMatrixError where dg/dz is singular
+        a member stops once ``|g|_inf <= tol``. Differentiable by the implicit function
+        theorem with respect to x, u and every tensor that ``g`` reads (e.g. the parameters
+        of the module whose method ``g`` is). Raises SingularMatrixError where dg/dz is singular
         (Theorem 8 fails) and ConvergenceError (naming the samples) after ``max_iter``.
         """
         tt = _as_time(t, x)

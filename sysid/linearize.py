@@ -84,21 +84,22 @@ def steady_state(f, x0, u=None, *, tol=1e-10, max_iter=50, t=None):
     """Solve f(t, x, u) = 0 for x by batched Newton from x0 (*batch, nx) (eq. 1.36).
 
     Full Newton steps of :func:`integrators.newton.newton` (exact Jacobian df/dx by autograd);
-    a member stops once ``|f|_inf <= tol``. The result is differentiable with respect to ``u``
-    and to the parameters of an ``nn.Module`` ``f`` by the implicit function theorem.
+    a member stops once ``|f|_inf <= tol``. The result is differentiable by the implicit
+    function theorem with respect to ``u`` and to every tensor that ``f`` reads (the
+    parameters of an ``nn.Module`` or of the module whose method ``f`` is, tensors in its
+    closure).
 
     Returns x (*batch, nx). Raises SingularMatrixError where df/dx is singular and
     ConvergenceError (naming the samples) when ``|f| > tol`` after max_iter iterations.
     """
     x0 = torch.as_tensor(x0)
-    tt = torch.as_tensor(0.0 if t is None else t, dtype=x0.dtype)
-    args = () if u is None else (torch.as_tensor(u, dtype=x0.dtype),)
-    params = tuple(f.parameters()) if isinstance(f, torch.nn.Module) else ()
+    tt = torch.as_tensor(0.0 if t is None else t, dtype=x0.dtype, device=x0.device)
+    args = () if u is None else (torch.as_tensor(u, dtype=x0.dtype, device=x0.device),)
 
     def phi(x, *uu):
         return _call(f, tt, x, uu[0] if uu else None)
 
-    res = newton(phi, x0, *args, tol=tol, max_iter=max_iter, params=params)
+    res = newton(phi, x0, *args, tol=tol, max_iter=max_iter)
     singular = res.status == NewtonStatus.SINGULAR
     if bool(singular.any()):
         bad = torch.nonzero(singular)[:5].tolist()

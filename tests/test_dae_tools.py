@@ -301,18 +301,20 @@ def test_two_mass_system_reductions_converge_eq_5_41_to_5_44():
 
 
 def test_slow_manifold_is_differentiable_and_names_samples_that_do_not_converge():
-    """Eq. (5.38b): on the slow manifold of eq. (5.37) x2 = (x1 + u) / a, so dz/dx1 = 1/a and
-    dz/du = 1/a (implicit function theorem); a budget of zero Newton steps names the sample
-    that is not on the manifold yet."""
+    """Eq. (5.38b): on the slow manifold of eq. (5.37) x2 = (x1 + u) / a, so dz/dx1 = 1/a,
+    dz/du = 1/a and dz/da = -(x1 + u) / a^2 (implicit function theorem); a budget of zero
+    Newton steps names the sample that is not on the manifold yet."""
     limit = SingularlyPerturbedLinear(a=2.0)
     pert = dae.SingularPerturbation(limit.f, limit.g, nx=1)
     x = torch.tensor([[0.5], [-1.0]], dtype=DT, requires_grad=True)
     u = torch.tensor([[0.2], [0.1]], dtype=DT, requires_grad=True)
     z = pert.slow_manifold(x, torch.zeros(2, 1, dtype=DT), u)
     torch.testing.assert_close(z, (x + u).detach() / 2.0, rtol=0, atol=1e-12)
-    gx, gu = torch.autograd.grad(z.sum(), (x, u))
+    gx, gu, ga = torch.autograd.grad(z.sum(), (x, u, limit.a))
     torch.testing.assert_close(gx, torch.full_like(gx, 0.5), rtol=0, atol=1e-12)
     torch.testing.assert_close(gu, torch.full_like(gu, 0.5), rtol=0, atol=1e-12)
+    # the plant's parameter a, read by its bound method g: dz/da = -(x + u) / a^2
+    assert ga.item() == pytest.approx(-float((x + u).sum()) / 4.0, rel=1e-12)
     z0 = torch.tensor([[0.35], [0.0]], dtype=DT)  # sample 0 starts on the manifold
     with pytest.raises(ConvergenceError, match=r"slow_manifold: .* batch indices \[\[1\]\]"):
         pert.slow_manifold(x.detach(), z0, u.detach(), max_iter=0)

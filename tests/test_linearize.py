@@ -73,6 +73,25 @@ def test_steady_state_is_differentiable_by_the_implicit_function_theorem():
     assert u.grad.item() == pytest.approx(1 / 4.0, rel=1e-10)
 
 
+def test_steady_state_gradients_reach_tensors_that_f_reads_from_its_closure():
+    """x' = -k x^3 + u at rest: x = (u / k)^(1/3), dx/dk = -x / (3 k) with k a tensor in the
+    closure of a plain function (no gradient reached it: the equilibrium was detached), and
+    dx/da for a bound method of a zoo plant (eq. 5.38a at rest: x1 = u / (a - 1))."""
+    k = torch.tensor(2.0, dtype=DT, requires_grad=True)
+    u = torch.tensor([[1.0]], dtype=DT)
+    x = steady_state(lambda t, x, u: -k * x**3 + u, torch.tensor([[0.5]], dtype=DT), u)
+    (g,) = torch.autograd.grad(x.sum(), k)
+    assert g.item() == pytest.approx(-(0.5 ** (1 / 3)) / 6.0, rel=1e-10)
+
+    from sysid.zoo.dae import SingularlyPerturbedLinear
+
+    plant = SingularlyPerturbedLinear(a=2.0)
+    x = steady_state(plant.reduced, torch.tensor([[0.3]], dtype=DT), u)
+    torch.testing.assert_close(x, torch.tensor([[1.0]], dtype=DT), rtol=0, atol=1e-12)
+    (g,) = torch.autograd.grad(x.sum(), plant.a)
+    assert g.item() == pytest.approx(-1.0, rel=1e-10)  # d/da u / (a - 1) = -u / (a - 1)^2
+
+
 def test_steady_state_names_the_sample_with_a_singular_jacobian():
     with pytest.raises(SingularMatrixError, match=r"df/dx is singular at batch indices \[\[1\]\]"):
         steady_state(lambda t, x: x**2 - 1.0, torch.tensor([[2.0], [0.0]], dtype=DT))

@@ -328,6 +328,48 @@ def test_ift_gradient_reaches_closure_parameters_and_not_x0():
     assert torch.autograd.grad(res.x.sum(), x0, allow_unused=True)[0] is None
 
 
+@pytest.mark.parametrize("jacobian", ["autograd", "given"])
+def test_ift_gradient_reaches_every_tensor_phi_reads_without_params(jacobian):
+    """Without ``params`` the solve finds what phi reads in its closure: a module parameter
+    through a bound method, a plain tensor, and a view of a leaf computed outside phi
+    (x^3 = c (s k)^-1 w_0 / w_1 with k, s, w read from the closure), so its root gets every
+    gradient plain autograd would give; closed form (w0 / (c s k w1))^(1/3) differentiated by
+    autograd (the graph of w, reached by the solve's backward, stays usable). ``params=()``
+    keeps only the arguments' gradients; no_grad none."""
+
+    class Gain(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.k = torch.nn.Parameter(torch.tensor(2.0, dtype=F64))
+
+        def residual(self, x, c):
+            return c * scale * self.k * x**3 - w[0] / w[1]
+
+    gain = Gain()
+    scale = torch.tensor(1.5, dtype=F64, requires_grad=True)
+    weights = torch.tensor([3.0, 0.5], dtype=F64, requires_grad=True)
+    w = weights * 1.0  # a non-leaf tensor in the closure: gradients reach its leaf
+    c = torch.tensor([[1.0], [2.0]], dtype=F64, requires_grad=True)
+    options = {}
+    if jacobian == "given":  # no autograd Jacobian: the closure is read from an extra call
+        options["jacobian"] = lambda x, c: (3 * c * scale * gain.k * x**2).detach()[..., None]
+    res = newton(gain.residual, torch.ones(2, 1, dtype=F64), c, tol=1e-14, **options)
+    leaves = (c, gain.k, scale, weights)
+    got = torch.autograd.grad(res.x.sum(), leaves)
+    exact = ((w[0] / w[1]) / (c * scale * gain.k)) ** (1 / 3)
+    torch.testing.assert_close(res.x.detach(), exact.detach(), rtol=1e-13, atol=0)
+    want = torch.autograd.grad(exact.sum(), leaves)
+    for g, e in zip(got, want, strict=True):
+        torch.testing.assert_close(g, e, rtol=1e-10, atol=0)
+
+    only_args = newton(gain.residual, torch.ones(2, 1, dtype=F64), c, tol=1e-14, params=())
+    g_c, g_k = torch.autograd.grad(only_args.x.sum(), (c, gain.k), allow_unused=True)
+    torch.testing.assert_close(g_c, want[0], rtol=1e-10, atol=0)
+    assert g_k is None
+    with torch.no_grad():
+        assert not newton(gain.residual, torch.ones(2, 1, dtype=F64), c).x.requires_grad
+
+
 @pytest.mark.parametrize("argument", ["derived", "same tensor"])
 def test_second_order_ift_with_arguments_computed_from_closure_parameters(argument):
     """x^3 + a x - p^2 - 1 = 0 with a = 2p (or a = p) passed as an argument and p also read
