@@ -280,6 +280,15 @@ class _InputParameters:
         return (weights * w.unflatten(-1, (self.q, self.nu))).sum(-2)
 
 
+def _combine(x, h, coefficients, Ks):
+    """``x + h sum_j a_j K_j`` over the nonzero coefficients ``a_j`` (a tableau row or ``b``;
+    ``Ks`` may be shorter: the stages so far), added term by term in stage order."""
+    for a, K in zip(coefficients, Ks, strict=False):
+        if a != 0.0:
+            x = x + h * float(a) * K
+    return x
+
+
 def _explicit_step(stage_at, tab, h, nx: int):
     """One explicit step ``z = (x_k, q) -> x_{k+1}`` (eq. 6.26) as a function of ``z``
     (*batch, nx + nq), whose Jacobian is ``[Phi_k Psi_k]`` (eq. 8.18)."""
@@ -288,15 +297,8 @@ def _explicit_step(stage_at, tab, h, nx: int):
         x, q = z[..., :nx], z[..., nx:]
         Ks = []
         for i in range(tab.stages):
-            xs = x
-            for j in range(i):
-                if tab.A[i, j] != 0.0:
-                    xs = xs + h * float(tab.A[i, j]) * Ks[j]
-            Ks.append(stage_at(i)(torch.cat([xs, q], -1)))
-        for i in range(tab.stages):
-            if tab.b[i] != 0.0:
-                x = x + h * float(tab.b[i]) * Ks[i]
-        return x
+            Ks.append(stage_at(i)(torch.cat([_combine(x, h, tab.A[i], Ks), q], -1)))
+        return _combine(x, h, tab.b, Ks)
 
     return step
 
@@ -330,11 +332,7 @@ def _interval_kernel(g, tab: ButcherTableau, substeps: int, n_out, _layout):
             Ks, dKs = [], []
             for i in range(s):
                 ti = tk + c[i] * h
-                xs, dxs = x, S
-                for j in range(i):
-                    if A[i][j] != 0.0:
-                        xs = xs + h * A[i][j] * Ks[j]
-                        dxs = dxs + h * A[i][j] * dKs[j]
+                xs, dxs = _combine(x, h, A[i], Ks), _combine(S, h, A[i], dKs)
                 u = U[..., m, i, :]
 
                 def rhs(xx, pp, ti=ti, u=u):
@@ -346,10 +344,7 @@ def _interval_kernel(g, tab: ButcherTableau, substeps: int, n_out, _layout):
                 K, dK = vmap(column, in_dims=(-1, -1), out_dims=(None, -1))(dxs, dp)
                 Ks.append(K)
                 dKs.append(dK)
-            for i in range(s):
-                if b[i] != 0.0:
-                    x = x + h * b[i] * Ks[i]
-                    S = S + h * b[i] * dKs[i]
+            x, S = _combine(x, h, b, Ks), _combine(S, h, b, dKs)
         return x, S
 
     return kernel
@@ -757,7 +752,7 @@ def sensitivities(
     B = x.new_zeros(*batch, nx, n_p)
     # input sensitivities, flattened: columns k * nw .. (k + 1) * nw belong to interval k
     C = x.new_zeros(*batch, nx, inputs.shape.numel()) if inputs.parameterised else None
-    xs_out, As_out, Bs_out, Cs_out = [x], [A], [B], [C]
+    outputs = [(x, A, B, C)]  # per output time
     seed = torch.cat([eye, eye.new_zeros(nx, nq)], -1).expand(*batch, nx, nx + nq)
     solver = None
     # stacked stage times t_k + c h broadcast like stacked stage states (s, *batch, nx)
@@ -768,6 +763,7 @@ def sensitivities(
         solver = _ImplicitStages(tab, x, float(tol))
         stopped = _StageFailures(batch, T, x)
         safe = x.clone()  # where failed members evaluate f (finite: x0 is validated)
+    p_batch = x.new_zeros(*batch, 0) if p is None else p.expand(*batch, n_p)
     n_steps = n_f = n_jac = 0
 
     def interval_kernel(mode):
@@ -793,8 +789,7 @@ def sensitivities(
         if inputs.kind in ("zoh", "collocation"):
             stage_u = stage_u.expand(*batch, *stage_u.shape[-4:])
         # materialised: forward-mode duals of a broadcast view (stride 0) fail to compile
-        p_kernel = x.new_zeros(*batch, 0) if p is None else p.expand(*batch, n_p).contiguous()
-        return stepper, stage_u, p_kernel
+        return stepper, stage_u, p_batch.contiguous()
 
     fast = None
     if tab.is_explicit and not inputs.parameterised and compile is not False:
@@ -810,10 +805,7 @@ def sensitivities(
             tic = time.perf_counter()
         if solver is not None and stopped.all_frozen:  # nothing left to solve: outputs held
             n_steps += substeps
-            xs_out.append(x)
-            As_out.append(A)
-            Bs_out.append(B)
-            Cs_out.append(C)
+            outputs.append((x, A, B, C))
             continue
         if fast is not None and fast.active:
             S = torch.cat([A, B], -1)
@@ -827,19 +819,11 @@ def sensitivities(
                 n_steps += substeps
                 n_f += tab.stages * substeps
                 n_jac += tab.stages * substeps  # the kernel propagates S either way
-                xs_out.append(x)
-                As_out.append(A)
-                Bs_out.append(B)
-                Cs_out.append(None)
+                outputs.append((x, A, B, C))
                 continue
-        # q = (p, w_k): the quantities differentiated on this interval, (*batch, nq)
-        q = torch.cat(
-            ([p.expand(*batch, n_p)] if p is not None else [])
-            + ([inputs.interval(k, batch)] if inputs.parameterised else [])
-            + [x.new_zeros(*batch, 0)],
-            -1,
-        )
         held = inputs.interval(k, batch) if inputs.kind in ("zoh", "collocation") else None
+        # q = (p, w_k): the quantities differentiated on this interval, (*batch, nq)
+        q = torch.cat([p_batch] + ([held] if inputs.parameterised else []), -1)
         h = (t[k + 1] - t[k]) / substeps
         for m in range(substeps):
             tk = t[k] + m * h
@@ -850,11 +834,8 @@ def sensitivities(
 
                 def stage(z):
                     zp = z[..., nx : nx + n_p] if p is not None else None
-                    zu = u_call
-                    if inputs.parameterised:
-                        zu = inputs.stage_input(z[..., nx + n_p :], m, i)
-                    elif held is not None:
-                        zu = inputs.stage_input(held, m, i)
+                    w = z[..., nx + n_p :] if inputs.parameterised else held
+                    zu = u_call if w is None else inputs.stage_input(w, m, i)
                     return g(ti, z[..., :nx], zu, zp)
 
                 return stage
@@ -863,13 +844,10 @@ def sensitivities(
                 """All stages at once: z (s, *batch, nx + nq) -> (s, *batch, nx)."""
                 ti = tk + c_stacked * h
                 zp = z[..., nx : nx + n_p] if p is not None else None
-                zu = None
+                w = z[..., nx + n_p :] if inputs.parameterised else held
+                zu = None if w is None else inputs.stacked_stage_input(w, m, len(batch))
                 if inputs.kind == "callable":
                     zu = StageInputs([u(tk + float(c) * h) for c in tab.c], len(batch)).stacked
-                elif inputs.parameterised:
-                    zu = inputs.stacked_stage_input(z[..., nx + n_p :], m, len(batch))
-                elif held is not None:
-                    zu = inputs.stacked_stage_input(held, m, len(batch))
                 return g(ti, z[..., :nx], zu, zp)
 
             n_steps += 1
@@ -886,18 +864,15 @@ def sensitivities(
                 Ks, dKs, failure = solver.step(
                     stage_at, stacked_stages, h, x, q, seed, stopped.frozen, safe
                 )
-                J = seed.clone()
-                for i in range(tab.stages):
-                    if tab.b[i] != 0.0:
-                        x = x + h * float(tab.b[i]) * Ks[i]
-                        if derivatives:
-                            J = J + h * float(tab.b[i]) * dKs[i]
+                x = _combine(x, h, tab.b, Ks)
                 stopped.record(failure, k, m, tk)
                 # failed members: at the safe state, their A, B, C held (Phi = I, Psi = 0)
                 x = torch.where(stopped.frozen[..., None], safe, x)
                 if not derivatives:
                     continue
-                J = torch.where(stopped.frozen[..., None, None], seed, J)
+                J = torch.where(
+                    stopped.frozen[..., None, None], seed, _combine(seed, h, tab.b, dKs)
+                )
             Phi, Psi = J[..., :nx], J[..., nx:]  # eq. 8.18b-c / 8.28b-c
             A = Phi @ A
             B = Phi @ B + Psi[..., :n_p]
@@ -906,10 +881,7 @@ def sensitivities(
                 head = Phi @ C[..., :hi]
                 head[..., lo:hi] += Psi[..., n_p:]
                 C = torch.cat([head, C[..., hi:]], -1)
-        xs_out.append(x)
-        As_out.append(A)
-        Bs_out.append(B)
-        Cs_out.append(C)
+        outputs.append((x, A, B, C))
     if fast is not None and not fast.active:
         fast.add_eager_seconds(time.perf_counter() - tic)
     stats = SolverStats(n_f_evals=n_f, n_steps=n_steps, n_jac_evals=n_jac)
@@ -932,13 +904,14 @@ def sensitivities(
         stats.n_f_evals, stats.n_jac_evals = solver.n_f, solver.n_jac
         stats.n_newton_iters, stats.n_factorizations = solver.n_iter, solver.n_lu
         stats.extra["stacked_stages"] = bool(solver.stack)
+    xs, As, Bs, Cs = zip(*outputs, strict=True)
     return _with_failures(
         SensitivityResult(
             t=t,
-            x=torch.stack(xs_out, -2),
-            A=torch.stack(As_out, -3) if derivatives else None,
-            B=None if p is None or not derivatives else torch.stack(Bs_out, -3),
-            C=None if C is None else torch.stack(Cs_out, -3).unflatten(-1, inputs.shape),
+            x=torch.stack(xs, -2),
+            A=torch.stack(As, -3) if derivatives else None,
+            B=None if p is None or not derivatives else torch.stack(Bs, -3),
+            C=None if C is None else torch.stack(Cs, -3).unflatten(-1, inputs.shape),
             stats=stats,
         ),
         None if solver is None else (stopped, tab.name, solver.tol),
