@@ -467,12 +467,6 @@ class _ImplicitStages:
         self.stack = None  # whether all stages are evaluated in one call (decided once)
         self.n_lu = self.n_iter = self.n_f = self.n_jac = 0
 
-    def _stage_arguments(self, x, h, K, q):
-        """``(X_i, q)`` with the stage states ``X_i = x_k + h sum_j a_ij K_j``:
-        (*batch, s, nx + nq)."""
-        X = x[..., None, :] + h * (self.a @ K)
-        return torch.cat([X, q[..., None, :].expand(*X.shape[:-1], q.shape[-1])], -1)
-
     def _stage_values(self, stage_at, stacked, x, h, K, q, jacobians=False):
         """``F_i`` (*batch, s, nx) at the stages ``K``, and with ``jacobians`` also the stage
         Jacobians ``[F_x^(i) F_q^(i)]`` (*batch, s, nx, nx + nq) (:func:`batch_jacobian`).
@@ -481,7 +475,9 @@ class _ImplicitStages:
         ``stacked`` that of all stages at once, the stage index a leading batch dimension
         (s, *batch, nx + nq): used where it reproduces the stage-by-stage values (checked
         once per run, :func:`~integrators._irk_core.stacked_call_agrees`)."""
-        Z = self._stage_arguments(x, h, K, q)
+        # (X_i, q) with the stage states X_i = x_k + h sum_j a_ij K_j: (*batch, s, nx + nq)
+        X = x[..., None, :] + h * (self.a @ K)
+        Z = torch.cat([X, q[..., None, :].expand(*X.shape[:-1], q.shape[-1])], -1)
         self.n_f += self.s
         self.n_jac += self.s if jacobians else 0
 
@@ -501,10 +497,6 @@ class _ImplicitStages:
         pairs = [batch_jacobian(stage_at(i), Z[..., i, :]) for i in range(self.s)]
         return torch.stack([v for v, _ in pairs], -2), torch.stack([d for _, d in pairs], -3)
 
-    def _residual(self, stage_at, stacked, x, h, K, q):
-        """``r(K) = F(K) - K`` of eq. 8.20: (*batch, s, nx)."""
-        return self._stage_values(stage_at, stacked, x, h, K, q) - K
-
     def _factorize(self, stage_at, stacked, x, h, K, q, out, update=None):
         """Linearise at ``K``: keeps the LU of ``M`` (of the members in ``update`` (*batch,)
         bool, default all) and returns ``r(K)`` (*batch, s, nx), the stage Jacobians ``F_x``
@@ -520,21 +512,17 @@ class _ImplicitStages:
         M = torch.where(out[..., None, None], eye, eye - h * blocks)
         lu, piv, info = torch.linalg.lu_factor_ex(M)
         self.n_lu += 1
-        singular = (info != 0) if update is None else (info != 0) & update
-        keep = singular if update is None else singular | ~update
-        if bool(keep.any()):  # the kept factors, the identity for the singular members
+        singular = info != 0
+        if update is not None:  # the members not updated keep their factors
+            singular &= update
+            lu = torch.where(update[..., None, None], lu, self.lu[0])
+            piv = torch.where(update[..., None], piv, self.lu[1])
+        if bool(singular.any()):  # the identity for the singular members
             base = torch.arange(1, self.s * nx + 1, dtype=piv.dtype, device=piv.device)
-            old_lu, old_piv = (eye, base) if update is None else self.lu
-            lu = torch.where(keep[..., None, None], old_lu, lu)
-            piv = torch.where(keep[..., None], old_piv, piv)
             lu = torch.where(singular[..., None, None], eye, lu)
             piv = torch.where(singular[..., None], base, piv)
         self.lu = (lu, piv)
         return F - K, Fx, Fq, singular
-
-    def _solve(self, rhs):
-        """``M^{-1} rhs`` for rhs (*batch, s nx, ncols) with the kept factorisation."""
-        return torch.linalg.lu_solve(*self.lu, rhs)
 
     def _guess(self, stage_at, x, h, q):
         """Starting stages: the previous stage polynomial extrapolated, else ``f(x_k)``."""
@@ -595,7 +583,8 @@ class _ImplicitStages:
             skip = out.clone()
 
             def stage_equations(k, x_run=x_run, skip=skip):  # K - F(K) of eq. 8.20: (*batch, s nx)
-                r = self._residual(stage_at, stacked, x_run, h, k.unflatten(-1, (s, nx)), q)
+                k = k.unflatten(-1, (s, nx))
+                r = self._stage_values(stage_at, stacked, x_run, h, k, q) - k
                 return -torch.where(skip[..., None, None], 0.0, r).flatten(-2)
 
             res = newton(
@@ -628,7 +617,8 @@ class _ImplicitStages:
         r = torch.where(out[..., None, None], 0.0, r)
         rhs = Fx @ seed[..., None, :, :]  # (*batch, s, nx, nx + nq)
         rhs[..., nx:] += Fq
-        sol = self._solve(torch.cat([r[..., None], rhs], -1).flatten(-3, -2)).unflatten(-2, (s, nx))
+        sol = torch.linalg.lu_solve(*self.lu, torch.cat([r[..., None], rhs], -1).flatten(-3, -2))
+        sol = sol.unflatten(-2, (s, nx))
         K = torch.where(out[..., None, None], 0.0, K + sol[..., 0])
         self.n_iter += 1
         self.K_prev, self.h_prev = K, h
@@ -925,11 +915,10 @@ def _with_failures(res: SensitivityResult, stages=None) -> SensitivityResult:
     NEWTON_FAILED where ``stages`` (a :class:`_StageFailures`, the method's name and the
     Newton tolerance; implicit methods) says the stage equations failed first."""
     T = res.x.shape[-2]
-    bad = ~torch.isfinite(res.x).all(-1)  # (*batch, T)
-    for value in (res.A, res.B, res.C):
-        if value is not None:  # (*batch, T, ...): every entry of an output time
-            tail = tuple(range(res.x.dim() - 1, value.dim()))
-            bad = bad | ~torch.isfinite(value).all(dim=tail)
+    outputs = {n: v for n in ("x", "A", "B", "C") if (v := getattr(res, n)) is not None}
+    bad = False  # (*batch, T): an entry of an output time (*batch, T, ...) is not finite
+    for value in outputs.values():
+        bad = bad | ~torch.isfinite(value).all(dim=tuple(range(res.x.dim() - 1, value.dim())))
     first = torch.where(bad.any(-1), bad.to(torch.int8).argmax(-1), T)
     nonfinite = first < T
     if stages is not None:
@@ -941,21 +930,13 @@ def _with_failures(res: SensitivityResult, stages=None) -> SensitivityResult:
     if not bool(failed.any()):
         return res
     late = torch.arange(T, device=bad.device) >= first.unsqueeze(-1)  # (*batch, T)
-
-    def nan_late(value, dims):
-        mask = late.reshape(*late.shape, *([1] * dims))
-        return torch.where(mask, torch.full_like(value, float("nan")), value)
-
-    for name in ("x", "A", "B", "C"):
-        value = getattr(res, name)
-        if value is not None:
-            setattr(res, name, nan_late(value, value.dim() - late.dim()))
+    for name, value in outputs.items():
+        mask = late.reshape(*late.shape, *([1] * (value.dim() - late.dim())))
+        setattr(res, name, torch.where(mask, torch.full_like(value, float("nan")), value))
     res.status = torch.where(nonfinite, Status.NON_FINITE.value, res.status).to(torch.int8)
     res.messages = []
     if stages is not None:
-        res.status = torch.where(stage_failed, Status.NEWTON_FAILED.value, res.status).to(
-            torch.int8
-        )
+        res.status.masked_fill_(stage_failed, Status.NEWTON_FAILED.value)  # made above
         res.messages = stages[0].messages(stage_failed, res.t, *stages[1:])
     res.messages += _failure_messages(nonfinite, first, res.t)
     return res
@@ -1002,10 +983,8 @@ def variational_sensitivities(
         x = z[..., :nx]
         A = z[..., nx : nx + nx * nx].unflatten(-1, (nx, nx))
         B = z[..., nx + nx * nx :].unflatten(-1, (nx, n_p))
-        zb = z.shape[:-1]
         ui = uu[0] if uu else None
-        pb = None if p is None else p.expand(*zb, n_p)
-        parts = [x] + ([pb] if p is not None else [])
+        parts = [x] if p is None else [x, p.expand(*z.shape[:-1], n_p)]
 
         def rhs(w):
             return g(tt, w[..., :nx], ui, w[..., nx:] if p is not None else None)
