@@ -95,17 +95,24 @@ class BoundRHS:
         grid, samples = self.t_grid, self.samples
         T = grid.shape[0]
         tq = t.reshape(1) if t.dim() == 0 else t
-        idx = torch.searchsorted(grid, tq.contiguous(), right=True) - 1
         if self.kind == "zoh" or T == 1:
+            idx = torch.searchsorted(grid, tq.contiguous(), right=True) - 1
             return _take(samples, idx.clamp(0, T - 1), t.dim() == 0)
-        k = idx.clamp(0, T - 2)
-        t_lo, t_hi = grid[k], grid[k + 1]
-        theta = ((tq - t_lo) / (t_hi - t_lo)).clamp(0.0, 1.0)
+        k, theta = _locate(grid, tq)
         lo = _take(samples, k, t.dim() == 0)
         hi = _take(samples, k + 1, t.dim() == 0)
         if t.dim() == 0:
             theta = theta.reshape(())
         return lo + theta * (hi - lo)
+
+
+def _locate(grid: torch.Tensor, tq: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The interval ``k`` of the grid (T >= 2) holding each time of ``tq`` ((1,) or
+    (*batch, 1)), looked up right-continuously and clamped to ``[0, T-2]``, and the fraction
+    ``tau`` in [0, 1] of that interval at the time (the end intervals' ends held outside)."""
+    k = torch.searchsorted(grid, tq.contiguous(), right=True) - 1
+    k = k.clamp(0, grid.shape[0] - 2)
+    return k, ((tq - grid[k]) / (grid[k + 1] - grid[k])).clamp(0.0, 1.0)
 
 
 def _take(samples: torch.Tensor, idx: torch.Tensor, shared_time: bool) -> torch.Tensor:
@@ -243,18 +250,11 @@ class CollocationInput:
         (*batch, nu)."""
         grid, P = self.t, self.coefficients
         t = torch.as_tensor(t, dtype=grid.dtype, device=grid.device)
-        tq = t.reshape(1) if t.dim() == 0 else t
-        k = (torch.searchsorted(grid, tq.contiguous(), right=True) - 1).clamp(0, grid.shape[0] - 2)
-        tau = ((tq - grid[k]) / (grid[k + 1] - grid[k])).clamp(0.0, 1.0)
+        k, tau = _locate(grid, t.reshape(1) if t.dim() == 0 else t)
         w = self.weights(tau)  # (1, q) or (*batch, 1, q)
-        if t.dim() == 0:
-            return (w @ P.index_select(-3, k).squeeze(-3)).squeeze(-2)
-        batch = torch.broadcast_shapes(P.shape[:-3], k.shape[:-1])
-        Pk = P.expand(*batch, *P.shape[-3:])
-        idx = k.expand(*batch, 1)[..., None, None].expand(*batch, 1, *P.shape[-2:])
-        return (w.expand(*batch, 1, w.shape[-1]) @ torch.gather(Pk, -3, idx).squeeze(-3)).squeeze(
-            -2
-        )
+        # the interval's coefficients (q, nu) or (*batch, q, nu), rows of P flattened per interval
+        Pk = _take(P.flatten(-2), k, t.dim() == 0).unflatten(-1, P.shape[-2:])
+        return (w @ Pk).squeeze(-2)
 
 
 def _collocation_nodes(nodes, q: int, dtype, device) -> torch.Tensor:
