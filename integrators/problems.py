@@ -28,7 +28,7 @@ def _check_callable(fn, label):
 
 def _sample_index(mask: torch.Tensor) -> tuple:
     """The batch index of the first True entry of a (*batch,) mask (``()`` unbatched)."""
-    return tuple(torch.nonzero(mask.reshape(mask.shape or (1,)))[0].tolist()) if mask.dim() else ()
+    return tuple(torch.nonzero(mask)[0].tolist()) if mask.dim() else ()
 
 
 class _Problem:
