@@ -797,9 +797,9 @@ def sensitivities(
             n_steps += substeps
             outputs.append((x, A, B, C))
             continue
+        h = (t[k + 1] - t[k]) / substeps
         if fast is not None and fast.active:
             S = torch.cat([A, B], -1)
-            h = (t[k + 1] - t[k]) / substeps
             with torch.no_grad():
                 out = fast(x, S, p_kernel, stage_u[..., k, :, :, :], t[k], h)
             if out is not None:
@@ -814,7 +814,6 @@ def sensitivities(
         held = inputs.interval(k, batch) if inputs.kind in ("zoh", "collocation") else None
         # q = (p, w_k): the quantities differentiated on this interval, (*batch, nq)
         q = torch.cat([p_batch] + ([held] if inputs.parameterised else []), -1)
-        h = (t[k + 1] - t[k]) / substeps
         for m in range(substeps):
             tk = t[k] + m * h
 
