@@ -689,21 +689,20 @@ def _loss_derivatives(fun, theta, args, method, jacobian=None, loss=None, member
                 f"minimize: the residual must have shape (*batch, m) with batch {tuple(batch)}, "
                 f"got {tuple(r.shape)}."
             )
+        if loss is None:  # Gauss-Newton: psi(r) = r, C = 1
+            value, psi, weights = 0.5 * (r * r).sum(-1), r, None
+        else:
+            value, psi = loss.rho(r, **kw).sum(-1), loss.psi(r, **kw)
+            weights = loss.curvature(r, **kw)
         if isinstance(J, BlockJacobian):
-            if loss is None:
-                value, grad, H = 0.5 * (r * r).sum(-1), J.rmatvec(r), J.normal()
-            else:
-                value, grad = loss.rho(r, **kw).sum(-1), J.rmatvec(loss.psi(r, **kw))
-                H = J.normal(loss.curvature(r, **kw))
+            grad, H = J.rmatvec(psi), J.normal(weights)
             if method != "levenberg_marquardt" and isinstance(H, BorderedBlockTridiagonal):
                 H = H.dense()  # the shifted Cholesky of Gauss-Newton works on the matrix
-            return value, grad, H, J, r
-        Jt = J.transpose(-1, -2)
-        if loss is None:
-            return 0.5 * (r * r).sum(-1), (Jt @ r.unsqueeze(-1)).squeeze(-1), Jt @ J, J, r
-        H = Jt @ (J * loss.curvature(r, **kw).unsqueeze(-1))
-        grad = (Jt @ loss.psi(r, **kw).unsqueeze(-1)).squeeze(-1)
-        return loss.rho(r, **kw).sum(-1), grad, H, J, r
+        else:
+            Jt = J.transpose(-1, -2)
+            grad = (Jt @ psi.unsqueeze(-1)).squeeze(-1)
+            H = Jt @ (J if weights is None else J * weights.unsqueeze(-1))
+        return value, grad, H, J, r
     store = {}
 
     def gradient(z):
@@ -791,6 +790,16 @@ def _diagonal(H) -> torch.Tensor:
     if isinstance(H, BorderedBlockTridiagonal):
         return H.diagonal()
     return H.diagonal(dim1=-2, dim2=-1)
+
+
+def _select(keep: torch.Tensor, a, b):
+    """``a`` for the batch members where ``keep`` (*batch,) holds, ``b`` for the others: (*batch,
+    ...) tensors, :class:`BlockJacobian` or :class:`BorderedBlockTridiagonal` values, or None."""
+    if a is None:
+        return None
+    if isinstance(a, torch.Tensor):
+        return torch.where(keep.view(*keep.shape, *([1] * (a.dim() - keep.dim()))), a, b)
+    return a.where(keep, b)
 
 
 def _members_of(mask: torch.Tensor) -> torch.Tensor:
@@ -1024,7 +1033,9 @@ def minimize(
 
     everyone = torch.ones(batch, dtype=torch.bool, device=dev)
     loss_value, grad, H, J, r = derivatives(theta, everyone, None)
-    rounding_terms = math.sqrt(r.shape[-1]) if adaptive else 1.0
+    # the rounding error of the loss: of a sum of m residual terms (Levenberg-Marquardt), or
+    # of a loss no smaller than eps
+    rounding_terms, loss_floor = (math.sqrt(r.shape[-1]), 0.0) if adaptive else (1.0, eps)
     with torch.no_grad():
         status = torch.full(batch, NewtonStatus.MAX_ITER, dtype=torch.int8, device=dev)
         iterations = torch.zeros(batch, dtype=torch.int64, device=dev)
@@ -1075,10 +1086,8 @@ def minimize(
                 # a predicted decrease below the rounding error of the loss (Levenberg-Marquardt:
                 # of a sum of m residual terms, about sqrt(m) eps |loss|): the full step is
                 # tried, shorter ones would only compare rounding errors
-                if adaptive:
-                    flat_step = -slope <= 10 * eps * rounding_terms * loss_value.abs()
-                else:
-                    flat_step = -slope <= 10 * eps * loss_value.abs().clamp(min=eps)
+                rounding = 10 * eps * rounding_terms * loss_value.abs().clamp(min=loss_floor)
+                flat_step = -slope <= rounding
                 t = torch.ones(batch, dtype=theta.dtype, device=dev)
                 accepted = torch.zeros(batch, dtype=torch.bool, device=dev)
                 trial_loss = loss_value.clone()
@@ -1095,31 +1104,26 @@ def minimize(
                     if attempt == 0:
                         pending &= ~flat_step
                     t = torch.where(pending, t / 2, t)
+                # no decrease found: converged if the predicted decrease is at the rounding level
+                # of the loss, else a genuine failure (Levenberg-Marquardt: lam grows instead)
                 no_decrease = active & ~accepted
+                flat = no_decrease & flat_step
+                if adaptive and bool(flat.any()):
+                    # the minimum is reached where the undamped step's predicted decrease is at
+                    # the rounding level too (heavy damping, e.g. grown by inadmissible trials,
+                    # hides a slope)
+                    undamped, _, solved = _damped_step(H, grad, torch.zeros_like(lam), scale)
+                    flat &= ~(solved & (-(grad * undamped).sum(-1) > rounding))
+                status.masked_fill_(flat, NewtonStatus.CONVERGED)
+                active &= ~flat
+                no_decrease &= ~flat
                 if adaptive:
-                    # no decrease found where none can be resolved: the minimum is reached,
-                    # where the undamped step's predicted decrease is at the rounding level too
-                    # (heavy damping, e.g. grown by inadmissible trials, hides a slope)
-                    flat = no_decrease & flat_step
-                    if bool(flat.any()):
-                        undamped, _, solved = _damped_step(H, grad, torch.zeros_like(lam), scale)
-                        resolved = -(grad * undamped).sum(-1) > (
-                            10 * eps * rounding_terms * loss_value.abs()
-                        )
-                        flat &= ~(solved & resolved)
-                    status.masked_fill_(flat, NewtonStatus.CONVERGED)
-                    active &= ~flat
-                    no_decrease &= ~flat
                     full = accepted & (t == 1)
                     lam = torch.where(full, (lam / 10).clamp_min(1e-12), lam)
                     lam = torch.where(accepted & ~full, lam * 2, lam)
                     lam = torch.where(no_decrease, lam * 10, lam)
                 else:
-                    # no decrease found: converged if the predicted decrease is at the rounding
-                    # level of the loss, else a genuine failure
-                    flat = no_decrease & flat_step
-                    status.masked_fill_(flat, NewtonStatus.CONVERGED)
-                    status.masked_fill_(no_decrease & ~flat, NewtonStatus.LINE_SEARCH_FAILED)
+                    status.masked_fill_(no_decrease, NewtonStatus.LINE_SEARCH_FAILED)
                     active &= ~no_decrease
                 move = active & accepted
                 dtheta = torch.where(move[..., None], t[..., None] * step, 0.0)
@@ -1141,20 +1145,10 @@ def minimize(
                 theta = theta + dtheta
                 iterations = iterations + active.to(torch.int64)
                 keep = ~move
-                loss_value, grad, H = (
-                    torch.where(keep, loss_value, new[0]),
-                    torch.where(keep[..., None], grad, new[1]),
-                    H.where(keep, new[2])
-                    if isinstance(H, BorderedBlockTridiagonal)
-                    else torch.where(keep[..., None, None], H, new[2]),
+                loss_value, grad, H, J, r = (
+                    _select(keep, a, b)
+                    for a, b in zip((loss_value, grad, H, J, r), new, strict=True)
                 )
-                if method != "newton":
-                    J = (
-                        J.where(keep, new[3])
-                        if isinstance(J, BlockJacobian)
-                        else torch.where(keep[..., None, None], J, new[3])
-                    )
-                    r = torch.where(keep[..., None], r, new[4])
                 history.append(loss_value)
                 stalled = active & small & torch.isfinite(loss_value)
                 status.masked_fill_(stalled, NewtonStatus.CONVERGED)
