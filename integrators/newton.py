@@ -166,12 +166,11 @@ def _informative_tail(norms: torch.Tensor, iterations: torch.Tensor, k: int) -> 
     eps = torch.finfo(norms.dtype).eps
     floor = 100 * eps * torch.clamp(norms[0], min=1.0)
     above = norms > floor  # (iters + 1, *batch)
-    steps = torch.arange(norms.shape[0], device=norms.device).view(-1, *([1] * iterations.dim()))
+    column = (-1, *([1] * iterations.dim()))  # a (len, 1, ..., 1) view against (*batch,)
+    steps = torch.arange(norms.shape[0], device=norms.device).view(column)
     valid = above & (steps <= iterations)
     last = torch.where(valid, steps, torch.full_like(steps, -1)).amax(dim=0)  # (*batch,)
-    idx = last.unsqueeze(0) - torch.arange(k - 1, -1, -1, device=norms.device).view(
-        -1, *([1] * iterations.dim())
-    )
+    idx = last.unsqueeze(0) - torch.arange(k - 1, -1, -1, device=norms.device).view(column)
     vals = norms.gather(0, idx.clamp(min=0))
     vals = torch.where(idx >= 0, vals, torch.full_like(vals, float("nan")))
     return vals.movedim(0, -1)
@@ -387,16 +386,6 @@ def _graph_leaves(y: torch.Tensor, exclude: torch.Tensor) -> list[torch.Tensor]:
     return leaves
 
 
-def _evaluate(phi, x, args, shape, what):
-    y = phi(x, *args)
-    if not isinstance(y, torch.Tensor) or y.shape != shape:
-        got = tuple(y.shape) if isinstance(y, torch.Tensor) else type(y).__name__
-        raise InputValidationError(
-            f"newton: phi must return a tensor shaped like x {tuple(shape)}, got {got} {what}."
-        )
-    return y
-
-
 def newton(
     phi: Callable,
     x0,
@@ -515,7 +504,14 @@ def newton(
 
     def residual(z):
         counts["phi"] += 1
-        return _evaluate(phi, z, frozen, x.shape, "during the iteration")
+        y = phi(z, *frozen)
+        if not isinstance(y, torch.Tensor) or y.shape != x.shape:
+            got = tuple(y.shape) if isinstance(y, torch.Tensor) else type(y).__name__
+            raise InputValidationError(
+                f"newton: phi must return a tensor shaped like x {tuple(x.shape)}, got {got} "
+                "during the iteration."
+            )
+        return y
 
     def iteration_matrix(z):
         nonlocal start
@@ -726,11 +722,8 @@ def _loss_only(fun, theta, args, method, loss=None, admissible=None, members=Non
     ``members`` as for :func:`_loss_derivatives`, also passed to ``admissible``."""
     kw = {} if members is None else {"members": members}
     value = fun(theta, *args, **kw)
-    if method != "newton":
-        if loss is None:
-            value = 0.5 * (value * value).sum(-1)
-        else:
-            value = loss.rho(value, **kw).sum(-1)
+    if method != "newton":  # the loss of the residual
+        value = 0.5 * (value * value).sum(-1) if loss is None else loss.rho(value, **kw).sum(-1)
     value = torch.where(torch.isfinite(value), value, torch.full_like(value, math.inf))
     if admissible is not None:
         value = torch.where(admissible(theta, **kw), value, torch.full_like(value, math.inf))
@@ -1046,18 +1039,8 @@ def minimize(
         def snapshot():
             # the state of the last accepted iterate, stored in one assignment so that an
             # interrupt never sees half of an update
-            return (
-                theta,
-                loss_value,
-                grad,
-                H,
-                J,
-                r,
-                iterations.clone(),
-                status.clone(),
-                active.clone(),
-                len(history),
-            )
+            counters = (iterations.clone(), status.clone(), active.clone(), len(history))
+            return (theta, loss_value, grad, H, J, r, *counters)
 
         committed = snapshot()
         try:
