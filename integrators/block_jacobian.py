@@ -89,12 +89,13 @@ class BlockJacobian:
             yield values, torch.where(columns < 0, self.n, columns), piece
 
     def _structured_layout(self):
-        """``(targets, border_columns, sizes)``: per group (B, k, k), where each entry of a
+        """``(targets, border_columns, offsets)``: per group (B, k, k), where each entry of a
         block's ``values' values`` goes in the flat storage of a
         :class:`BorderedBlockTridiagonal` (border ``A``, coupling ``E``, diagonal and upper
         chain blocks, then one slot for the entries that are dropped: missing columns and
         the mirrored halves of the symmetric matrix); the (nb,) columns outside the chain;
-        ``(nb, C, b, storage size)``."""
+        ``(nb, C, b, off_E, off_D, off_U, dropped)``, the offsets of ``E``, the diagonal and
+        the upper blocks and the slot of the dropped entries in that storage."""
         C, b = self.chain.shape
         dev = self.device
         flat = self.chain.reshape(-1)
@@ -115,8 +116,7 @@ class BlockJacobian:
         off_U = off_D + C * b * b
         dropped = off_U + C * b * b
         targets = []
-        for _, columns in self.groups:
-            c = torch.where(columns < 0, self.n, columns)
+        for _, c, _ in self._pieces(None):
             c1, c2 = c[:, :, None], c[:, None, :]
             k1, k2 = block[c1], block[c2]
             s1, s2 = slot[c1], slot[c2]
@@ -137,7 +137,7 @@ class BlockJacobian:
                 chain1 & chain2 & (k2 == k1 + 1), off_U + (k1 * b + s1) * b + s2, target
             )
             targets.append(target.reshape(-1))
-        return targets, border_columns, (nb, C, b, dropped)
+        return targets, border_columns, (nb, C, b, off_E, off_D, off_U, dropped)
 
     def normal(self, weights: torch.Tensor | None = None):
         """``J' diag(weights) J``: (*batch, n, n), or a
@@ -146,25 +146,23 @@ class BlockJacobian:
         n1 = self.n + 1
         if weights is None:  # ones on the residual rows, zeros on the other padded rows
             weights = torch.ones(self.rows.shape[0], dtype=self.dtype, device=self.device)
-        if self.chain is not None:
-            return self._structured_normal(weights)
-        H = torch.zeros(*self.batch, n1 * n1, dtype=self.dtype, device=self.device)
-        for values, columns, w in self._pieces(weights):
-            G = values.transpose(-1, -2) @ (values * w)  # (*batch, B, k, k)
-            index = (columns[:, :, None] * n1 + columns[:, None, :]).reshape(-1)
-            H.index_add_(-1, index, G.flatten(-3))
-        return H.unflatten(-1, (n1, n1))[..., : self.n, : self.n]
-
-    def _structured_normal(self, weights) -> BorderedBlockTridiagonal:
-        targets, border_columns, (nb, C, b, size) = self._layout
-        flat = torch.zeros(*self.batch, size + 1, dtype=self.dtype, device=self.device)
+        if self.chain is None:  # the entries of each block's values' values in H (n1, n1)
+            targets = [
+                (c[:, :, None] * n1 + c[:, None, :]).reshape(-1) for _, c, _ in self._pieces(None)
+            ]
+            storage = n1 * n1
+        else:
+            targets, border_columns, (nb, C, b, off_E, off_D, off_U, dropped) = self._layout
+            storage = dropped + 1
+        flat = torch.zeros(*self.batch, storage, dtype=self.dtype, device=self.device)
         for (values, _, w), target in zip(self._pieces(weights), targets, strict=True):
             G = values.transpose(-1, -2) @ (values * w)  # (*batch, B, k, k)
             flat.index_add_(-1, target, G.flatten(-3))
-        off_E, off_D, off_U = nb * nb, nb * nb + C * b * nb, nb * nb + C * b * (nb + b)
+        if self.chain is None:
+            return flat.unflatten(-1, (n1, n1))[..., : self.n, : self.n]
         return BorderedBlockTridiagonal(
             flat[..., off_D:off_U].unflatten(-1, (C, b, b)),
-            flat[..., off_U:size].unflatten(-1, (C, b, b)),
+            flat[..., off_U:dropped].unflatten(-1, (C, b, b)),
             flat[..., off_E:off_D].unflatten(-1, (C, b, nb)),
             flat[..., :off_E].unflatten(-1, (nb, nb)),
             self.chain,
