@@ -791,7 +791,7 @@ def _select(keep: torch.Tensor, a, b):
     if a is None:
         return None
     if isinstance(a, torch.Tensor):
-        return torch.where(keep.view(*keep.shape, *([1] * (a.dim() - keep.dim()))), a, b)
+        return torch.where(keep.reshape(keep.shape + (1,) * (a.dim() - keep.dim())), a, b)
     return a.where(keep, b)
 
 
