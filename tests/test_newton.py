@@ -464,6 +464,34 @@ def exp_model(theta, t):
     return theta[..., 0:1] * torch.exp(-theta[..., 1:2] * t) + theta[..., 2:3]
 
 
+@pytest.mark.parametrize("method", ["gauss_newton", "levenberg_marquardt"])
+def test_an_unbatched_problem_matches_its_batch_of_one_and_scipy(method):
+    """theta (p,) without batch dimensions (0-d statuses and flags) gives the numbers of the
+    same problem as a batch of one, and scipy's least-squares optimum."""
+    t = torch.linspace(0, 3, 40, dtype=F64)
+    noise = torch.randn(40, generator=torch.Generator().manual_seed(3), dtype=F64)
+    y = exp_model(torch.tensor([2.0, 1.3, 0.5], dtype=F64), t) + 0.05 * noise
+
+    def residual(theta, t, y):
+        return exp_model(theta, t) - y
+
+    start = torch.tensor([1.0, 1.0, 0.0], dtype=F64)
+    alone = minimize(residual, start, t, y, method=method)
+    batch = minimize(residual, start[None], t, y[None], method=method)
+    assert alone.theta.shape == (3,) and alone.converged.shape == ()
+    assert bool(alone.converged)
+    torch.testing.assert_close(alone.theta, batch.theta[0], rtol=1e-13, atol=1e-14)
+    assert int(alone.iterations) == int(batch.iterations[0])
+    ref = least_squares(
+        lambda q: q[0] * np.exp(-q[1] * t.numpy()) + q[2] - y.numpy(),
+        [1.0, 1.0, 0.0],
+        xtol=1e-15,
+        ftol=1e-15,
+        gtol=1e-15,
+    )
+    np.testing.assert_allclose(alone.theta.numpy(), ref.x, rtol=1e-7, atol=1e-9)
+
+
 def test_gauss_newton_matches_scipy_least_squares_for_a_batch_of_problems():
     g = torch.Generator().manual_seed(1)
     t = torch.linspace(0, 3, 40, dtype=F64)
