@@ -123,12 +123,20 @@ class _Scheme:
         )
 
 
-def _lincomb(x, h, terms):
+def _lincomb(x, h, terms, component_major: bool = False):
     """``x + h * sum(coef * K)`` with Python-float coefficients.
 
     With a float ``h`` (eager chunks) one ``add(..., alpha=)`` per term. With a tensor ``h``
     (compiled chunks, where ``alpha`` cannot hold it) plain products and sums.
+
+    With ``component_major``, ``x`` is the list of the state's nx (*batch) components and the
+    result the list of the new ones: each component is combined on its own from the
+    ``K[..., i]``. A stage state stacked from them is what the compiled chunk's graph pass
+    (``_fast.cat_forwarding``) turns into reads of the pieces of ``f``'s own ``stack``: no
+    interleaved stage buffers.
     """
+    if component_major:
+        return [_lincomb(xi, h, [(coef, K[..., i]) for coef, K in terms]) for i, xi in enumerate(x)]
     if not terms:
         return x
     if isinstance(h, float):
@@ -140,22 +148,6 @@ def _lincomb(x, h, terms):
     for coef, K in terms:
         acc = K * coef if acc is None else acc + K * coef
     return x + h * acc
-
-
-def _stage_state(x, hn, terms, component_major: bool):
-    """A stage's state ``x + h sum(coef * K)`` as the (*batch, nx) tensor ``f`` receives.
-
-    ``x`` is a (*batch, nx) tensor, or with ``component_major`` the list of its nx (*batch)
-    components: each component is then combined on its own from the ``K[..., i]`` and the
-    result stacked, which the compiled chunk's graph pass (``_fast.cat_forwarding``) turns into
-    reads of the pieces of ``f``'s own ``stack``: no interleaved stage buffers.
-    """
-    if not component_major:
-        return _lincomb(x, hn, terms)
-    return torch.stack(
-        [_lincomb(xi, hn, [(coef, K[..., i]) for coef, K in terms]) for i, xi in enumerate(x)],
-        dim=-1,
-    )
 
 
 def _make_chunk(
@@ -185,7 +177,7 @@ def _make_chunk(
     then the state after substep ``j1 - 1``, an output only when ``j1 == substeps``.
 
     ``component_major`` keeps the state as its nx components (rows of a (nx, *batch) tensor)
-    and forms every stage state component by component (:func:`_stage_state`). ``f`` still
+    and forms every stage state component by component (:func:`_lincomb`). ``f`` still
     receives and returns (*batch, nx) tensors; the layout only changes which reads inductor
     sees, so that with the cat-forwarding pass all stages of a component-wise model fuse into
     one contiguous, vectorised loop.
@@ -210,7 +202,9 @@ def _make_chunk(
                 tn = t_stage[n]
                 K = []
                 for p in range(len(stages)):
-                    xs = _stage_state(x, hn, [(coef, K[r]) for r, coef in a[p]], component_major)
+                    xs = _lincomb(x, hn, [(coef, K[r]) for r, coef in a[p]], component_major)
+                    if component_major:
+                        xs = torch.stack(xs, dim=-1)
                     if frozen is not None:
                         xs = torch.where(frozen[0], frozen[1], xs)
                     ts = tn[p]
@@ -226,13 +220,7 @@ def _make_chunk(
                         K.append(f(ts, xs, us))
                     if K[-1].shape != xs.shape:  # a static shape: free when compiled
                         raise_shape_change(K[-1], xs, ts)
-                if component_major:
-                    x = [
-                        _lincomb(xi, hn, [(coef, K[r][..., i]) for r, coef in b])
-                        for i, xi in enumerate(x)
-                    ]
-                else:
-                    x = _lincomb(x, hn, [(coef, K[r]) for r, coef in b])
+                x = _lincomb(x, hn, [(coef, K[r]) for r, coef in b], component_major)
             outputs.append(torch.stack(x, dim=0) if component_major else x)
         x = outputs[-1]
         if out is None:
@@ -416,7 +404,7 @@ def solve_explicit(
             "integration needs a strictly lower-triangular A. Use odeint(..., method=tab), "
             "which dispatches implicit tableaus to the implicit solver."
         )
-    substeps = check_int(substeps, "substeps")
+    m = check_int(substeps, "substeps")
     compile = check_flag(compile, "compile", allow=("auto",))
     if isinstance(checkpoint, (bool, np.bool_)):
         checkpoint = bool(checkpoint)
@@ -430,13 +418,11 @@ def solve_explicit(
     batch = x0.shape[:-1]
     T = t.shape[0]
     n_int = T - 1
-    m = substeps
     n_steps = n_int * m
 
     # Per-step start times, sizes and stage times, computed once, vectorised.
-    h_int = (t[1:] - t[:-1]) / m  # (T-1,)
     frac = torch.arange(m, dtype=t.dtype, device=t.device) / m
-    h = h_int.repeat_interleave(m)  # (n_steps,)
+    h = ((t[1:] - t[:-1]) / m).repeat_interleave(m)  # (n_steps,)
     t_start = (t[:-1, None] + (t[1:] - t[:-1])[:, None] * frac).reshape(-1)
     c = torch.tensor(scheme.c, dtype=t.dtype, device=t.device)
     t_stage = t_start[:, None] + h[:, None] * c  # (n_steps, n_stages)
@@ -638,7 +624,6 @@ def solve_explicit(
     if compile == "auto" and not fast.active:
         fast.add_eager_seconds(time.perf_counter() - tic, n_steps)
     x_time_major = time_major(pieces)
-    status = torch.zeros(batch, dtype=torch.int8, device=x0.device)
     messages: list[str] = []
     failed = ~torch.isfinite(to_state(x)).all(-1)  # non-finite states are absorbing
     del x
@@ -658,13 +643,12 @@ def solve_explicit(
             x_time_major = None  # release the first run's graph
             pieces += run(x_r, s_r, fail_interval)[1]
             x_time_major = time_major(pieces)
-        x_out = x_time_major.movedim(0, -2)  # (*batch, T, nx) view
         late = torch.arange(T, device=x0.device) >= first.unsqueeze(-1)  # (*batch, T)
-        x_out = torch.where(late.unsqueeze(-1), torch.full_like(x_out, float("nan")), x_out)
-        status = torch.where(failed, Status.NON_FINITE.value, status).to(torch.int8)
+        nan = torch.full_like(x_time_major, float("nan"))
+        x_time_major = torch.where(late.movedim(-1, 0).unsqueeze(-1), nan, x_time_major)
         messages = _failure_messages(failed, first, t)
-    else:
-        x_out = x_time_major.movedim(0, -2)  # (*batch, T, nx) view
+    x_out = x_time_major.movedim(0, -2)  # (*batch, T, nx) view
+    status = torch.where(failed, Status.NON_FINITE, Status.SUCCESS).to(torch.int8)
     stats = SolverStats(
         n_f_evals=n_steps * len(scheme.stages),
         n_steps=n_steps,
