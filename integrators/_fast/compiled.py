@@ -76,15 +76,9 @@ def _backward_works(ys: torch.Tensor, x: torch.Tensor, f) -> bool:
     return True
 
 
-def _copy(y):
-    return y.detach().clone() if isinstance(y, torch.Tensor) else y
-
-
 def _same_numbers(compiled, eager) -> bool:
     """Whether a compiled chunk's output equals the eager chunk's to rounding: within
     ``sqrt(eps)`` of the largest finite magnitude, NaN where the eager output is NaN."""
-    if not isinstance(eager, torch.Tensor):
-        return compiled is None or not isinstance(compiled, torch.Tensor)
     tol = math.sqrt(torch.finfo(eager.dtype).eps)
     scale = float(eager.abs().nan_to_num(0.0, 0.0, 0.0).amax()) if eager.numel() else 0.0
     return torch.allclose(compiled.detach(), eager, rtol=tol, atol=tol * scale, equal_nan=True)
@@ -125,20 +119,12 @@ class _Entry:
         self.failure = ""  # why the compiled chunk was given up (reported in the stats)
         self.backward_failed = False  # the compiled chunk's graph cannot be differentiated
         self.signatures: set = set()
-        self.componentwise: bool | None = None  # see _is_componentwise
+        # whether the model works component by component (``reads_only_components``), traced
+        # once per entry through ``f_at_start`` (the model at the first output time)
+        self.componentwise: bool | None = None
 
 
 _CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def _is_componentwise(entry: _Entry, f_at_start, x0: torch.Tensor) -> bool:
-    """Whether the model works component by component (``reads_only_components``), traced
-    once per cache entry through ``f_at_start`` (the model at the first output time)."""
-    if entry.componentwise is None:
-        from .cat_forwarding import reads_only_components  # imports inductor (1 s): lazily
-
-        entry.componentwise = reads_only_components(f_at_start, x0.detach())
-    return entry.componentwise
 
 
 def _cache_entry(f, config, n_slots: int) -> _Entry:
@@ -175,11 +161,8 @@ class Stepper:
         self._f, self._entry, self._want, self._active = f, entry, want, active
         self._callables = callables
         self._state = key[2:]  # the state's shape, dtype and device: the "auto" account
-        self._key, self._chunk, self._reference = (
-            key,
-            entry.compiled.get(key),
-            entry.reference.get(key),
-        )
+        self._key, self._chunk = key, entry.compiled.get(key)
+        self._reference = entry.reference.get(key)
         self._grad_mode = torch.is_grad_enabled()
         self.n_out, self.component_major = (key[0], key[1]) if active else (1, False)
         self.compile_s = compile_s
@@ -239,7 +222,7 @@ class Stepper:
                 if fresh:  # copies: a chunk may write its outputs into a buffer in ``args``
                     devices = [x.device] if x.device.type == "cuda" else []
                     with torch.no_grad(), torch.random.fork_rng(devices):  # the user's stream
-                        reference = [_copy(y) for y in self._reference(x, *args)]
+                        reference = [y.detach().clone() for y in self._reference(x, *args)]
                 tic = time.perf_counter()
                 x_new, ys = self._chunk(x, *args)
         except Exception as exc:  # compilation unavailable: fall back to eager, remember it
@@ -303,9 +286,10 @@ def compiled_stepper(
             ``"auto"`` run of that shape, and a new shape starts eager.
         x0: (*batch, nx) initial state; the chunk is compiled for its shape, dtype and device.
         make_chunk: ``make_chunk(slots, n_out, component_major)``, the chunk function to
-            compile (interleaved (*batch, nx) or component-major (nx, *batch) state); it must
-            call the run's callables only through ``slots``, stand-ins for ``callables`` in
-            the same order (the cached chunk must not hold them).
+            compile (interleaved (*batch, nx) or component-major (nx, *batch) state), which
+            returns a pair of tensors; it must call the run's callables only through
+            ``slots``, stand-ins for ``callables`` in the same order (the cached chunk must not
+            hold them).
         callables: this run's callables the chunk calls (the model first, or a function of
             the model only: the cache is keyed by ``f`` and ``config``).
         n_out: output intervals per compiled chunk.
@@ -335,10 +319,13 @@ def compiled_stepper(
     component_major = False
     layouts = f_at_start is not None and x0.shape[-1] <= COMPONENT_MAJOR_MAX_STATES
     if active and not grad_mode and layouts:
-        first_check = entry.componentwise is None  # imports inductor, traces f: compile time
-        tic = time.perf_counter()
-        component_major = _is_componentwise(entry, f_at_start, x0)
-        compile_s += time.perf_counter() - tic if first_check else 0.0
+        if entry.componentwise is None:  # imports inductor (1 s), traces f: compile time
+            tic = time.perf_counter()
+            from .cat_forwarding import reads_only_components
+
+            entry.componentwise = reads_only_components(f_at_start, x0.detach())
+            compile_s += time.perf_counter() - tic
+        component_major = entry.componentwise
     # One compiled function (own code object, see _with_own_code) per chunk length, layout and
     # state shape/dtype/device: dynamo's recompile limit never turns a new shape eager.
     key = (n_out, component_major, *state)
