@@ -56,27 +56,31 @@ def check_int(value, name: str, minimum: int = 1) -> int:
     return int(value)
 
 
+def is_real_number(value) -> bool:
+    """Whether ``value`` is a real Python or numpy number (not a bool)."""
+    real = isinstance(value, (int, float, np.integer, np.floating))
+    return real and not isinstance(value, (bool, np.bool_))
+
+
 def check_positive(value, name: str, what: str = "") -> float:
     """A finite real number ``> 0`` (a Python/numpy number or a one-element tensor)."""
-    if isinstance(value, torch.Tensor) and value.numel() == 1:
-        value = value.detach().item()
-    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
-        value, (bool, np.bool_)
-    )
-    if not ok or not math.isfinite(value) or value <= 0:
-        raise InputValidationError(f"{name} must be a finite number > 0{what}, got {value!r}.")
-    return float(value)
+    return _check_number(value, name, what, strict=True)
 
 
 def check_nonnegative(value, name: str, what: str = "") -> float:
     """A finite real number ``>= 0`` (a Python/numpy number or a one-element tensor)."""
+    return _check_number(value, name, what, strict=False)
+
+
+def _check_number(value, name: str, what: str, strict: bool) -> float:
+    """``value`` as a float when it is a finite real number ``> 0`` (``strict``) or ``>= 0``;
+    the message appends ``what`` to the bound."""
     if isinstance(value, torch.Tensor) and value.numel() == 1:
         value = value.detach().item()
-    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
-        value, (bool, np.bool_)
-    )
-    if not ok or not math.isfinite(value) or value < 0:
-        raise InputValidationError(f"{name} must be a finite number >= 0{what}, got {value!r}.")
+    ok = is_real_number(value) and math.isfinite(value)
+    if not ok or (value <= 0 if strict else value < 0):
+        op = ">" if strict else ">="
+        raise InputValidationError(f"{name} must be a finite number {op} 0{what}, got {value!r}.")
     return float(value)
 
 

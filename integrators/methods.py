@@ -63,13 +63,13 @@ _OPTION_SCOPE = {
     "dt0": "adaptive methods (the first trial step)",
     "max_steps": "adaptive methods",
 }
+_FIXED_TEXT = "runs at fixed steps (set their number per output interval with substeps)"
+_ADAPTIVE_TEXT = "controls its step size (set rtol and atol; pass adaptive=False for fixed steps)"
 _KIND_TEXT = {
-    EXPLICIT_FIXED: "runs at fixed steps (set their number per output interval with substeps)",
-    EXPLICIT_ADAPTIVE: "controls its step size (set rtol and atol; pass adaptive=False for "
-    "fixed steps)",
-    IMPLICIT_FIXED: "runs at fixed steps (set their number per output interval with substeps)",
-    IMPLICIT_ADAPTIVE: "controls its step size (set rtol and atol; pass adaptive=False for "
-    "fixed steps)",
+    EXPLICIT_FIXED: _FIXED_TEXT,
+    EXPLICIT_ADAPTIVE: _ADAPTIVE_TEXT,
+    IMPLICIT_FIXED: _FIXED_TEXT,
+    IMPLICIT_ADAPTIVE: _ADAPTIVE_TEXT,
     AUTO: "picks dopri5 or Radau IIA, both with step-size control (set rtol and atol)",
 }
 
@@ -174,13 +174,13 @@ def _is_radau(tab: ButcherTableau) -> bool:
     return np.allclose(tab.A, ref.A, atol=1e-12) and np.allclose(tab.b, ref.b, atol=1e-12)
 
 
-def _catalogued(name: str) -> Method:
-    tab = tableau(name)
-    return Method(name, run_kind(tab, _default_adaptive(tab)), lambda stages: tableau(name))
+def _of_tableau(tab: ButcherTableau) -> Method:
+    """The method of one fixed tableau, known by the tableau's name."""
+    return Method(tab.name, run_kind(tab, _default_adaptive(tab)), lambda _: tab)
 
 
 _REGISTRY = {
-    **{name: _catalogued(name) for name in TABLEAU_NAMES},
+    **{name: _of_tableau(tableau(name)) for name in TABLEAU_NAMES},
     "gauss_legendre": Method("gauss_legendre", IMPLICIT_FIXED, gauss_legendre, 2),
     "radau_iia": Method("radau_iia", IMPLICIT_ADAPTIVE, radau_iia, 3),
     "auto": Method("auto", AUTO, None),
@@ -197,7 +197,7 @@ def resolve_method(method) -> Method:
         TableauError: an unknown name or an object that is neither a name nor a tableau.
     """
     if isinstance(method, ButcherTableau):
-        return Method(method.name, run_kind(method, _default_adaptive(method)), lambda _: method)
+        return _of_tableau(method)
     if isinstance(method, str) and method in _REGISTRY:
         return _REGISTRY[method]
     raise TableauError(

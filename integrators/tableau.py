@@ -35,12 +35,14 @@ for any ``s``; explicit methods (only ``C(1)`` holds) are checked tree by tree.
 
 from __future__ import annotations
 
+import math
 from fractions import Fraction
 from functools import cache
 
 import numpy as np
 import torch
 
+from ._options import is_real_number
 from .errors import TableauError
 
 _DEFAULT_TOL = 1e-10
@@ -79,12 +81,9 @@ class _RootedTrees:
         while n <= p:
             ids = []
             for forest in list(self._forests(n - 1, 0)):
-                gamma = n
-                for child in forest:
-                    gamma *= self.gamma[child]
                 self.order.append(n)
                 self.children.append(forest)
-                self.gamma.append(gamma)
+                self.gamma.append(n * math.prod(self.gamma[child] for child in forest))
                 ids.append(len(self.order) - 1)
             self.by_order[n] = ids
             n += 1
@@ -171,10 +170,7 @@ class ButcherTableau:
     def _checked_tol(self, tol) -> float:
         """``tol`` as a float when it is a real number in ``_TOL_RANGE``, else TableauError."""
         low, high = _TOL_RANGE
-        number = isinstance(tol, (int, float, np.integer, np.floating)) and not isinstance(
-            tol, (bool, np.bool_)
-        )
-        if not number or not low <= tol <= high:
+        if not is_real_number(tol) or not low <= tol <= high:
             raise TableauError(
                 f"tableau {self.name!r}: tol must be a number from {low:.2g} to {high:g}, got "
                 f"{tol!r}; it bounds the residual of every order condition (a larger one would "
@@ -435,13 +431,11 @@ class ButcherTableau:
         flat = z.reshape(-1)
         mats = np.eye(s)[None] - flat[:, None, None] * self.A[None]
         ones = np.ones((flat.size, s, 1), dtype=np.complex128)
-        out = np.empty(flat.size, dtype=np.complex128)
-        dets = np.abs(np.linalg.det(mats))
-        ok = dets > 1e-300
+        out = np.full(flat.size, np.inf, dtype=np.complex128)  # inf where I - zA is singular
+        ok = np.abs(np.linalg.det(mats)) > 1e-300
         if np.any(ok):
             w = np.linalg.solve(mats[ok], ones[ok])[..., 0]
             out[ok] = 1.0 + flat[ok] * (w @ self.b)
-        out[~ok] = np.inf
         return out.reshape(z.shape)
 
     def stability_at_infinity(self) -> float:
@@ -461,15 +455,9 @@ class ButcherTableau:
         """``(A, b, c, error_weights)`` as torch tensors (cached per dtype and device)."""
         key = (dtype, str(device))
         if key not in self._tensor_cache:
-
-            def conv(arr):
-                return None if arr is None else torch.tensor(arr, dtype=dtype, device=device)
-
-            self._tensor_cache[key] = (
-                conv(self.A),
-                conv(self.b),
-                conv(self.c),
-                conv(self.error_weights),
+            self._tensor_cache[key] = tuple(
+                None if arr is None else torch.tensor(arr, dtype=dtype, device=device)
+                for arr in (self.A, self.b, self.c, self.error_weights)
             )
         return self._tensor_cache[key]
 
@@ -481,62 +469,40 @@ class ButcherTableau:
         )
 
 
-def _fr(x) -> float:
-    return float(Fraction(x))
+def _fracs(values: str) -> list[float]:
+    """The exact fractions of ``values``, separated by spaces (``"1/6 -2/3 1"``), as floats."""
+    return [float(Fraction(v)) for v in values.split()]
 
 
-def _lower(rows) -> list[list[float]]:
+def _lower(*rows: str) -> list[list[float]]:
     """Full A from the strictly lower rows of an explicit tableau (row i has i entries)."""
-    s = len(rows)
-    A = [[0.0] * s for _ in range(s)]
-    for i, row in enumerate(rows):
-        for j, value in enumerate(row):
-            A[i][j] = _fr(value)
-    return A
+    return [_fracs(row) + [0.0] * (len(rows) - i) for i, row in enumerate(rows)]
 
 
 def _catalogue() -> dict[str, dict]:
-    dopri_rows = [
-        [],
-        ["1/5"],
-        ["3/40", "9/40"],
-        ["44/45", "-56/15", "32/9"],
-        ["19372/6561", "-25360/2187", "64448/6561", "-212/729"],
-        ["9017/3168", "-355/33", "46732/5247", "49/176", "-5103/18656"],
-        ["35/384", "0", "500/1113", "125/192", "-2187/6784", "11/84"],
-    ]
-    dopri_b = ["35/384", "0", "500/1113", "125/192", "-2187/6784", "11/84", "0"]
-    dopri_b_err = [
-        "5179/57600",
-        "0",
-        "7571/16695",
-        "393/640",
-        "-92097/339200",
-        "187/2100",
-        "1/40",
-    ]
+    dopri_rows = (
+        "",
+        "1/5",
+        "3/40 9/40",
+        "44/45 -56/15 32/9",
+        "19372/6561 -25360/2187 64448/6561 -212/729",
+        "9017/3168 -355/33 46732/5247 49/176 -5103/18656",
+        "35/384 0 500/1113 125/192 -2187/6784 11/84",
+    )
     return {
         "euler": dict(A=[[0.0]], b=[1.0], order=1),
-        "midpoint": dict(A=_lower([[], ["1/2"]]), b=[0.0, 1.0], order=2),
-        "heun": dict(A=_lower([[], ["1"]]), b=[0.5, 0.5], order=2),
-        "ralston": dict(A=_lower([[], ["2/3"]]), b=[0.25, 0.75], order=2),
-        "kutta3": dict(
-            A=_lower([[], ["1/2"], ["-1", "2"]]), b=[_fr("1/6"), _fr("2/3"), _fr("1/6")], order=3
-        ),
-        "rk4": dict(
-            A=_lower([[], ["1/2"], ["0", "1/2"], ["0", "0", "1"]]),
-            b=[_fr("1/6"), _fr("1/3"), _fr("1/3"), _fr("1/6")],
-            order=4,
-        ),
+        "midpoint": dict(A=_lower("", "1/2"), b=[0.0, 1.0], order=2),
+        "heun": dict(A=_lower("", "1"), b=[0.5, 0.5], order=2),
+        "ralston": dict(A=_lower("", "2/3"), b=[0.25, 0.75], order=2),
+        "kutta3": dict(A=_lower("", "1/2", "-1 2"), b=_fracs("1/6 2/3 1/6"), order=3),
+        "rk4": dict(A=_lower("", "1/2", "0 1/2", "0 0 1"), b=_fracs("1/6 1/3 1/3 1/6"), order=4),
         "rk38": dict(
-            A=_lower([[], ["1/3"], ["-1/3", "1"], ["1", "-1", "1"]]),
-            b=[0.125, 0.375, 0.375, 0.125],
-            order=4,
+            A=_lower("", "1/3", "-1/3 1", "1 -1 1"), b=[0.125, 0.375, 0.375, 0.125], order=4
         ),
         "dopri5": dict(
-            A=_lower(dopri_rows),
-            b=[_fr(v) for v in dopri_b],
-            b_err=[_fr(v) for v in dopri_b_err],
+            A=_lower(*dopri_rows),
+            b=_fracs("35/384 0 500/1113 125/192 -2187/6784 11/84 0"),
+            b_err=_fracs("5179/57600 0 7571/16695 393/640 -92097/339200 187/2100 1/40"),
             order=5,
         ),
         "implicit_euler": dict(A=[[1.0]], b=[1.0], order=1),
