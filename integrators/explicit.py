@@ -426,8 +426,8 @@ def solve_explicit(
     t_start = (t[:-1, None] + (t[1:] - t[:-1])[:, None] * frac).reshape(-1)
     c = torch.tensor(scheme.c, dtype=t.dtype, device=t.device)
     t_stage = t_start[:, None] + h[:, None] * c  # (n_steps, n_stages)
-    use_float_h = not t.requires_grad
-    h_list = tuple(h.tolist()) if use_float_h else None
+    # Python-float steps for the eager chunks (``add(..., alpha=)``), unless t is differentiated
+    h_list = None if t.requires_grad else tuple(h.tolist())
 
     u0 = du = None
     if kind in ("zoh", "linear"):

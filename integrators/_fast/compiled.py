@@ -109,10 +109,9 @@ class _Entry:
     def __init__(self, n_slots: int):
         self.slots = tuple(_Slot() for _ in range(n_slots))
         # per state shape, dtype and device (each compiles a kernel of its own, so each pays
-        # the one-off compile time of "auto" by itself): wall time and steps of the eager
+        # the one-off compile time of "auto" by itself): (wall time, steps) of the eager
         # runs reported by the solver
-        self.eager_s: dict = {}
-        self.eager_steps: dict = {}
+        self.eager: dict = {}
         self.compiled: dict = {}  # (outputs per chunk, component-major, shape...) -> chunk
         self.reference: dict = {}  # the same key -> the eager chunk the compiled one must match
         self.failed = False
@@ -171,9 +170,8 @@ class Stepper:
     def add_eager_seconds(self, seconds: float, steps: int = 0) -> None:
         """Count ``seconds`` (and ``steps``) of eager stepping of this model and configuration
         towards ``"auto"`` (see :func:`compiled_stepper`)."""
-        entry, state = self._entry, self._state
-        entry.eager_s[state] = entry.eager_s.get(state, 0.0) + seconds
-        entry.eager_steps[state] = entry.eager_steps.get(state, 0) + steps
+        spent, done = self._entry.eager.get(self._state, (0.0, 0))
+        self._entry.eager[self._state] = (spent + seconds, done + steps)
 
     def worth_compiling(self, run_eager_s: float) -> bool:
         """Whether an eager ``"auto"`` run predicted to take ``run_eager_s`` seconds in all
@@ -182,7 +180,7 @@ class Stepper:
         known, see :func:`compiled_stepper`)."""
         if self._active or self._entry.failed:
             return False
-        return self._entry.eager_s.get(self._state, 0.0) + run_eager_s >= self._threshold
+        return self._entry.eager.get(self._state, (0.0, 0))[0] + run_eager_s >= self._threshold
 
     @property
     def active(self) -> bool:
@@ -309,7 +307,7 @@ def compiled_stepper(
     # compiled once for this state: no more eager "auto" runs
     enough = any(key[2:] == state for key in entry.compiled)
     if compile == "auto" and not enough and not entry.failed:
-        spent, steps = entry.eager_s.get(state, 0.0), entry.eager_steps.get(state, 0)
+        spent, steps = entry.eager.get(state, (0.0, 0))
         enough = spent + (n_steps * spent / steps if steps else 0.0) >= threshold
     want = compile is True or (compile == "auto" and enough)
     grad_mode = torch.is_grad_enabled()
