@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import torch
 
-from ._options import check_flag
 from .errors import InputValidationError
 from .implicit import daeint
+from .layers import _SimulationLayer
 from .problems import ImplicitDAE, ImplicitODE, SemiExplicitDAE
 
 
-class DAELayer(torch.nn.Module):
+class DAELayer(_SimulationLayer):
     """Maps initial states to trajectories of an implicit ODE or index-1 DAE.
 
     ``forward(x0, z0=None, t=None, u=None) = daeint(problem, x0, z0, t, ...)``; gradients
@@ -29,27 +29,18 @@ class DAELayer(torch.nn.Module):
     """
 
     def __init__(self, problem, t=None, return_solution=True, **daeint_kwargs):
-        super().__init__()
         if not isinstance(problem, ImplicitODE | SemiExplicitDAE | ImplicitDAE):
             raise InputValidationError(
                 f"DAELayer expects an ImplicitODE, SemiExplicitDAE or ImplicitDAE as problem, "
                 f"got {type(problem).__name__}; wrap the residual or the (f, g) pair in one of "
                 "them (integrators.problems), or use ODELayer for an explicit ODE x' = f(t, x)."
             )
+        super().__init__(t, return_solution)
         self.problem = problem
         self.fns = torch.nn.ModuleList(problem.modules())
-        self.return_solution = check_flag(return_solution, "DAELayer: return_solution")
         self.daeint_kwargs = daeint_kwargs
-        if t is not None and not isinstance(t, torch.Tensor):  # a list: exact float64 times
-            t = torch.as_tensor(t, dtype=torch.float64)
-        self.register_buffer("t", t)
 
     def forward(self, x0, z0=None, t=None, u=None):
         """Simulate from ``x0`` (*batch, n) (and algebraic guess ``z0`` (*batch, m))."""
-        t = self.t if t is None else t
-        if t is None:
-            raise InputValidationError(
-                "DAELayer needs output times: pass t to the constructor or to forward()."
-            )
-        sol = daeint(self.problem, x0, z0, t, u=u, **self.daeint_kwargs)
+        sol = daeint(self.problem, x0, z0, self._times(t), u=u, **self.daeint_kwargs)
         return sol if self.return_solution else sol.x

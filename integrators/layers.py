@@ -9,7 +9,31 @@ from .errors import InputValidationError
 from .odeint import odeint
 
 
-class ODELayer(torch.nn.Module):
+class _SimulationLayer(torch.nn.Module):
+    """What :class:`ODELayer` and ``DAELayer`` share: the default output times ``t`` (a buffer,
+    or None) and the ``return_solution`` flag, both named after the layer's class in messages.
+    """
+
+    def __init__(self, t, return_solution):
+        super().__init__()
+        name = type(self).__name__
+        self.return_solution = check_flag(return_solution, f"{name}: return_solution")
+        if t is not None and not isinstance(t, torch.Tensor):  # a list: exact float64 times
+            t = torch.as_tensor(t, dtype=torch.float64)
+        self.register_buffer("t", t)
+
+    def _times(self, t):
+        """The output times of a forward call: ``t``, else the default ones."""
+        t = self.t if t is None else t
+        if t is None:
+            raise InputValidationError(
+                f"{type(self).__name__} needs output times: pass t to the constructor or to "
+                "forward()."
+            )
+        return t
+
+
+class ODELayer(_SimulationLayer):
     """Maps initial states to trajectories: ``forward(x0) = odeint(f, x0, t, ...)``.
 
     Args:
@@ -24,14 +48,10 @@ class ODELayer(torch.nn.Module):
     """
 
     def __init__(self, f, t=None, method="rk4", return_solution=True, **odeint_kwargs):
-        super().__init__()
+        super().__init__(t, return_solution)
         self.f = f
         self.method = method
-        self.return_solution = check_flag(return_solution, "ODELayer: return_solution")
         self.odeint_kwargs = odeint_kwargs
-        if t is not None and not isinstance(t, torch.Tensor):  # a list: exact float64 times
-            t = torch.as_tensor(t, dtype=torch.float64)
-        self.register_buffer("t", t)
 
     def forward(self, x0, t=None, u=None):
         """Simulate from ``x0`` (*batch, nx) over ``t`` (or the default grid) with input ``u``.
@@ -39,10 +59,5 @@ class ODELayer(torch.nn.Module):
         Returns:
             The Solution, or its (*batch, T, nx) states when ``return_solution=False``.
         """
-        t = self.t if t is None else t
-        if t is None:
-            raise InputValidationError(
-                "ODELayer needs output times: pass t to the constructor or to forward()."
-            )
-        sol = odeint(self.f, x0, t, method=self.method, u=u, **self.odeint_kwargs)
+        sol = odeint(self.f, x0, self._times(t), method=self.method, u=u, **self.odeint_kwargs)
         return sol if self.return_solution else sol.x

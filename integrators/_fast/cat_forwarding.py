@@ -46,8 +46,11 @@ def _dim(d: int, ndim: int) -> int:
 
 
 def _cat_pieces(cat_node, dim: int):
-    """``[(piece, start, stop)]`` of ``cat_node`` along ``dim``, or None where a piece's
-    rank or dtype differs from the result (legacy empty pieces, type promotion)."""
+    """``[(piece, start, stop)]`` of ``cat_node`` along ``dim``, or None where it is not a
+    ``cat`` along ``dim`` or a piece's rank or dtype differs from the result (legacy empty
+    pieces, type promotion)."""
+    if not _is_call(cat_node, _aten.cat.default):
+        return None
     out = _value(cat_node)
     pieces = cat_node.args[0]
     cat_dim = cat_node.args[1] if len(cat_node.args) > 1 else cat_node.kwargs.get("dim", 0)
@@ -82,10 +85,7 @@ def _forward_select(node):
     inner = _unsqueezed_from(src, dim)
     if inner is not None:
         return inner
-    if not _is_call(src, _aten.cat.default):
-        return None
-    spans = _cat_pieces(src, dim)
-    for piece, start, stop in spans or ():
+    for piece, start, stop in _cat_pieces(src, dim) or ():
         if start <= index < stop:
             inner = _unsqueezed_from(piece, dim)
             if inner is not None:
@@ -97,8 +97,6 @@ def _forward_select(node):
 def _forward_slice(node):
     """The node that ``slice(cat, d, start, end)`` reads, or None when no rule applies."""
     src = node.args[0]
-    if not _is_call(src, _aten.cat.default):
-        return None
     val = _value(src)
     args = list(node.args) + [None] * (5 - len(node.args))
     dim, start, end, step = args[1] if args[1] is not None else 0, args[2], args[3], args[4]
