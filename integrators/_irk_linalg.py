@@ -55,30 +55,21 @@ class StageLinearSolver:
         # shrinks with s however well conditioned A is)
         invertible = self.mode == "full" and np.linalg.cond(np.array(A, dtype=np.float64)) < 1e12
         self._full_gamma = real_eigenvalue_of_inverse(A) if invertible else None
+        # the first real eigenvalue of A^{-1} in float64 (used by the Radau IIA error filter),
+        # None without a real eigenvalue or outside the transformed mode
+        self.real_eigenvalue = None
         if transform is not None:
             cdtype = torch.complex128 if dtype == torch.float64 else torch.complex64
             lam_r, lam_c, P_r, P_c, V_r, V_c = transform
-
-            def real(a):
-                return torch.as_tensor(a, dtype=dtype, device=device)
-
-            def cplx(a):
-                return torch.as_tensor(a, dtype=cdtype, device=device)
-
-            self.lam_r, self.P_r, self.V_r = real(lam_r), real(P_r), real(V_r)
-            self.lam_c, self.P_c, self.V_c = cplx(lam_c), cplx(P_c), cplx(2.0 * V_c)
-            self.cdtype = cdtype
-            self._lam_r0 = float(lam_r[0]) if len(lam_r) else None
+            self.lam_r, self.P_r, self.V_r = (
+                torch.as_tensor(a, dtype=dtype, device=device) for a in (lam_r, P_r, V_r)
+            )
+            self.lam_c, self.P_c, self.V_c = (
+                torch.as_tensor(a, dtype=cdtype, device=device) for a in (lam_c, P_c, 2.0 * V_c)
+            )
+            self.real_eigenvalue = float(lam_r[0]) if len(lam_r) else None
         self.want_real_block = False  # set when the error filter solves with the real block
         self._eyes: dict = {}
-
-    @property
-    def real_eigenvalue(self) -> float | None:
-        """The first real eigenvalue of ``A^{-1}`` in float64 (used by the Radau IIA error
-        filter), None without a real eigenvalue or outside the transformed mode."""
-        if self.mode != "transformed":
-            return None
-        return self._lam_r0
 
     def factorize(self, E: torch.Tensor, G: torch.Tensor, h: torch.Tensor, parts=None):
         """LU factors of the iteration matrix.
@@ -106,23 +97,18 @@ class StageLinearSolver:
             return ("full", lu, piv, real_lu, real_piv), singular
         if self.dense(E.shape[-1]):
             return self._factorize_dense(E, G, h, self.prepare(E, G) if parts is None else parts)
+        # ("transformed", LU, pivots of the real blocks, LU, pivots of the complex blocks), None
+        # for a group without eigenvalues; every block (*batch, q, p, p) is lambda_j / h E + G
         singular = torch.zeros(E.shape[:-2], dtype=torch.bool, device=E.device)
         factors = ["transformed"]
-        if self.lam_r.numel():
-            mats = (self.lam_r[:, None, None] / hb) * E[..., None, :, :] + G[..., None, :, :]
-            fac, sing = _factor_blocks(mats)
-            factors += list(fac)
-            singular |= sing.any(-1)
-        else:
-            factors += [None, None, None]
-        if self.lam_c.numel():
-            Ec, Gc = E.to(self.cdtype)[..., None, :, :], G.to(self.cdtype)[..., None, :, :]
-            mats = (self.lam_c[:, None, None] / hb.to(self.cdtype)) * Ec + Gc
-            fac, sing = _factor_blocks(mats)
-            factors += list(fac)
-            singular |= sing.any(-1)
-        else:
-            factors += [None, None, None]
+        for lam in (self.lam_r, self.lam_c):
+            lu = piv = None
+            if lam.numel():
+                Eq, Gq, hq = (_cast(a, lam.dtype) for a in (E, G, hb))
+                mats = (lam[:, None, None] / hq) * Eq[..., None, :, :] + Gq[..., None, :, :]
+                lu, piv, info = torch.linalg.lu_factor_ex(mats)
+                singular |= (info != 0).any(-1)
+            factors += [lu, piv]
         return tuple(factors), singular
 
     def dense(self, p: int) -> bool:
@@ -213,16 +199,13 @@ class StageLinearSolver:
             lu, piv = factors[1], factors[2]
             flat = R.reshape(*R.shape[:-2], -1, 1)
             return -torch.linalg.lu_solve(lu, piv, flat).reshape(R.shape)
-        fac_r, fac_c = factors[1:4], factors[4:7]
         inv_h = (1.0 / h)[..., None, None]
         out = torch.zeros_like(R)
-        if fac_r[0] is not None:
-            rhs = -inv_h * (self.P_r @ R)
-            out = out + (self.V_r @ _solve_blocks(fac_r, rhs))
-        if fac_c[0] is not None:
-            Rc = R.to(self.cdtype)
-            rhs = -inv_h.to(self.cdtype) * (self.P_c @ Rc)
-            out = out + (self.V_c @ _solve_blocks(fac_c, rhs)).real
+        groups = ((self.P_r, self.V_r, *factors[1:3]), (self.P_c, self.V_c, *factors[3:5]))
+        for P, V, lu, piv in groups:
+            if lu is not None:
+                rhs = -_cast(inv_h, P.dtype) * (P @ _cast(R, P.dtype))
+                out = out + (V @ _solve_blocks(lu, piv, rhs)).real
         return out
 
     def solve_real_block(self, factors, rhs: torch.Tensor) -> torch.Tensor:
@@ -233,7 +216,7 @@ class StageLinearSolver:
             return (factors[2] @ rhs[..., None])[..., 0]
         if factors[0] == "full":
             return torch.linalg.lu_solve(factors[3], factors[4], rhs[..., None])[..., 0]
-        return _solve_blocks(factors[1:4], rhs[..., None, :])[..., 0, :]
+        return _solve_blocks(factors[1], factors[2], rhs[..., None, :])[..., 0, :]
 
 
 _DENSE_MAX = 24  # s p up to this size: explicit inverse of J, one matmul per Newton iteration
@@ -247,16 +230,14 @@ def real_eigenvalue_of_inverse(A) -> float | None:
     return float(real[0]) if len(real) else None
 
 
-def _factor_blocks(mats: torch.Tensor):
-    """LU-factor (*batch, q, p, p) blocks: ``(("lu", LU, pivots), singular (*batch, q))``."""
-    lu, piv, info = torch.linalg.lu_factor_ex(mats)
-    return ("lu", lu, piv), info != 0
-
-
-def _solve_blocks(factors, rhs: torch.Tensor) -> torch.Tensor:
-    """Solve with factors from :func:`_factor_blocks`; rhs (*batch, q, p)."""
-    _, lu, piv = factors
+def _solve_blocks(lu, piv, rhs: torch.Tensor) -> torch.Tensor:
+    """Solve with the LU factors of (*batch, q, p, p) blocks; rhs (*batch, q, p)."""
     return torch.linalg.lu_solve(lu, piv, rhs[..., None])[..., 0]
+
+
+def _cast(a: torch.Tensor, dtype) -> torch.Tensor:
+    """``a`` in ``dtype`` (the complex blocks' solves); no call when it already is."""
+    return a if a.dtype == dtype else a.to(dtype)
 
 
 def _kron(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -292,11 +273,5 @@ def _eigen_transform(A: np.ndarray):
     if np.linalg.cond(V) > _MAX_EIGVEC_COND:
         return None
     P = np.linalg.inv(V) @ Ainv
-    r = len(real_idx)
-    lam_r = lam[real_idx].real
-    lam_c = lam[pos_idx]
-    P_r = P[:r].real
-    P_c = P[r::2] if pos_idx else np.zeros((0, s), dtype=np.complex128)
-    V_r = V[:, :r].real
-    V_c = V[:, r::2] if pos_idx else np.zeros((s, 0), dtype=np.complex128)
-    return lam_r, lam_c, P_r, P_c, V_r, V_c
+    r = len(real_idx)  # one column / row per conjugate pair (P[r::2] is empty without pairs)
+    return lam[real_idx].real, lam[pos_idx], P[:r].real, P[r::2], V[:, :r].real, V[:, r::2]
