@@ -282,6 +282,7 @@ class IRKCore:
             q = torch.hypot(q, torch.linalg.vector_norm(dW[..., n:] * w_z, dim=(-2, -1)))
         return q
 
+    @torch.no_grad()
     def newton(
         self, times, inputs, h, xk, W, factors, sc_x, sc_z, tol, max_iter, active, predict=True
     ):
@@ -307,12 +308,6 @@ class IRKCore:
             ``(W, converged, iterations, theta, non_finite)``: W a tensor without autograd
             graph (gradients come from :meth:`ift`), the others (*batch,) numpy arrays.
         """
-        with torch.no_grad():
-            return self._newton(
-                times, inputs, h, xk, W, factors, sc_x, sc_z, tol, max_iter, active, predict
-            )
-
-    def _newton(self, times, inputs, h, xk, W, factors, sc_x, sc_z, tol, max_iter, active, predict):
         w_x = (h[..., None] / sc_x)[..., None, :]
         w_z = (1.0 / sc_z)[..., None, :] if self.system.m else None
         live = active.copy()  # still iterating
