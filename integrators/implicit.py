@@ -450,7 +450,7 @@ def daeint(
         x0, t, method, stages, adaptive, controller, newton_options, run, algebraic
     )
     tab, adaptive, options = settings.tab, settings.adaptive, settings.options
-    if isinstance(problem, ImplicitODE):
+    if not algebraic:
         if z0 is not None and torch.as_tensor(z0).numel():
             raise InputValidationError("an ImplicitODE has no algebraic states: pass z0=None.")
         z0 = x0.new_zeros(*x0.shape[:-1], 0)
@@ -480,7 +480,7 @@ def daeint(
             "adaptive=False (z is then solved from g = 0 at every step)."
         )
     if x0.shape[:-1].numel() == 0:
-        return _empty_solution(x0, z0, t, tab.name, with_z=not isinstance(problem, ImplicitODE))
+        return _empty_solution(x0, z0, t, tab.name, with_z=algebraic)
     from .inputs import bind_rhs
 
     signal = InputSignal(
@@ -509,8 +509,13 @@ def consistent_start(system: StageSystem, signal: InputSignal, t0, x0, z0, index
     u0 = signal.at(t0)
     _check_index(system, t0, torch.zeros_like(x0.detach()), x0, z0.detach(), u0, index_tol)
     xdot0, z_new, res = system.algebraic_states(t0, x0, z0, u0)
-    semi = system.kind == "semi"
-    _raise_unconverged(res, "g(t0, x0, z) = 0 for z" if semi else "F(t0, x0', x0, z) = 0")
+    if not bool(res.converged.all()):
+        idx, _ = sample_indices(~res.converged, 10)
+        what = "g(t0, x0, z) = 0 for z" if system.kind == "semi" else "F(t0, x0', x0, z) = 0"
+        raise ConvergenceError(
+            f"consistent initialisation failed: Newton on {what} did not converge for samples "
+            f"{idx}. Give a better z0 guess, or check that the DAE has a solution at t0."
+        )
     _check_index(system, t0, xdot0, x0, z_new, u0, index_tol)
     correction = (z_new - z0).detach().abs().amax(-1) if m else x0.new_zeros(x0.shape[:-1])
     msgs = []
@@ -558,13 +563,3 @@ def _check_index(system, t0, xdot, x, z, u, index_tol):
             f"{reduce}"
         )
     raise HighIndexError(f"the DAE is of index > 1: {found}. {reduce}")
-
-
-def _raise_unconverged(res, what):
-    if bool(res.converged.all()):
-        return
-    idx, _ = sample_indices(~res.converged, 10)
-    raise ConvergenceError(
-        f"consistent initialisation failed: Newton on {what} did not converge for samples "
-        f"{idx}. Give a better z0 guess, or check that the DAE has a solution at t0."
-    )
