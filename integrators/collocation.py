@@ -54,16 +54,6 @@ def _check_stages(s) -> int:
     return int(s)
 
 
-def _polished_roots(coef: np.ndarray, interval_roots: np.ndarray) -> np.ndarray:
-    """Newton-polish roots of the Legendre series ``coef`` (variable x in [-1, 1])."""
-    deriv = npleg.legder(coef)
-    x = np.sort(interval_roots.real)
-    for _ in range(3):
-        dp = npleg.legval(x, deriv)
-        x = x - npleg.legval(x, coef) / dp
-    return x
-
-
 def _gauss_nodes(s: int) -> np.ndarray:
     """Roots of the shifted Legendre polynomial P_s(2 tau - 1), ascending, in (0, 1)."""
     x, _ = npleg.leggauss(s)
@@ -78,7 +68,10 @@ def _radau_nodes(s: int) -> np.ndarray:
     coef[s], coef[s - 1] = 1.0, -1.0
     # x = 1 is a root (P_n(1) = 1 for all n); deflate it analytically by dividing by (x - 1).
     quotient, _ = npleg.legdiv(coef, np.array([-1.0, 1.0]))
-    interior = _polished_roots(quotient, npleg.legroots(quotient))
+    # its roots (variable x in [-1, 1]), polished by three Newton steps
+    interior, deriv = np.sort(npleg.legroots(quotient).real), npleg.legder(quotient)
+    for _ in range(3):
+        interior = interior - npleg.legval(interior, quotient) / npleg.legval(interior, deriv)
     return np.append((interior + 1.0) / 2.0, 1.0)
 
 
