@@ -128,7 +128,7 @@ class StageSystem:
             return self._call(self.fns[0], t, K, X, u=u)
         return self._call(self.fns[0], t, K, X, Z, u=u)
 
-    def jacobian(self, fun: Callable, v: torch.Tensor, u) -> torch.Tensor:
+    def jacobian(self, fun: Callable, v: torch.Tensor) -> torch.Tensor:
         """The Jacobian (*batch, p, d) of the sample-wise ``fun`` at ``v`` by
         :func:`~integrators.jacobians.batch_jacobian`: one backward pass on stacked copies
         (``"stacked"``) when that reproduced the row-by-row Jacobian (``"rows"``) at the
@@ -136,10 +136,9 @@ class StageSystem:
         (checked once per system, like the stage stacking of ``IRKCore.residual``; the two
         agree to the last bit for elementwise models), else row by row."""
         stackable = self.stack_jacobian.get(v.dim())
-        if stackable is False:
-            return batch_jacobian(fun, v, strategy="rows")[1]
-        if stackable:
-            return batch_jacobian(fun, v, strategy="stacked", outputs=self.p)[1]
+        if stackable is not None:
+            strategy = "stacked" if stackable else "rows"
+            return batch_jacobian(fun, v, strategy=strategy, outputs=self.p)[1]
         ref = batch_jacobian(fun, v, strategy="rows")[1]
         try:
             got = batch_jacobian(fun, v, strategy="stacked", outputs=self.p)[1]
@@ -161,11 +160,10 @@ class StageSystem:
             for explicit ODEs; ``reference`` is the full Jacobian whose norm scales the
             rank test.
         """
-        n, m = self.n, self.m
-        batch = X.shape[:-1]
-        eye_n = torch.eye(n, dtype=X.dtype, device=X.device).expand(*batch, n, n)
+        n, p, batch = self.n, self.p, X.shape[:-1]
         if self.kind == "ode":
-            Jf = self.jacobian(lambda x: self._call(self.fns[0], t, x, u=u), X, u)
+            Jf = self.jacobian(lambda x: self._call(self.fns[0], t, x, u=u), X)
+            eye_n = torch.eye(n, dtype=X.dtype, device=X.device).expand(*batch, n, n)
             return eye_n, -Jf, None, None
         if self.kind == "semi":
 
@@ -175,21 +173,18 @@ class StageSystem:
                 g = self._call(self.fns[1], t, x, z, u=u)
                 return torch.cat([f, g], dim=-1)
 
-            J = self.jacobian(fg, torch.cat([X, Z], dim=-1), u)
-            fx, fz, gx, gz = J[..., :n, :n], J[..., :n, n:], J[..., n:, :n], J[..., n:, n:]
-            zeros_mn = torch.zeros(*batch, m, n, dtype=X.dtype, device=X.device)
-            E = torch.cat(
-                [torch.cat([eye_n, -fz], dim=-1), torch.cat([zeros_mn, gz], dim=-1)], dim=-2
-            )
-            zeros_pm = torch.zeros(*batch, n + m, m, dtype=X.dtype, device=X.device)
-            G = torch.cat([torch.cat([-fx, gx], dim=-2), zeros_pm], dim=-1)
-            return E, G, gz, J[..., n:, :]
+            J = self.jacobian(fg, torch.cat([X, Z], dim=-1))
+            D = torch.cat([-J[..., :n, :], J[..., n:, :]], dim=-2)  # dR/d(X, Z) of [K - f; g]
+            dR_dK = torch.eye(p, n, dtype=X.dtype, device=X.device).expand(*batch, p, n)
+            E = torch.cat([dR_dK, D[..., n:]], dim=-1)
+            G = torch.cat([D[..., :n], torch.zeros_like(D[..., n:])], dim=-1)
+            return E, G, J[..., n:, n:], J[..., n:, :]
 
         def F(v):
             k, x, z = v[..., :n], v[..., n : 2 * n], v[..., 2 * n :]
             return self.residual(t, k, x, z, u)
 
-        J = self.jacobian(F, torch.cat([K, X, Z], dim=-1), u)
+        J = self.jacobian(F, torch.cat([K, X, Z], dim=-1))
         FK, FX, FZ = J[..., :n], J[..., n : 2 * n], J[..., 2 * n :]
         E = torch.cat([FK, FZ], dim=-1)
         G = torch.cat([FX, torch.zeros_like(FZ)], dim=-1)
