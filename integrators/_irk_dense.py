@@ -112,8 +112,8 @@ class StepRecords:
         w = collocation_output_weights(self.tab, theta)  # (M, B, s)
         x = x0 + h[..., None] * torch.einsum("mbs,mbsn->mbn", w, W[..., :n])
         z0 = take(self.z)
+        c = torch.as_tensor(np.array(self.tab.c), dtype=x.dtype, device=x.device)
         if z0.shape[-1]:
-            c = torch.as_tensor(np.array(self.tab.c), dtype=x.dtype, device=x.device)
             nodes = torch.cat([c.new_zeros(1), c])
             basis = lagrange_basis(nodes, theta)  # (M, B, s + 1)
             values = torch.cat([z0[..., None, :], W[..., n:]], dim=-2)
@@ -128,7 +128,6 @@ class StepRecords:
         if not interior:
             return x, z
         inside = ((theta > 0) & (theta < 1)).permute(1, 0).reshape(*batch, M)
-        c = torch.as_tensor(np.array(self.tab.c), dtype=x.dtype, device=x.device)
         xdot = torch.einsum("mbs,mbsn->mbn", lagrange_basis(c, theta), W[..., :n])
         return x, z, inside, xdot.permute(1, 0, 2).reshape(*batch, M, n)
 
