@@ -84,10 +84,9 @@ class StageLinearSolver:
         """
         hb = h[..., None, None, None]
         if self.mode == "full":
-            s, p = self.s, E.shape[-1]
-            eye = torch.eye(s, dtype=E.dtype, device=E.device)
-            big = _kron(eye, E) + hb[..., 0] * _kron(self.A, G)
-            lu, piv, info = torch.linalg.lu_factor_ex(big.reshape(*E.shape[:-2], s * p, s * p))
+            eye = torch.eye(self.s, dtype=E.dtype, device=E.device)
+            big = _kron(eye, E) + hb[..., 0] * _kron(self.A, G)  # (*batch, s p, s p)
+            lu, piv, info = torch.linalg.lu_factor_ex(big)
             singular = info != 0
             real_lu = real_piv = None
             if self.want_real_block:
@@ -196,9 +195,8 @@ class StageLinearSolver:
             flat = R.reshape(*R.shape[:-2], -1, 1)
             return (factors[1] @ flat).reshape(R.shape)
         if factors[0] == "full":
-            lu, piv = factors[1], factors[2]
             flat = R.reshape(*R.shape[:-2], -1, 1)
-            return -torch.linalg.lu_solve(lu, piv, flat).reshape(R.shape)
+            return -torch.linalg.lu_solve(factors[1], factors[2], flat).reshape(R.shape)
         inv_h = (1.0 / h)[..., None, None]
         out = torch.zeros_like(R)
         groups = ((self.P_r, self.V_r, *factors[1:3]), (self.P_c, self.V_c, *factors[3:5]))
