@@ -198,51 +198,6 @@ def _all(mask: np.ndarray) -> bool:
 _any, _pick = ArrayOps.any, ArrayOps.pick
 
 
-def _method_constants(core: IRKCore, npdt):
-    """The tableau's constants of both host loops: ``gamma e`` of the embedded estimate (see
-    :mod:`integrators.radau`) (s,), the error-filter weights (:func:`_filter_weights`), ``A``
-    (s, s), ``b`` (s,), the nodes ``c`` (s,) float64, their Lagrange coefficients (s, s) for
-    :func:`extrapolation_matrix`, the RMS factors ``1/sqrt(n)`` (error) and
-    ``1/sqrt(s n)`` (Newton), and the step-size exponent ``1/(s+1)``."""
-    n, s = core.system.n, core.s
-    gamma, e_np = embedded_weights(core.tab)
-    c = np.array(core.c, dtype=np.float64)
-    return (
-        (gamma * e_np).astype(npdt),
-        _filter_weights(core, npdt),
-        np.array(core.tab.A, dtype=npdt),
-        np.array(core.tab.b, dtype=npdt),
-        c,
-        lagrange_coefficients(tuple(c)),
-        1.0 / n**0.5,
-        1.0 / (s * n) ** 0.5,
-        1.0 / (s + 1),
-    )
-
-
-def _run_constants(core: IRKCore, t, atol, rtol, npdt):
-    """The run's constants of both host loops: output times (T,) in ``npdt``, the end time,
-    the time from which a step lands on the end, the span, the smallest step relative to
-    ``max(|t|, 1)``, the dtype's smallest normal number and the tolerances as host arrays
-    (floats, or (*batch, n | 1) tensors flattened to the kernels' (B, n | 1))."""
-    t_host = t.detach().numpy().astype(npdt)
-    t_end = t_host[-1]
-    return (
-        t_host,
-        t_end,
-        t_end - 1e-14 * abs(float(t_end)),  # a step ending this close lands on t_end
-        float(t_host[-1] - t_host[0]),
-        16 * core.eps,
-        float(np.finfo(npdt).tiny),
-        *(
-            v.detach().cpu().numpy().astype(npdt).reshape(-1, v.shape[-1])
-            if isinstance(v, torch.Tensor)
-            else npdt(v)
-            for v in (atol, rtol)
-        ),
-    )
-
-
 def one_trajectory(x0: torch.Tensor) -> bool:
     """Whether a problem that the numpy kernel runs takes :class:`OneTrajectoryKernel`: a
     single trajectory (``x0.numel() == n``) in float64 (the dtype of Python floats, so that
@@ -265,20 +220,26 @@ class NumpyKernel:
         npdt = np.float64 if x0.dtype == torch.float64 else np.float32
         self.model = model = _HostModel(core, x0.shape[:-1], npdt)
         B, n = model.B, core.system.n
-        (
-            self.gamma_e,
-            self.filt,
-            self.A,
-            self.b,
-            self.c,
-            self.lagrange,
-            self.rms,
-            self.rms_newton,
-            _,
-        ) = _method_constants(core, npdt)
+        # the tableau's constants: gamma e of the embedded estimate (see integrators.radau),
+        # the error-filter weights, A, b, the nodes c (float64) and their Lagrange
+        # coefficients for extrapolation_matrix, and the RMS factors of the error and Newton
+        gamma, e = embedded_weights(core.tab)
+        self.gamma_e = (gamma * e).astype(npdt)
+        self.filt = _filter_weights(core, npdt)
+        self.A, self.b = (np.array(v, dtype=npdt) for v in (core.tab.A, core.tab.b))
+        self.c = np.array(core.c, dtype=np.float64)
         self.c_col = self.c[:, None]
-        self.t0, *_, self.tiny, self.atol, self.rtol = _run_constants(core, t, atol, rtol, npdt)
-        self.t0 = self.t0[0]
+        self.lagrange = lagrange_coefficients(tuple(self.c))
+        self.rms, self.rms_newton = 1.0 / n**0.5, 1.0 / (core.s * n) ** 0.5
+        self.t0 = t.detach().numpy().astype(npdt)[0]
+        self.tiny = float(np.finfo(npdt).tiny)  # the dtype's smallest normal number
+        # tolerances: floats, or (*batch, n | 1) tensors flattened to (B, n | 1)
+        self.atol, self.rtol = (
+            v.detach().cpu().numpy().astype(npdt).reshape(-1, v.shape[-1])
+            if isinstance(v, torch.Tensor)
+            else npdt(v)
+            for v in (atol, rtol)
+        )
         self.npdt, self.newton_tol, self.max_iter = npdt, newton_tol, max_iter
         self.x = x0.detach().numpy().astype(npdt).reshape(B, n)
         self.xdot = xdot0.detach().numpy().astype(npdt).reshape(B, n)
@@ -304,10 +265,10 @@ class NumpyKernel:
         return None
 
     def factorize(self, mask, h, h_fact):
-        shape, mask, h, h_fact = mask.shape, mask.reshape(-1), h.reshape(-1), h_fact.reshape(-1)
+        shape, mask, h = mask.shape, mask.reshape(-1), h.reshape(-1)
+        # every member at h: all need it, or none was factorised yet (h_fact is 0 until then)
         if self.J_inv is None or _all(mask):
-            h_lu = np.where(mask, h, np.where(h_fact > 0, h_fact, h))
-            self.J_inv, self.real_inv, sing = _factorize(self.A, self.filt, self.G, h_lu)
+            self.J_inv, self.real_inv, sing = _factorize(self.A, self.filt, self.G, h)
             singular = mask & sing
         else:  # only the members that need it (finished members never do)
             idx = np.flatnonzero(mask)
