@@ -229,16 +229,14 @@ def adaptive_loop(
                         "at t = 1, notes eq. 1.44); its outputs from there on are not defined",
                     )
                     tiny &= not_(escape)
-                nonfinite = tiny & nonfinite_last
-                if any_(nonfinite):
-                    stop(
-                        nonfinite,
-                        Status.NON_FINITE,
-                        "the model's functions or the stage values became inf/nan in every trial "
-                        "step until the step size fell below the time resolution; check the "
-                        "model there for a division by zero, a log or sqrt of a negative "
-                        "argument or a finite escape time",
-                    )
+                stop(
+                    tiny & nonfinite_last,
+                    Status.NON_FINITE,
+                    "the model's functions or the stage values became inf/nan in every trial "
+                    "step until the step size fell below the time resolution; check the "
+                    "model there for a division by zero, a log or sqrt of a negative "
+                    "argument or a finite escape time",
+                )
                 stop(
                     tiny & not_(nonfinite_last),
                     Status.STEP_TOO_SMALL,
@@ -466,25 +464,32 @@ class TorchKernel:
         return conv, iters, theta, nonfin
 
     def error(self, ok, retry):
-        core = self.core
-        self.Wg = core.ift(self.times, self.inputs, self.h_t, self.x, self.W, valid=ok)
+        """The scaled norm of the filtered embedded error estimate (module docstring), the
+        ``retry`` samples' estimate refined by one more ``f`` evaluation (explicit ODEs)."""
+        core, mat, W, atol, rtol = self.core, self.mat, self.W, self.atol, self.rtol
+        n, m = core.system.n, core.system.m
+        ode = core.system.kind == "ode"
+        self.Wg = core.ift(self.times, self.inputs, self.h_t, self.x, W, valid=ok)
         self.x_new = core.step_end(self.x, self.h_t, self.Wg)
-        err = _error_norm(
-            core,
-            self.mat,
-            self.x_new,
-            self.xdot,
-            self.W,
-            self.h_t,
-            self.gamma_e,
-            self.gamma,
-            self.tcol,
-            self.xd,
-            self.sc_x,
-            (self.atol, self.rtol),
-            z=self.zd,
-            retry=retry,
-        )
+        with torch.no_grad():
+            eK = self.gamma_e @ (W[..., :n] if m else W)
+            rhs = self.xdot + eK
+            if not ode:  # M = dR/dK (the identity for explicit ODEs)
+                rhs = (mat.E[..., :, :n] @ rhs[..., None])[..., 0]
+            sol = core.solver.solve_real_block(mat.factors, rhs)
+            sc = torch.maximum(self.sc_x, atol + rtol * self.x_new.detach().abs())
+            err_x = sol[..., :n] if m else sol
+            if ode and retry.any():
+                core.n_f_evals += 1
+                tcol = self.tcol
+                f_err = core.system.rhs_f(tcol, self.xd + err_x, self.zd, core.signal.at(tcol))
+                sol2 = core.solver.solve_real_block(mat.factors, f_err + eK)
+                err_x = masked_update(retry, sol2, err_x)
+            err = torch.linalg.vector_norm(err_x / sc, dim=-1)
+            if m:
+                sc_z = atol + rtol * torch.maximum(self.zd.abs(), W[..., -1, n:].abs())
+                err_z = (self.gamma / self.h_t)[..., None] * sol[..., n:]
+                err = torch.hypot(err, torch.linalg.vector_norm(err_z / sc_z, dim=-1))
         finite_x = torch.isfinite(self.x_new.detach()).all(-1).to(err.dtype)
         both = to_host(torch.stack([err, finite_x]), (2, *self.hshape)).astype(np.float64)
         err, finite_x = both[0] * self.rms, both[1]
@@ -495,8 +500,13 @@ class TorchKernel:
         core, n, m = self.core, self.core.system.n, self.core.system.m
         t0 = np.where(accept, tcur, np.inf).astype(self.hdt)
         self.rec.append(t0.reshape(self.batch), h.reshape(self.batch), self.x, self.Wg, self.z)
-        z_new = self.W[..., -1, n:] if m else self.z
-        xdot_new = _derivative(core, self.t_next, self.x_new.detach(), z_new, self.W)
+        if core.system.kind == "ode":  # x' at the step end: f for explicit ODEs, else K_s
+            core.n_f_evals += 1
+            with torch.no_grad():
+                t = self.t_next
+                xdot_new = core.system.rhs_f(t, self.x_new.detach(), self.z, core.signal.at(t))
+        else:
+            xdot_new = self.W[..., -1, :n].detach()
         self.x = masked_update(accept, self.x_new, self.x)
         self.z = masked_update(accept, self.Wg[..., -1, n:], self.z) if m else self.z
         self.xdot = masked_update(accept, xdot_new, self.xdot)
@@ -536,46 +546,6 @@ def _stage_guess(c, prev_W, have_prev, ratio, xdot, z, s):
     if not have_prev.any():
         return const
     return masked_update(have_prev, ext, const)
-
-
-def _derivative(core, t, x, z, W):
-    """``x'`` at the end of a step: ``f`` for the explicit kinds, ``K_s`` otherwise."""
-    n = core.system.n
-    if core.system.kind == "ode":
-        core.n_f_evals += 1
-        with torch.no_grad():
-            return core.system.rhs_f(t, x, z, core.signal.at(t))
-    return W[..., -1, :n].detach()
-
-
-def _error_norm(core, mat, x_new, xdot, W, h, gamma_e, gamma, tcol, x, sc_x, tol, z, retry):
-    """Scaled norm (*batch,) of the filtered embedded error estimate, times ``sqrt(n + m)``
-    (the RMS factor is applied on the host); ``retry`` (host bool) marks the samples whose
-    estimate is refined by one more ``f`` evaluation. ``gamma_e = gamma e``, ``x`` the
-    detached step start, ``sc_x = atol + rtol |x|``, ``tol = (atol, rtol)``."""
-    atol, rtol = tol
-    n, m = core.system.n, core.system.m
-    ode = core.system.kind == "ode"
-    with torch.no_grad():
-        eK = gamma_e @ (W[..., :n] if m else W)
-        rhs = xdot + eK
-        if not ode:  # M = dR/dK (the identity for explicit ODEs)
-            rhs = (mat.E[..., :, :n] @ rhs[..., None])[..., 0]
-        sol = core.solver.solve_real_block(mat.factors, rhs)
-        sc = torch.maximum(sc_x, atol + rtol * x_new.detach().abs())
-        err_x = sol[..., :n] if m else sol
-        if ode and retry.any():
-            core.n_f_evals += 1
-            f_err = core.system.rhs_f(tcol, x + err_x, z, core.signal.at(tcol))
-            sol2 = core.solver.solve_real_block(mat.factors, f_err + eK)
-            err_x = masked_update(retry, sol2, err_x)
-        q = torch.linalg.vector_norm(err_x / sc, dim=-1)
-        if m:
-            z_new = W[..., -1, n:]
-            sc_z = atol + rtol * torch.maximum(z.abs(), z_new.abs())
-            err_z = (gamma / h)[..., None] * sol[..., n:]
-            q = torch.hypot(q, torch.linalg.vector_norm(err_z / sc_z, dim=-1))
-        return q
 
 
 def _first_step(core, x0, z0, xdot0, t0, span, rtol, atol, s, dt0):
