@@ -82,19 +82,14 @@ class _StepRecord:
     """
 
     def __init__(self):
-        self.start, self.h, self.x, self.r = [], [], [], []
+        self.steps = []  # (start, h, x, r) of each step: (B,), (B,), (B, nx), (B, nx, 4)
 
     def append(self, start, h, x, r):
-        self.start.append(start)
-        self.h.append(h)
-        self.x.append(x)
-        self.r.append(r)
+        self.steps.append((start, h, x, r))
 
     def interpolant(self, t_reached, failed, dead, batch_shape):
-        start = torch.stack(self.start, dim=1)  # (B, N)
-        h = torch.stack(self.h, dim=1)  # (B, N)
-        xs = torch.stack(self.x, dim=1)  # (B, N, nx)
-        rs = torch.stack(self.r, dim=1)  # (B, N, nx, 4)
+        # start, h (B, N), xs (B, N, nx), rs (B, N, nx, 4)
+        start, h, xs, rs = (torch.stack(v, dim=1) for v in zip(*self.steps, strict=True))
         B, _, nx = xs.shape
 
         def evaluate(s: torch.Tensor) -> torch.Tensor:
@@ -261,27 +256,25 @@ def solve_adaptive(
     k_cur = torch.zeros(B, dtype=torch.int64, device=device)  # the stop before t_cur
     sample = held_sample(t_cur) if held else None
     k1 = call(t_cur, x, sample)
-    with torch.no_grad():
-        finite0 = torch.isfinite(x).all(-1) & torch.isfinite(k1).all(-1)
-        x_safe = torch.where(finite0[:, None], x, 0.0)
-        k1_safe = torch.where(finite0[:, None], k1, 0.0)
-        if dt0 is None:
-            h_next = initial_step(
-                lambda tt, xx: call(tt, xx, sample),
-                t_cur,
-                x_safe.detach(),
-                k1_safe.detach(),
-                q,
-                rtol,
-                atol,
-                span,
-            )
-        else:
-            h_next = _as_dt0(dt0, batch_shape, dtype, device).clamp_max(span)
+    finite0 = torch.isfinite(x).all(-1) & torch.isfinite(k1).all(-1)
     # a sample that is non-finite at t0 is frozen at zeros so that it poisons nothing
     if not bool(finite0.all()):
         x = torch.where(finite0[:, None], x, 0.0)
         k1 = torch.where(finite0[:, None], k1, 0.0)
+    # step sizes are not differentiated: initial_step runs under no_grad, dt0 is detached
+    if dt0 is None:
+        h_next = initial_step(
+            lambda tt, xx: call(tt, xx, sample),
+            t_cur,
+            x.detach(),
+            k1.detach(),
+            q,
+            rtol,
+            atol,
+            span,
+        )
+    else:
+        h_next = _as_dt0(dt0, batch_shape, dtype, device).clamp_max(span)
     init_evals = 2 if dt0 is None else 1  # f(t0, x0), plus the probe of initial_step
 
     status = torch.where(finite0, Status.SUCCESS, Status.NON_FINITE).to(torch.int8)

@@ -90,10 +90,9 @@ def _is_dopri5(tab: ButcherTableau) -> bool:
     ref = tableau("dopri5")
     if tab.stages != ref.stages or tab.b_err is None:
         return False
-    return (
-        np.allclose(tab.A, ref.A, rtol=0, atol=1e-15)
-        and np.allclose(tab.b, ref.b, rtol=0, atol=1e-15)
-        and np.allclose(tab.b_err, ref.b_err, rtol=0, atol=1e-15)
+    return all(
+        np.allclose(getattr(tab, k), getattr(ref, k), rtol=0, atol=1e-15)
+        for k in ("A", "b", "b_err")
     )
 
 
@@ -112,10 +111,7 @@ def continuous_extension(tab: ButcherTableau) -> ContinuousExtension:
     n = s + 1 if extra else s
     bvec = np.zeros(n)
     bvec[:s] = tab.b
-    first = np.zeros(n)
-    first[0] = 1.0
-    last = np.zeros(n)
-    last[n - 1] = 1.0
+    first, last = np.eye(n)[[0, -1]]
     weights = np.stack(
         [first, 3.0 * bvec - 2.0 * first - last, first + last - 2.0 * bvec, np.zeros(n)], axis=1
     )

@@ -8,6 +8,8 @@ from enum import IntEnum
 
 import torch
 
+from .errors import InputValidationError
+
 
 class Status(IntEnum):
     """Per-sample outcome of an integration, stored as int8 codes in ``Solution.status``."""
@@ -95,8 +97,6 @@ class Solution:
                 times outside the integration interval (the interpolants do not
                 extrapolate).
         """
-        from .errors import InputValidationError
-
         if self.interpolant is None:
             raise InputValidationError(
                 f"method {self.method!r} has no dense output; use an adaptive method "
@@ -111,8 +111,6 @@ def check_query_times(tq: torch.Tensor, t0: float, t_end: float) -> None:
     """Raise InputValidationError unless every time of ``tq`` (M,) is finite and inside
     ``[t0, t_end]``, up to 8 rounding errors of the largest time involved (one host
     synchronisation)."""
-    from .errors import InputValidationError
-
     if tq.numel() == 0:
         return
     q = tq.detach()
