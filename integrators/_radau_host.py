@@ -210,7 +210,7 @@ class NumpyKernel:
     ``B`` as one axis: explicit ODEs on the CPU whose Newton matrix is inverted explicitly
     (:func:`host_loop_supported`). Only the user's model runs in torch (:class:`_HostModel`);
     the Newton matrix is inverted (:func:`_factorize`) and the simplified Newton iteration
-    (:func:`_newton`) is one matrix product per iteration. The records of the accepted steps
+    (:meth:`newton`) is one matrix product per iteration. The records of the accepted steps
     are replayed in torch for gradients at the end (:func:`_records`)."""
 
     scalar = False
@@ -258,7 +258,7 @@ class NumpyKernel:
         self.host = host
 
     def jacobian(self, mask):
-        mask = mask.reshape(-1)
+        mask = np.reshape(mask, -1)  # (B,), also from the one-trajectory kernel's Python bool
         self.G = _jacobian(self.core, self.model, self.host[0], self.x, self.z, self.xdot,
                            mask, self.G)  # fmt: skip
         self.n_jac += 1
@@ -280,28 +280,62 @@ class NumpyKernel:
         return singular.reshape(shape)
 
     def newton(self, live, have_prev, ratio):
-        shape, model = live.shape, self.model
+        """Simplified Newton on ``R(W) = K - f(t_k + c h, x_k + h A K)`` (eq. 7.14-7.16), per
+        sample, as :meth:`IRKCore.newton` with ``predict=True``: converged when
+        ``theta / (1 - theta) ||dW|| <= tol``, failed when ``theta >= 1`` or the rate predicts
+        that ``max_iter`` iterations will not do. One product with ``J_inv`` (B, 2 s n, s n),
+        ``-J^{-1}`` stacked over ``(A (x) I) (-J^{-1})``, gives the increment and its image
+        ``A dK`` per iteration."""
+        shape, model, h = live.shape, self.model, self.h
+        tol, max_iter = self.newton_tol, self.max_iter
         self.sc_x = self.atol + self.rtol * np.abs(self.x)
-        W0 = _stage_guess(self.c, self.lagrange, self.prev_W, have_prev.reshape(-1),
-                          ratio.reshape(-1), self.xdot)  # fmt: skip
-        self.W, conv, iters, theta, nonfin = _newton(
-            model,
-            self.A,
-            model.times(self.host[2:]),
-            self.host[0],
-            self.h,
-            self.x,
-            self.z,
-            W0,
-            self.J_inv,
-            self.sc_x,
-            self.newton_tol,
-            self.max_iter,
-            live.reshape(-1),
-            self.rms_newton,
-            self.tiny,
-        )
-        out = conv, iters, theta, nonfin
+        W = _stage_guess(self.c, self.lagrange, self.prev_W, have_prev.reshape(-1),
+                         ratio.reshape(-1), self.xdot)  # fmt: skip
+        t_stage, tk = model.times(self.host[2:]), self.host[0]  # (s, *batch, 1) tensor, (B,)
+        B, s, n = W.shape
+        sn = s * n
+        # weights of the stage increments h (A dK)_i / sc_x, times the RMS factor: (B, s n)
+        w = np.concatenate([h[:, None] / self.sc_x] * s, axis=1) * W.dtype.type(self.rms_newton)
+        live = live.reshape(-1).copy()
+        conv = np.zeros_like(live)
+        non_finite = np.zeros_like(live)
+        iters = np.zeros(B, dtype=np.int64)
+        theta = np.zeros(B)
+        norm_old = None
+        hA = h[:, None, None] * self.A
+        xk = self.x[:, None, :]
+        for it in range(max_iter):
+            X = hA @ W
+            X += xk  # stage states (B, s, n)
+            if model.core.stack_stages is None:
+                model.decide_stacking(tk, h, t_stage, W, X)
+            R = W - model.stages(t_stage, X.transpose(1, 0, 2), self.z).transpose(1, 0, 2)
+            both = self.J_inv @ R.reshape(B, sn, 1)  # (dW, A dK) in one product
+            v = both[:, sn:, 0] * w
+            norm = np.sqrt(np.einsum("ij,ij->i", v, v)).astype(np.float64, copy=False)
+            if not np.isfinite(norm.sum()):  # (a finite sum means every member is finite)
+                bad = live & ~np.isfinite(norm)
+                non_finite |= bad
+                live &= ~bad
+            if norm_old is None:
+                done = live & (norm == 0)
+            else:  # contraction theta; eta ||dW|| = theta / (1 - theta) ||dW|| <= tol converges
+                th = norm / np.maximum(norm_old, self.tiny)
+                np.copyto(theta, th, where=live)
+                rate = norm / np.maximum(1.0 - th, 1e-12)
+                # diverging, or predicted to miss tol within max_iter iterations: give up
+                live &= (th < 1.0) & (th ** (max_iter - it) * rate <= tol)
+                done = live & (th * rate <= tol)
+            dW = both[:, :sn].reshape(B, s, n)
+            np.add(W, dW, out=W, where=live[:, None, None])  # (W is this step's own array)
+            iters += live
+            conv |= done
+            live &= ~done
+            norm_old = norm
+            if not _any(live):
+                break
+        self.W = W
+        out = conv, iters, theta, non_finite
         return out if len(shape) == 1 else tuple(v.reshape(shape) for v in out)
 
     def error(self, ok, retry):
@@ -350,7 +384,7 @@ class OneTrajectoryKernel(NumpyKernel):
     stay numpy arrays shaped (1, ...), and the Jacobian, the factorisation, the records and
     the gradient replay are the numpy kernel's. The simplified Newton iteration
     (:func:`_newton_one`) and the error norm are written for one flat vector, with the norms
-    and the convergence test in Python floats: the same iteration as :func:`_newton`, a
+    and the convergence test in Python floats: the same iteration as :meth:`NumpyKernel.newton`, a
     deliberate kernel pair (the batched one is vectorised over samples, this one pays no
     per-array overhead)."""
 
@@ -369,12 +403,6 @@ class OneTrajectoryKernel(NumpyKernel):
         host = np.empty((2 + self.core.s, 1))  # t_k, t_k + h and the stage times t_k + c_i h
         host[0], host[1], host[2:, 0] = tcur, tcur + h, tcur + self.c * h
         self.host = host
-
-    def jacobian(self, mask):
-        self.G = _jacobian(self.core, self.model, self.host[0], self.x, self.z, self.xdot,
-                           None, None)  # fmt: skip
-        self.n_jac += 1
-        return None
 
     def factorize(self, mask, h, h_fact):
         self.J_inv, self.real_inv, singular = _factorize(self.A, self.filt, self.G, np.array([h]))
@@ -505,71 +533,10 @@ def _stage_guess(c, lagrange, prev_W, have_prev, ratio, xdot):
     return _pick(have_prev, ext, np.repeat(xdot[:, None, :], s, axis=1))
 
 
-def _newton(model, A, t_stage, tk, h, xk, z, W, J_inv, sc_x, tol, max_iter, active, rms, tiny):
-    """Simplified Newton on ``R(W) = K - f(t_k + c h, x_k + h A K)`` (eq. 7.14-7.16), per
-    sample, as :meth:`IRKCore.newton` with ``predict=True``: converged when
-    ``theta / (1 - theta) ||dW|| <= tol``, failed when ``theta >= 1`` or the rate predicts
-    that ``max_iter`` iterations will not do.
-
-    Args:
-        A: (s, s); t_stage: (s, *batch, 1) stage-time tensor (:meth:`_HostModel.times`);
-            tk, h: (B,) host step start and size; xk, sc_x: (B, n); W: (B, s, n) initial guess;
-            z: the (empty) algebraic state tensor; J_inv: (B, 2 s n, s n) ``-J^{-1}`` stacked over
-            ``(A (x) I) (-J^{-1})``; active: (B,) bool; rms: ``1 / sqrt(s n)``; tiny: the
-            smallest normal number of the dtype.
-
-    Returns:
-        ``(W, converged, iterations, theta, non_finite)`` host arrays.
-    """
-    B, s, n = W.shape
-    sn = s * n
-    # weights of the stage increments h (A dK)_i / sc_x, times the RMS factor: (B, s n)
-    w = np.concatenate([h[:, None] / sc_x] * s, axis=1) * W.dtype.type(rms)
-    live = active.copy()
-    conv = np.zeros_like(live)
-    non_finite = np.zeros_like(live)
-    iters = np.zeros(B, dtype=np.int64)
-    theta = np.zeros(B)
-    norm_old = None
-    hA = h[:, None, None] * A
-    xk = xk[:, None, :]
-    for it in range(max_iter):
-        X = hA @ W
-        X += xk  # stage states (B, s, n)
-        if model.core.stack_stages is None:
-            model.decide_stacking(tk, h, t_stage, W, X)
-        R = W - model.stages(t_stage, X.transpose(1, 0, 2), z).transpose(1, 0, 2)
-        both = J_inv @ R.reshape(B, sn, 1)  # (dW, A dK) in one product
-        v = both[:, sn:, 0] * w
-        norm = np.sqrt(np.einsum("ij,ij->i", v, v)).astype(np.float64, copy=False)
-        if not np.isfinite(norm.sum()):  # (a finite sum means every member is finite)
-            bad = live & ~np.isfinite(norm)
-            non_finite |= bad
-            live &= ~bad
-        if norm_old is None:
-            done = live & (norm == 0)
-        else:  # contraction theta; eta ||dW|| = theta / (1 - theta) ||dW|| <= tol converges
-            th = norm / np.maximum(norm_old, tiny)
-            np.copyto(theta, th, where=live)
-            rate = norm / np.maximum(1.0 - th, 1e-12)
-            # diverging, or predicted to miss tol within max_iter iterations: give up
-            live &= (th < 1.0) & (th ** (max_iter - it) * rate <= tol)
-            done = live & (th * rate <= tol)
-        dW = both[:, :sn].reshape(B, s, n)
-        np.add(W, dW, out=W, where=live[:, None, None])  # (W is this step's own array)
-        iters += live
-        conv |= done
-        live &= ~done
-        norm_old = norm
-        if not _any(live):
-            break
-    return W, conv, iters, theta, non_finite
-
-
 def _newton_one(model, A_kron, t_stage, tk, h, xk, z, W, J_inv, sc_x, tol, max_iter, rms, tiny):
-    """:func:`_newton` for one trajectory (:class:`OneTrajectoryKernel`): simplified Newton on
-    ``R(W) = K - f(t_k + c h, x_k + h A K)`` (eq. 7.14-7.16) on flat stage vectors, with the
-    same stopping and divergence rules.
+    """:meth:`NumpyKernel.newton` for one trajectory (:class:`OneTrajectoryKernel`):
+    simplified Newton on ``R(W) = K - f(t_k + c h, x_k + h A K)`` (eq. 7.14-7.16) on flat
+    stage vectors, with the same stopping and divergence rules.
 
     Args:
         A_kron: (s n, s n) ``A (x) I``; t_stage: (s, *batch, 1) stage-time tensor; tk: (1,)
