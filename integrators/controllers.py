@@ -71,11 +71,6 @@ def _check_factors(safety, min_factor, max_factor) -> tuple[float, float, float]
     return safety, min_factor, max_factor
 
 
-def _sanitise(err_norm: torch.Tensor) -> torch.Tensor:
-    """Non-finite norms become +inf (maximal shrink), tiny ones a floor (no 0^-a)."""
-    return torch.nan_to_num(err_norm, nan=math.inf, posinf=math.inf).clamp_min(_TINY_ERR)
-
-
 class IController:
     """Integral (elementary) controller: ``factor = safety * ||err||^(-1/(q+1))``.
 
@@ -112,7 +107,8 @@ class IController:
             one is accepted (advance, then try ``dt_new``) or rejected (retry with it).
         """
         k = float(order) + 1.0
-        err = _sanitise(err_norm)
+        # non-finite norms become +inf (maximal shrink), tiny ones a floor (no 0^-a)
+        err = torch.nan_to_num(err_norm, nan=math.inf, posinf=math.inf).clamp_min(_TINY_ERR)
         accept = err <= 1.0
         shrink = self.safety * err.pow(-1.0 / k)
         factor = torch.where(accept, self._grow_factor(err, err_prev, shrink, k), shrink)
