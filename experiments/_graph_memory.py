@@ -11,6 +11,8 @@ import weakref
 
 import torch
 
+from integrators.jacobians import graph_nodes
+
 __all__ = ["GraphMemory", "with_large_stack"]
 
 
@@ -36,19 +38,14 @@ def _tensors_in(value):
     return []
 
 
-def _context_tensors(root):
+def _context_tensors(output: torch.Tensor):
     """Tensors kept as attributes of custom ``autograd.Function`` nodes in the graph of
-    ``root`` (such attributes bypass the saved-tensor hooks)."""
-    found, seen, stack = [], set(), [root]
-    while stack:
-        node = stack.pop()
-        if node is None or node in seen:
-            continue
-        seen.add(node)
+    ``output`` (such attributes bypass the saved-tensor hooks)."""
+    found = []
+    for node in graph_nodes(output):
         if isinstance(node, torch.autograd.function.BackwardCFunction):
             for value in vars(node).values():
                 found.extend(_tensors_in(value))
-        stack.extend(fn for fn, _ in node.next_functions)
     return found
 
 
@@ -82,7 +79,7 @@ class GraphMemory:
     def saved_bytes(self, output: torch.Tensor) -> int:
         gc.collect()  # graphs dropped inside reference cycles (e.g. exception tracebacks)
         tensors = [p.tensor for ref in self._packed if (p := ref()) is not None]
-        tensors += _context_tensors(output.grad_fn)
+        tensors += _context_tensors(output)
         storages = {}
         for tensor in tensors:
             storage = tensor.untyped_storage()

@@ -67,6 +67,7 @@ from ._fast import clear_compile_cache as clear_compile_cache
 from ._options import check_flag, check_int, raise_shape_change
 from .errors import GraphMemoryError, TableauError
 from .inputs import BoundRHS
+from .jacobians import graph_nodes
 from .solution import Solution, SolverStats, Status
 
 #: Steps per compiled chunk (the chunk is unrolled; more steps = longer compile).
@@ -249,18 +250,6 @@ def _count_saved(storages: dict):
         return tensor
 
     return pack
-
-
-def _graph_nodes(tensor: torch.Tensor) -> set:
-    """The autograd nodes ``tensor`` depends on (its graph, walked from ``grad_fn``)."""
-    seen: set = set()
-    stack = [tensor.grad_fn]
-    while stack:
-        node = stack.pop()
-        if node is not None and node not in seen:
-            seen.add(node)
-            stack.extend(fn for fn, _ in node.next_functions)
-    return seen
 
 
 def _segment_steps(checkpoint, n_steps: int, chunk_steps: int) -> int | None:
@@ -581,7 +570,7 @@ def solve_explicit(
                 s0 = s
                 with torch.autograd.graph.saved_tensors_hooks(_count_saved(saved), lambda t: t):
                     x, s, ys = step_chunk(x, s, s_end)
-                nodes = _graph_nodes(x) if x.requires_grad else set()
+                nodes = set(graph_nodes(x))
                 probes.append((saved, nodes))
                 if len(probes) == 2 and s < n_steps and x.requires_grad:
                     data = sum(b for ptr, b in saved.items() if ptr not in probes[0][0])

@@ -32,6 +32,19 @@ __all__ = ["batch_jacobian", "gradients", "jacobian_rows"]
 STRATEGIES = ("vmap", "rows", "stacked", "forward")
 
 
+def graph_nodes(tensor: torch.Tensor) -> list:
+    """The autograd nodes ``tensor`` depends on (its graph, walked depth first from
+    ``grad_fn``), each once, in the order the walk meets them."""
+    nodes, seen, stack = [], set(), [tensor.grad_fn]
+    while stack:
+        node = stack.pop()
+        if node is not None and node not in seen:
+            seen.add(node)
+            nodes.append(node)
+            stack.extend(fn for fn, _ in node.next_functions)
+    return nodes
+
+
 def _refuse_inference_mode(who: str) -> None:
     """Raise :class:`InputValidationError` under ``torch.inference_mode()``: it switches
     autograd off, so every derivative taken here would come out zero."""

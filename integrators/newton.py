@@ -39,7 +39,7 @@ from ._options import check_flag, check_int, check_nonnegative, check_positive, 
 from .block_jacobian import BlockJacobian
 from .block_tridiagonal import BorderedBlockTridiagonal
 from .errors import ConvergenceError, InputValidationError, SingularMatrixError
-from .jacobians import batch_jacobian, jacobian_rows
+from .jacobians import batch_jacobian, graph_nodes, jacobian_rows
 
 __all__ = [
     "MinimizeResult",
@@ -372,18 +372,9 @@ def root_with_derivatives(residual: Callable, x_star: torch.Tensor, solve: Calla
 # ------------------------------------------------------------------------------ newton
 def _graph_leaves(y: torch.Tensor, exclude: torch.Tensor) -> list[torch.Tensor]:
     """The leaf tensors that require grad and that the autograd graph of ``y`` reaches
-    (``exclude`` left out), in the order a depth-first walk from ``y.grad_fn`` meets them."""
-    leaves, seen, stack = [], set(), [y.grad_fn]
-    while stack:
-        node = stack.pop()
-        if node is None or node in seen:
-            continue
-        seen.add(node)
-        leaf = getattr(node, "variable", None)  # an AccumulateGrad node holds its leaf
-        if leaf is not None and leaf is not exclude and all(leaf is not t for t in leaves):
-            leaves.append(leaf)
-        stack.extend(fn for fn, _ in node.next_functions)
-    return leaves
+    (``exclude`` left out): the tensors its AccumulateGrad nodes hold."""
+    leaves = (getattr(node, "variable", None) for node in graph_nodes(y))
+    return [leaf for leaf in leaves if leaf is not None and leaf is not exclude]
 
 
 def newton(
