@@ -179,7 +179,7 @@ class PIController(IController):
 
     def __repr__(self) -> str:
         return (
-            f"PIController(beta1={self.beta1}, beta2={self.beta2}, safety={self.safety}, "
+            f"{type(self).__name__}(beta1={self.beta1}, beta2={self.beta2}, safety={self.safety}, "
             f"min_factor={self.min_factor}, max_factor={self.max_factor})"
         )
 
@@ -243,7 +243,7 @@ class GustafssonController:
         return err_c, where(keep_lu, h, h * grow), h_rej, slow
 
     def __repr__(self) -> str:
-        return f"GustafssonController(min_factor={self.min_factor}, max_factor={self.max_factor})"
+        return f"{type(self).__name__}(min_factor={self.min_factor}, max_factor={self.max_factor})"
 
 
 def check_controller(controller, method: str, adaptive: bool) -> None:

@@ -190,3 +190,18 @@ def test_an_embedded_pair_takes_i_or_pi_controller_objects_only(bad):
     x0 = torch.ones(1, dtype=torch.float64)
     with pytest.raises(InputValidationError, match="controller"):
         odeint(lambda t, x: -x, x0, t, method="dopri5", controller=bad)
+
+
+def test_controller_reprs_name_the_class_of_a_subclass():
+    """The repr is what ``stats.extra["controller"]`` reports: a subclass names itself."""
+
+    class Cautious(PIController):
+        pass
+
+    class Gentle(GustafssonController):
+        pass
+
+    assert repr(PIController()).startswith("PIController(beta1=")
+    assert repr(Cautious()).startswith("Cautious(beta1=")
+    assert repr(Gentle()).startswith("Gentle(min_factor=")
+    assert repr(IController()).startswith("IController(safety=")
