@@ -592,6 +592,18 @@ def residual_test(
     return result
 
 
+def _after(data, skip: int):
+    """``data`` without the first ``skip`` samples of every experiment."""
+    if skip == 0:
+        return data
+    return IOData.experiments(
+        [
+            IOData(p.u[..., skip:, :], p.y[..., skip:, :], p.Ts, intersample=p.intersample)
+            for p in data.experiment_list
+        ]
+    )
+
+
 _STRUCTURES = {
     "fir": (("nb",), [(nb,) for nb in range(1, 11)]),
     "arx": (("na", "nb"), [(na, nb) for na in range(1, 5) for nb in range(1, 5)]),
@@ -645,7 +657,11 @@ def select_order(
     Every candidate is fitted with :func:`sysid.fit` (batched over the data sets) and scored
     on one-step prediction errors over the same samples (the first ``max lag`` samples of
     the largest candidate are left out of every experiment for all, so every candidate sees
-    the same ``N``).
+    the same ``N``). FIR and ARX candidates are fitted by least squares on exactly those
+    samples (the earlier ones serve only as lagged regressors), so their ``aic`` is the
+    Gaussian AIC of that least-squares fit, as an ordinary-least-squares package reports it
+    for the same rows; OE and ARMAX candidates are fitted on all samples from zero initial
+    conditions.
 
     * ``"aic"`` / ``"fpe"``: the minimum of the criterion (their ``2 d`` and
       ``(1 + d/N)/(1 - d/N)`` penalties trade fit against size); ties go to fewer parameters.
@@ -695,7 +711,11 @@ def select_order(
     aics, fpes, vals, n_params = [], [], [], []
     for order in orders:  # loop over candidate structures (each fit is batched)
         model = cls(*order, nk=nk, **kw)
-        result = fit(model, estimation)
+        if model.is_linear_in_parameters:
+            # least squares over exactly the scored rows: the Gaussian AIC of the fit
+            result = fit(model, _after(estimation, skip - model._max_lag()))
+        else:
+            result = fit(model, estimation)
         e = result.model.prediction_errors(estimation).index_select(-2, kept)
         d = result.model.n_params
         n_params.append(d)

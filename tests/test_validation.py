@@ -7,6 +7,7 @@ import pytest
 import scipy.linalg
 import scipy.signal
 import scipy.stats
+import statsmodels.api as sm
 import torch
 from _shared_models import LinearRHS
 from statsmodels.stats.diagnostic import acorr_ljungbox
@@ -246,6 +247,47 @@ def test_fit_result_validate_leaves_out_the_start_of_every_experiment():
             call(data, skip=299)
 
 
+@pytest.mark.parametrize("structure", ["fir", "arx"])
+def test_select_order_criteria_equal_statsmodels_ols_on_the_scored_rows(structure):
+    # every FIR / ARX candidate is the least-squares fit on the scored samples (the first
+    # max lag + nk of each experiment serve only as regressors): its AIC and FPE are those of
+    # statsmodels' OLS on the same rows, whichever its own lags (two experiments, 3 data sets)
+    lengths = (70, 55)
+    parts = []
+    for e, n in enumerate(lengths):
+        u = input_signal("white", n, (3,), generator=gen(30 + e))
+        parts.append(
+            simulate_data(
+                ARX(2, 2, 1),
+                u,
+                theta=torch.tensor([-1.2, 0.5, 0.5, 0.3], dtype=DT),
+                noise_std=0.1,
+                noise="model",
+                generator=gen(40 + e),
+            )
+        )
+    data = IOData.experiments(parts)
+    nk = 2
+    sel = select_order(data, structure, nk=nk)
+    skip = max(max(o) for o in sel.orders) + nk
+    for i, order in enumerate(sel.orders):
+        na, nb = (0, order[0]) if structure == "fir" else order
+        for b in range(3):
+            X, target = [], []
+            for part in parts:
+                y, u = part.y[b, :, 0].numpy(), part.u[b, :, 0].numpy()
+                k = np.arange(skip, part.N)
+                lagged_y = [-y[k - j] for j in range(1, na + 1)]
+                X.append(np.column_stack(lagged_y + [u[k - nk - j] for j in range(nb)]))
+                target.append(y[k])
+            ols = sm.OLS(np.concatenate(target), np.concatenate(X)).fit()
+            assert sel.aic[i, b].item() == pytest.approx(ols.aic, rel=1e-10, abs=1e-9)
+            d, n = ols.df_model, ols.nobs
+            assert sel.fpe[i, b].item() == pytest.approx(
+                ols.ssr / n * (1 + d / n) / (1 - d / n), rel=1e-10
+            )
+
+
 def test_select_order_refuses_orders_that_are_not_integers():
     """orders=[(1.7, 2.9)] ran the (1, 2) candidate and reported it as the choice; numpy
     integers are orders like any other (the same AIC as the Python ints, and as the one
@@ -265,7 +307,8 @@ def test_select_order_refuses_orders_that_are_not_integers():
 def test_select_order_scores_every_experiment_after_its_own_start():
     """AIC/FPE of select_order on two experiments (the second far from rest at its start)
     equal those of the one-step ARX prediction errors computed per experiment by numpy with the
-    first max-lag samples of each left out; only the first experiment's were left out."""
+    first max-lag samples of each left out, for the least-squares fit on those same rows; only
+    the first experiment's were left out."""
     rng = np.random.default_rng(3)
     parts = []
     for y0 in (0.0, 8.0):
@@ -277,7 +320,15 @@ def test_select_order_scores_every_experiment_after_its_own_start():
     selection = select_order(data, "arx", orders=orders)
     skip = 2 + 1  # the largest candidate's lag and the delay
     for k, (na, nb) in enumerate(orders):
-        theta = fit(ARX(na, nb, 1), data).theta.numpy()
+        rows, targets = [], []
+        for part in parts:
+            u, y = part.u.numpy()[:, 0], part.y.numpy()[:, 0]
+            for t in range(skip, len(y)):
+                rows.append(
+                    [-y[t - i] for i in range(1, na + 1)] + [u[t - i] for i in range(1, nb + 1)]
+                )
+                targets.append(y[t])
+        theta = np.linalg.lstsq(np.array(rows), np.array(targets), rcond=None)[0]
         errors = []
         for part in parts:
             u, y = part.u.numpy()[:, 0], part.y.numpy()[:, 0]
