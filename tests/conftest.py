@@ -70,6 +70,31 @@ def central_difference():
     return _central_difference
 
 
+def _central_jacobian(fun, tensor: torch.Tensor, h: float = 1e-6) -> torch.Tensor:
+    """d fun() / d tensor by central differences for batched points: ``tensor`` (*batch, n),
+    ``fun() -> (*batch, m)`` with members that do not interact; column j moves every
+    member's entry j by +-h (1 + max |entry j|) in place (under no_grad) and is restored.
+    Returns (*batch, m, n)."""
+    columns = []
+    with torch.no_grad():
+        for j in range(tensor.shape[-1]):
+            step = h * (1 + float(tensor[..., j].abs().max()))
+            tensor[..., j] += step
+            up = fun()
+            tensor[..., j] -= 2 * step
+            down = fun()
+            tensor[..., j] += step
+            columns.append((up - down) / (2 * step))
+    return torch.stack(columns, -1)
+
+
+@pytest.fixture
+def central_jacobian():
+    """The function ``central_jacobian(fun, tensor, h=1e-6)`` (finite-difference truth for
+    the Jacobian of batched points)."""
+    return _central_jacobian
+
+
 def _stiff_vdp_reference(eps: float, t_end: float, y0=(2.0, 0.0)):
     """y(t_end) of y1' = y2, y2' = ((1 - y1^2) y2 - y1) / eps by scipy Radau at rtol = atol =
     1e-12 (the independent reference of the stiff Van der Pol tests): numpy array (2,).

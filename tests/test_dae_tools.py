@@ -1,9 +1,11 @@
 """sysid.dae: classification, index, index reduction, elimination, Tikhonov (notes chapter 5)."""
 
+import numpy as np
 import pytest
+import scipy.linalg
 import torch
 
-from integrators import SemiExplicitDAE, daeint, odeint
+from integrators import ImplicitDAE, SemiExplicitDAE, daeint, odeint
 from integrators.errors import (
     ConvergenceError,
     HighIndexError,
@@ -23,6 +25,7 @@ from sysid.zoo.dae import (
     TwoMassSystem,
     UnitSphereDAE,
 )
+from sysid.zoo.scenarios import dae_scenarios
 
 DT = torch.float64
 
@@ -362,3 +365,55 @@ def test_reduced_functions_take_no_time_as_time_zero(example):
     torch.testing.assert_close(reduced.g(None, x, z), plant.reduced_g(t0, x, z))
     torch.testing.assert_close(reduced.consistency(None, x, z), plant.g(t0, x, z)[..., :1])
     torch.testing.assert_close(reduced.g(0.0, x, z), reduced.g(t0, x, z))
+
+
+@pytest.mark.parametrize("scenario", dae_scenarios(), ids=lambda sc: sc.name)
+def test_zoo_dae_jacobians_match_central_differences_and_poles_match_the_pencil(
+    scenario, central_jacobian
+):
+    """Every zoo DAE: the Jacobians of linearize_dae / linearize_implicit_dae (eq. 5.31-5.32)
+    at two points equal central differences of f, g (or F); the
+    eigenvalues of eliminate_linear's A (eq. 5.30) are the finite generalised eigenvalues of
+    the pencil ([[fx, fz], [gx, gz]], diag(I, 0)) by scipy's QZ (the scenarios are index-1
+    forms: dg/dz is invertible)."""
+    plant = scenario.build().to(DT)
+    problem = scenario.problem(plant)
+    x = torch.tensor(scenario.x0, dtype=DT).repeat(2, 1)
+    z = torch.tensor(scenario.z0, dtype=DT).repeat(2, 1)
+    x[1] *= 0.9
+    z[1] += 0.05
+    t = torch.tensor(0.3, dtype=DT)
+    u = None if scenario.u is None else scenario.u(t).reshape(1, -1).repeat(2, 1)
+    extra = () if u is None else (u,)
+    if isinstance(problem, ImplicitDAE):
+        xdot = torch.full_like(x, 0.1)
+        jac = dae.linearize_implicit_dae(problem.F, xdot, x, z, u, t=t)
+        points = {"Fxdot": xdot, "Fx": x, "Fz": z, "Fu": u}
+        for name, point in points.items():
+            if point is not None:
+                ref = central_jacobian(lambda: problem.F(t, xdot, x, z, *extra), point)
+                torch.testing.assert_close(jac[name], ref, rtol=1e-7, atol=1e-8)
+        return
+    jac = dae.linearize_dae(problem.f, problem.g, x, z, u, t=t)
+    for name, fn in (("f", problem.f), ("g", problem.g)):
+        for var, point in (("x", x), ("z", z), ("u", u)):
+            if point is not None:
+                ref = central_jacobian(lambda fn=fn: fn(t, x, z, *extra), point)
+                torch.testing.assert_close(jac[name + var], ref, rtol=1e-7, atol=1e-8)
+    n, m = x.shape[-1], z.shape[-1]
+    for k in range(2):
+        ar = dae.eliminate_linear(
+            jac["fx"][k], jac["fu"][k], jac["fz"][k], jac["gx"][k], jac["gu"][k], jac["gz"][k]
+        )[0]
+        pencil = np.block(
+            [
+                [jac["fx"][k].numpy(), jac["fz"][k].numpy()],
+                [jac["gx"][k].numpy(), jac["gz"][k].numpy()],
+            ]
+        )
+        mass = np.diag([1.0] * n + [0.0] * m)
+        values = scipy.linalg.eigvals(pencil, mass)
+        finite = np.sort_complex(values[np.isfinite(values)])
+        assert finite.size == n
+        ours = np.sort_complex(np.linalg.eigvals(ar.numpy()))
+        np.testing.assert_allclose(ours, finite, rtol=1e-8, atol=1e-8 * (1 + abs(finite).max()))

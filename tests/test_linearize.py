@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from integrators.errors import ConvergenceError, InputValidationError, SingularMatrixError
 from sysid.linearize import linearize, simulate_lti_zoh, steady_state, zoh_discretize
 from sysid.zoo import NonlinearExample
+from sysid.zoo.scenarios import scenarios
 
 DT = torch.float64
 
@@ -268,3 +269,25 @@ def test_plant_linearize_with_several_input_levels_and_mismatched_batches():
     torch.testing.assert_close(b, torch.tensor([[0.0], [1 / 1.5]], dtype=DT).expand(2, 2, 1))
     with pytest.raises(InputValidationError, match=r"x \(2,\) and u \(3,\) do not broadcast"):
         linearize(plant, torch.zeros(2, 2, dtype=DT), torch.zeros(3, 1, dtype=DT))
+
+
+@pytest.mark.parametrize("scenario", scenarios(), ids=lambda sc: sc.name)
+def test_linearize_every_zoo_plant_matches_central_differences(scenario, central_jacobian):
+    """A = df/dx and B = df/du (eq. 1.35) of every zoo plant (the Lagrangian ones call autograd
+    inside f) at three points near its scenario's start equal central differences of f."""
+    plant = scenario.build().to(DT)
+    x0 = torch.tensor(scenario.x0, dtype=DT)
+    x = torch.stack([x0, 0.95 * x0 + 0.01, 1.05 * x0 - 0.02])
+    t = torch.tensor(0.3, dtype=DT)
+    u = None if scenario.u is None else scenario.u(t).reshape(1, -1).repeat(3, 1)
+    a, b, _, _ = linearize(plant, x, u, t=t)
+
+    def f():
+        return plant(t, x) if u is None else plant(t, x, u)
+
+    scale = 1 + float(central_jacobian(f, x).abs().max())
+    torch.testing.assert_close(a, central_jacobian(f, x), rtol=0, atol=1e-8 * scale)
+    if u is None:
+        assert b.shape == (3, x0.numel(), 0)
+    else:
+        torch.testing.assert_close(b, central_jacobian(f, u), rtol=0, atol=1e-8 * scale)
