@@ -59,7 +59,9 @@ class NewtonStatus(IntEnum):
 
     CONVERGED = 0
     MAX_ITER = 1  # the iteration budget ran out
-    SINGULAR = 2  # the (approximate) Jacobian / Hessian could not be factorised
+    # the (approximate) Jacobian / Hessian could not be factorised: for newton, an LU pivot
+    # at most n eps times the largest entry of its row of the matrix
+    SINGULAR = 2
     NON_FINITE = 3  # phi (at every trial step of "damped"), its Jacobian or the iterate: inf/nan
     LINE_SEARCH_FAILED = 4  # no step length in (0, 1] decreased the merit function
     DIVERGED = 5  # the residual grew by more than ``divergence_ratio`` in one iteration
@@ -204,9 +206,14 @@ def _lu(M: torch.Tensor):
     finite = torch.isfinite(M).flatten(-2).all(-1)
     ok = (info == 0) & finite
     if bool(ok.any()):
+        # each pivot against the largest entry of the row of M it came from (M = P L U): a
+        # row-scaled test, so a well-posed matrix with rows of very different sizes (equations
+        # in different units, e.g. diag(1e9, 1e-9)) is not mistaken for a singular one
+        perm = torch.lu_unpack(LU, pivots, unpack_data=False)[0]
+        rows = perm.transpose(-1, -2) @ M.abs().amax(-1, keepdim=True)
+        scale = rows[..., 0].clamp(min=torch.finfo(M.dtype).tiny)
         diag = torch.diagonal(LU, dim1=-2, dim2=-1).abs()
-        scale = M.abs().flatten(-2).amax(-1).clamp(min=torch.finfo(M.dtype).tiny)
-        ok = ok & (diag.amin(-1) > M.shape[-1] * torch.finfo(M.dtype).eps * scale)
+        ok = ok & (diag > M.shape[-1] * torch.finfo(M.dtype).eps * scale).all(-1)
     # keep the factors of failed members harmless (identity) so solves stay finite
     eye = torch.eye(M.shape[-1], dtype=M.dtype, device=M.device).expand_as(M)
     LU = torch.where(ok[..., None, None], LU, eye)

@@ -218,6 +218,32 @@ def test_singular_jacobian_is_flagged():
     assert bool(torch.all(res.status == NewtonStatus.SINGULAR))
 
 
+def test_rows_of_very_different_sizes_are_not_mistaken_for_a_singular_jacobian():
+    """phi = (1e9 (x1 - a), 1e-9 (x2 - 2 a)) (two equations in very different units, rows
+    swapped in a second run): the Jacobian diag(1e9, 1e-9) is well posed
+    once its rows are scaled, so Newton converges to (a, 2 a) with dx/da = (1, 2); a matrix
+    singular after row scaling (rows 1e-12 times each other) is still flagged."""
+
+    def phi(x, a):
+        return torch.tensor([1e9, 1e-9], dtype=F64) * (x - torch.cat([a, 2 * a], -1))
+
+    a = torch.tensor([[0.5]], dtype=F64, requires_grad=True)
+    res = newton(phi, torch.zeros(1, 2, dtype=F64), a)
+    assert res.status.tolist() == [NewtonStatus.CONVERGED]
+    torch.testing.assert_close(res.x.detach(), torch.tensor([[0.5, 1.0]], dtype=F64))
+    res.x.sum().backward()
+    assert float(a.grad) == pytest.approx(3.0, rel=1e-12)
+    swapped = newton(lambda x, a: phi(x, a).flip(-1), torch.zeros(1, 2, dtype=F64), a.detach())
+    assert swapped.status.tolist() == [NewtonStatus.CONVERGED]
+    dependent = newton(
+        lambda x: (
+            torch.stack([x[..., 0] + 2 * x[..., 1], 1e-12 * (x[..., 0] + 2 * x[..., 1])], -1) + 1.0
+        ),
+        torch.zeros(1, 2, dtype=F64),
+    )
+    assert dependent.status.tolist() == [NewtonStatus.SINGULAR]
+
+
 def test_a_non_finite_jacobian_or_residual_is_reported_non_finite_not_singular():
     """A member whose Jacobian is NaN where phi is finite (x^2 - 4 + 0 sqrt(x - 1.5) at
     x = 1, the sqrt branch masked off) or whose residual is NaN at every trial step of the
