@@ -5,11 +5,13 @@
    checkpoint) against the plain Python loop a user writes: per data set, build the
    regressor, ``numpy.linalg.lstsq`` and its standard errors, and statsmodels ``OLS(...).fit()``
    (parameters and ``bse``), on the first ``--loop-trials`` data sets of the same study (the
-   same data), extrapolated per data set; and the same loop end to end, as a user writes a
+   same data), extrapolated per data set; the same loops end to end, as a user writes a
    study by hand: per data set, draw the input and the noise (``numpy.random.Generator``),
-   simulate ``A y = B u + e`` by ``scipy.signal.lfilter`` and fit by ``lstsq``. Reported:
-   seconds per data set, the ratio to the study, and the largest difference between the
-   loop's estimates and the study's (on the same data; the end-to-end loop draws its own).
+   simulate ``A y = B u + e`` by ``scipy.signal.lfilter`` and fit by ``lstsq`` or statsmodels;
+   and the study's batched fit alone on one chunk of its ready data (the like-for-like peer of
+   the loops on ready data). Reported: seconds per data set, the ratio to the study, and the
+   largest difference between the loop's estimates and the study's (on the same data; the
+   end-to-end loops draw their own).
 2. Checkpointing: the same study run into a folder (Parquet per chunk, manifest) against
    the same chunks computed without writing anything; overhead in per cent.
 3. Dask: a compute-bound study (OE(2, 2) Gauss-Newton fits) on a ``LocalCluster`` of 2
@@ -27,7 +29,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import platform
-import shutil
 import tempfile
 import time
 
@@ -134,10 +135,11 @@ def numpy_fit(u, y):
     return theta, se
 
 
-def numpy_study(trials: int, seed: int = 0) -> np.ndarray:
+def loop_study(trials: int, one_fit, seed: int = 0) -> np.ndarray:
     """The study end to end in a Python loop: per data set, a white input and Gaussian noise
     from ``numpy.random.Generator``, ``A y = B u + e`` by ``scipy.signal.lfilter``, then
-    :func:`numpy_fit`; returns the (trials, 4) estimates."""
+    ``one_fit(u, y)`` (:func:`numpy_fit` or :func:`statsmodels_fit`); returns the (trials, 4)
+    estimates."""
     rng = np.random.default_rng(seed)
     a = np.array([1.0, THETA[0], THETA[1]])  # A(q) = 1 + a1 q^-1 + a2 q^-2
     b = np.array([0.0, THETA[2], THETA[3]])  # B(q) = b1 q^-1 + b2 q^-2
@@ -147,7 +149,7 @@ def numpy_study(trials: int, seed: int = 0) -> np.ndarray:
         y = scipy.signal.lfilter(b, a, u) + scipy.signal.lfilter(
             [1.0], a, SIGMA * rng.standard_normal(N)
         )
-        out[i] = numpy_fit(u, y)[0]
+        out[i] = one_fit(u, y)[0]
     return out
 
 
@@ -173,10 +175,8 @@ def throughput(trials: int, loop_trials: int, repeats: int, scratch) -> tuple[li
     chunk = min(5000, trials)
     study = arx_study(trials, chunk)
 
-    def run_to_folder():
-        folder = tempfile.mkdtemp(dir=scratch)
-        study.run(folder, progress=False)
-        shutil.rmtree(folder)
+    def run_to_folder():  # a fresh folder each time (removed with scratch, not timed)
+        study.run(tempfile.mkdtemp(dir=scratch), progress=False)
 
     def run_in_memory():
         # the same chunks as run(folder), nothing written: the cost of checkpointing is the rest
@@ -211,10 +211,19 @@ def throughput(trials: int, loop_trials: int, repeats: int, scratch) -> tuple[li
         seconds = best(lambda one=one: [one(u, y) for u, y in zip(us, ys, strict=True)], repeats)
         theta = np.array([one(u, y)[0] for u, y in zip(us, ys, strict=True)])
         rows.append(row(label, loop_trials, seconds, theta, float(np.abs(theta - estimates).max())))
-    label = "Python loop end to end: numpy draws, scipy lfilter, numpy lstsq"
-    note(f"{label}: {loop_trials} data sets")
-    seconds = best(lambda: numpy_study(loop_trials), repeats)
-    rows.append(row(label, loop_trials, seconds, numpy_study(loop_trials)))
+    for label, one in (
+        ("Python loop end to end: numpy draws, scipy lfilter, numpy lstsq", numpy_fit),
+        ("Python loop end to end: numpy draws, scipy lfilter, statsmodels OLS", statsmodels_fit),
+    ):
+        note(f"{label}: {loop_trials} data sets")
+        seconds = best(lambda one=one: loop_study(loop_trials, one), repeats)
+        rows.append(row(label, loop_trials, seconds, loop_study(loop_trials, one)))
+    label = "batched fit(method='lls') alone, one chunk of ready data"
+    note(f"{label}: {data.u.shape[0]} data sets")
+    seconds = best(lambda: fit(ARX(2, 2, 1), data, method="lls"), repeats)
+    theta = fit(ARX(2, 2, 1), data, method="lls").theta.detach().numpy()
+    difference = float(np.abs(theta - everything[: len(theta)]).max())
+    rows.append(row(label, len(theta), seconds, theta, difference))
     checkpoint = [
         {
             "data_sets": trials,
