@@ -716,14 +716,15 @@ def select_order(
             result = fit(model, _after(estimation, skip - model._max_lag()))
         else:
             result = fit(model, estimation)
-        e = result.model.prediction_errors(estimation).index_select(-2, kept)
-        d = result.model.n_params
-        n_params.append(d)
-        aics.append(aic(e, d))
-        fpes.append(fpe(e, d))
-        if criterion == "validation":
-            ev = result.model.prediction_errors(validation_data).index_select(-2, kept_val)
-            vals.append((ev * ev).mean(dim=(-2, -1)))
+        with torch.no_grad():  # criteria to compare, not to differentiate
+            e = result.model.prediction_errors(estimation).index_select(-2, kept)
+            d = result.model.n_params
+            n_params.append(d)
+            aics.append(aic(e, d))
+            fpes.append(fpe(e, d))
+            if criterion == "validation":
+                ev = result.model.prediction_errors(validation_data).index_select(-2, kept_val)
+                vals.append((ev * ev).mean(dim=(-2, -1)))
     A, Fp = torch.stack(aics), torch.stack(fpes)
     V = torch.stack(vals) if vals else None
     size = torch.tensor(n_params, dtype=A.dtype, device=A.device).reshape(

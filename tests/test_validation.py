@@ -269,6 +269,7 @@ def test_select_order_criteria_equal_statsmodels_ols_on_the_scored_rows(structur
     data = IOData.experiments(parts)
     nk = 2
     sel = select_order(data, structure, nk=nk)
+    assert not sel.aic.requires_grad  # plain numbers to compare (and .numpy() works)
     skip = max(max(o) for o in sel.orders) + nk
     for i, order in enumerate(sel.orders):
         na, nb = (0, order[0]) if structure == "fir" else order
