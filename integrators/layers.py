@@ -22,6 +22,16 @@ class _SimulationLayer(torch.nn.Module):
             t = torch.as_tensor(t, dtype=torch.float64)
         self.register_buffer("t", t)
 
+    def _apply(self, fn, recurse=True):
+        """Module conversions (``.float()``, ``.double()``, ``.to(dtype)``) move the output
+        times to the new device but keep the dtype they were given: a float32 round trip
+        would round them (0.1 -> 0.10000000149); odeint casts them to the state's dtype."""
+        t = self.t
+        super()._apply(fn, recurse)
+        if t is not None and self.t.dtype != t.dtype:
+            self.t = t.to(self.t.device)
+        return self
+
     def _times(self, t):
         """The output times of a forward call: ``t``, else the default ones."""
         t = self.t if t is None else t

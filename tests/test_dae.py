@@ -551,7 +551,8 @@ def test_algebraic_states_at_the_output_times_keep_the_order_of_x(method, centra
 def test_layers_keep_output_times_given_as_a_list_exact():
     """ODELayer and DAELayer with t a Python list: the times stay the list's float64 values
     (they were stored in torch's default float32, 0.1 -> 0.10000000149, shifting the outputs
-    by 1e-8 relative), so the layers give odeint's / daeint's results on the same list."""
+    by 1e-8 relative), so the layers give odeint's / daeint's results on the same list, and
+    module dtype conversions (float(), double(), to(dtype)) leave them exact."""
     from integrators import ODELayer, odeint
 
     times = [0.0, 0.1, 0.7]
@@ -569,6 +570,20 @@ def test_layers_keep_output_times_given_as_a_list_exact():
     assert sol.t.tolist() == times
     ref = daeint(prob, torch.tensor([1.0]), torch.zeros(1), times, adaptive=False, substeps=8)
     torch.testing.assert_close(sol.x, ref.x, rtol=0, atol=0)
+    # module dtype conversions keep the times exact: float() then double() gave
+    # 0.10000000149011612 (float32 rounding), so a float64 run after a float32 one was shifted
+    for converted in (layer.float().double(), layer.to(torch.float16).to(torch.float64)):
+        assert converted.t.dtype == torch.float64 and converted.t.tolist() == times
+    with torch.no_grad():
+        again = (
+            ODELayer(lambda t, x: -x, t=times, method="dopri5", rtol=1e-12, atol=1e-12)
+            .float()
+            .double()(x0)
+        )
+        single = ODELayer(lambda t, x: -x, t=times, method="dopri5").float()(x0.float())
+    torch.testing.assert_close(again.x, ode.x, rtol=0, atol=0)
+    assert single.x.dtype == torch.float32
+    torch.testing.assert_close(single.x, ode.x.float(), rtol=1e-5, atol=1e-6)
 
 
 def test_dae_layer_refuses_a_bare_function_by_name():
