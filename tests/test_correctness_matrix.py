@@ -345,6 +345,40 @@ def test_input_gradient_matches_central_differences(name, driver, kind):
     assert abs(float(grad) - fd) <= drv.grad_rtol * max(1.0, abs(fd)), (float(grad), fd)
 
 
+#: models whose output has no autograd graph to the state, nor to any parameter: the flow is
+#: x0 plus a function of time, x(t) = x0 + exact(t), so d x(T) / d x0 = I on every driver
+GRAPH_FREE_MODELS = {
+    "time-driven": (lambda t, x: torch.cos(t) * torch.ones_like(x), None, torch.sin),
+    "input-driven": (
+        lambda t, x, u: u.expand_as(x).clone(),
+        torch.full((N_INTERVALS + 1, 1), 0.3, dtype=DT),
+        lambda t: 0.3 * t,
+    ),
+}
+
+
+@pytest.mark.parametrize("shape", [(), (3,)], ids=lambda s: f"batch{s}")
+@pytest.mark.parametrize("driver", [d.name for d in DRIVERS])
+@pytest.mark.parametrize("model", list(GRAPH_FREE_MODELS))
+def test_state_gradient_of_a_model_without_graph_to_the_state(model, driver, shape):
+    """x' = cos t and x' = u (an integrator of its input, 2 states): the stages carry no
+    gradient, but each step still carries x_k to x_{k+1} (eq. 7.18), so the gradient of the
+    final state with respect to x0 is exactly 1 per component (the host Radau loops gave 0:
+    they stopped replaying the steps for gradients when the stages had none)."""
+    drv = DRIVER[driver]
+    f, u, exact = GRAPH_FREE_MODELS[model]
+    t = _grid(1.0)
+    x0 = torch.tensor([1.0, -2.0], dtype=DT).expand(*shape, 2).clone().requires_grad_(True)
+    fixed = drv.options.get("adaptive") is False or drv.options["method"] in FIXED_METHODS
+    sol = odeint(f, x0, t, u=u, **({**drv.options, "substeps": 5} if fixed else drv.options))
+    assert (sol.status == Status.SUCCESS).all(), sol.messages
+    reference = x0.detach()[..., None, :] + exact(t)[:, None]
+    err = float((sol.x.detach() - reference).abs().max()) / (1 + float(reference.abs().max()))
+    assert err <= drv.tol, err
+    (grad,) = torch.autograd.grad(sol.x[..., -1, :].sum(), x0)
+    torch.testing.assert_close(grad, torch.ones_like(x0), rtol=0, atol=1e-12)
+
+
 # ----------------------------------------------------------------------------- index-1 DAEs
 DAE_DRIVERS = [
     Driver("radau adaptive", dict(method="radau_iia", **_ADAPTIVE), ADAPTIVE_TOL, 1e-4),
