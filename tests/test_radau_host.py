@@ -423,7 +423,7 @@ def test_one_trajectory_kernel_takes_the_batched_kernels_steps(case):
     """The adaptive loop with the one-trajectory kernel (Python-scalar step control) takes the
     steps it takes with the batched numpy kernel: the same steps, rejections, Newton
     iterations, Jacobians, factorisations, statuses and results (to rounding of the Newton
-    norm's summation order)."""
+    norm's summation order); into a blow-up, the same status and message within one step."""
     M = torch.tensor([[-1.0, 1.0], [0.0, -1e4]])
     f, x0, t, opts = {
         "stiff_vdp": (vdp(1e-4), [2.0, 0.0], [0.0, 0.3, 1.0], dict(rtol=1e-7, atol=1e-7)),
@@ -433,10 +433,18 @@ def test_one_trajectory_kernel_takes_the_batched_kernels_steps(case):
         "max_steps": (vdp(1e-4), [2.0, 0.0], [0.0, 1.0], dict(rtol=1e-7, atol=1e-7, max_steps=15)),
     }[case]
     one, two = _single_and_batched(f, torch.tensor([x0]), torch.tensor(t), **opts)
-    for name in COUNTERS:
-        assert getattr(two.stats, name).tolist() == 2 * getattr(one.stats, name).tolist(), name
-    assert one.stats.n_jac_evals == two.stats.n_jac_evals
-    assert one.stats.n_factorizations == two.stats.n_factorizations
+    if case == "blow_up":
+        # the error estimate cancels digits (|h K| ~ 1e6 |err|), so the scalar and the array
+        # arithmetic give step sizes 1e-11 apart after some steps; where h shrinks towards the
+        # time resolution at t = 1, that can decide one step more or less (hardware dependent)
+        for name in COUNTERS:
+            got, ref = getattr(two.stats, name), getattr(one.stats, name).expand(2)
+            assert int((got - ref).abs().max()) <= {"n_steps": 1}.get(name, 2), name
+    else:
+        for name in COUNTERS:
+            assert getattr(two.stats, name).tolist() == 2 * getattr(one.stats, name).tolist()
+        assert one.stats.n_jac_evals == two.stats.n_jac_evals
+        assert one.stats.n_factorizations == two.stats.n_factorizations
     assert two.status.tolist() == 2 * one.status.tolist()
     finite = torch.isfinite(one.x)
     # (near the blow-up the values reach 1e13, where the rounding of the norms shows at 1e-12)
