@@ -181,7 +181,6 @@ class IRKCore:
         self.solver = StageLinearSolver(np.array(tab.A), dtype, device, mode=linear_solver)
         self.eps = EPS.get(dtype, EPS[torch.float32])
         self.n_f_evals = 0
-        self.needs_grad = None
         self.stack_stages = None
         self._hA_key = self._hA = None
         self._rms_scale = 1.0 / (self.s * system.p) ** 0.5
@@ -391,12 +390,12 @@ class IRKCore:
         caller) get zero derivatives instead of a solve with a possibly singular matrix.
         """
         Wd = torch.nan_to_num(W.detach())
-        if self.needs_grad is False or not torch.is_grad_enabled():
+        if not torch.is_grad_enabled():
             return Wd
         with torch.enable_grad():
             R = self.residual(times, inputs, h, xk, Wd)
-        # whether anything upstream requires grad cannot change during one integration
-        self.needs_grad = R.requires_grad
+        # decided per step: a model may read a tensor that requires grad only in some steps
+        # (a branch on t or x), so a step without one says nothing of the next
         if not R.requires_grad:
             return Wd
         n, s, p = self.system.n, self.s, self.system.p

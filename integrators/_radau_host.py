@@ -591,34 +591,33 @@ def _records(core, model, x0, z0, t0, accepted):
     iteration that advanced a sample, as the torch driver keeps them.
 
     Values come from the host loop (the step-start states and converged stages it kept).
-    When anything requires grad (the initial state, or the stages: decided by the first
-    ``core.ift``, as in the torch driver) the steps are also replayed in torch,
-    ``x_{k+1} = x_k + h sum_i b_i K_i`` (eq. 7.18) with implicit-function-theorem stages,
-    and each recorded state is the host value plus the replay's zero-valued
-    ``x - stop_grad(x)``: the torch driver's gradients, and outputs
-    identical with and without autograd."""
+    In grad mode the steps are also replayed in torch, ``x_{k+1} = x_k + h sum_i b_i K_i``
+    (eq. 7.18) with implicit-function-theorem stages (:meth:`IRKCore.ift`, which decides per
+    step whether the stages carry gradients, as in the torch driver), and each recorded state
+    is the host value plus the replay's zero-valued ``x - stop_grad(x)``: the torch driver's
+    gradients, and outputs identical with and without autograd."""
     batch, s, n = model.batch, core.s, core.system.n
     hshape = host_shape(batch)
     records = StepRecords(core.tab, n)
     start = np.full(batch, t0, dtype=model.npdt)
     records.append(start, np.ones(batch, dtype=model.npdt), x0, x0.new_zeros(*batch, s, n), z0)
-    # the replay runs while the stages carry gradients or the states do: a model whose output
-    # has no graph to x (x' = u(t)) has stages without gradients, but x_{k+1} still depends on
-    # x_k through eq. 7.18
-    with_grad = torch.is_grad_enabled() and (core.needs_grad is not False or x0.requires_grad)
-    x = x0
+    with_grad = torch.is_grad_enabled()
+    x = x0  # the replayed step-start state while it carries a graph, else None
     for t_start, h, accept, W, host, Wg, x_host in accepted:
         t_start, h_rec = t_start.reshape(batch), h.reshape(batch)
         W_t = torch.from_numpy(Wg).reshape(*batch, s, n)
         x_rec = torch.from_numpy(x_host).reshape(*batch, n)
         if with_grad:
+            xk = x_rec if x is None else x
             h_t, mask = torch.from_numpy(h_rec), accept.reshape(hshape)
             tk = model.times(host[0])
             times = core.stage_times(tk, h_t[..., None], len(batch), stacked=model.times(host[2:]))
             inputs = core.stage_inputs(times, tk)
-            W_t = core.ift(times, inputs, h_t, x, torch.from_numpy(W).reshape(W_t.shape), mask)
-            with_grad = core.needs_grad is not False or x.requires_grad
-            x_rec = x_rec + (x - x.detach())
-            x = masked_update(mask, core.step_end(x, h_t, W_t), x)
+            W_t = core.ift(times, inputs, h_t, xk, torch.from_numpy(W).reshape(W_t.shape), mask)
+            if xk.requires_grad or W_t.requires_grad:
+                x_rec = x_rec + (xk - xk.detach())
+                x = masked_update(mask, core.step_end(xk, h_t, W_t), xk)
+            else:  # nothing to carry: the next step starts from the host's state
+                x = None
         records.append(t_start, h_rec, x_rec, W_t, z0)
     return records

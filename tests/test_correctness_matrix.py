@@ -15,6 +15,7 @@ import dataclasses
 import functools
 import importlib
 import inspect
+import math
 import warnings
 from dataclasses import dataclass, field
 
@@ -377,6 +378,45 @@ def test_state_gradient_of_a_model_without_graph_to_the_state(model, driver, sha
     assert err <= drv.tol, err
     (grad,) = torch.autograd.grad(sol.x[..., -1, :].sum(), x0)
     torch.testing.assert_close(grad, torch.ones_like(x0), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("shape", [(), (3,)], ids=lambda s: f"batch{s}")
+@pytest.mark.parametrize("driver", [d.name for d in DRIVERS])
+def test_gradients_of_a_model_that_reads_a_parameter_only_in_later_steps(driver, shape):
+    """x' = 0 for t < 0.5, x' = -k x after (a Python branch on t): the first steps' stages
+    carry no gradient, the later ones do. The implicit drivers decided from the first step
+    that nothing needed gradients (dk None, dx0 = 1). Every driver: d x(T) / d x0 is the
+    discrete propagator x(T) / x0 (the scheme is linear in x0 once its steps are fixed) and
+    d x(T) / dk equals central differences of the same scheme."""
+    drv = DRIVER[driver]
+    if drv.name == "rk4 compiled":
+        pytest.skip("a Python branch on t is a graph break; compiled runs are tested elsewhere")
+    t = _grid(1.0)
+    fixed = drv.options.get("adaptive") is False or drv.options["method"] in FIXED_METHODS
+    options = {**drv.options, "substeps": 5} if fixed else dict(drv.options)
+
+    def final(k, x0):
+        def f(tt, x):  # tt: one time, or one per member of an adaptive batch
+            if bool((tt < 0.5).all()):
+                return torch.zeros_like(x)
+            return torch.where(tt < 0.5, 0.0, -k) * x
+
+        sol = odeint(f, x0, t, **options)
+        assert (sol.status == Status.SUCCESS).all(), sol.messages
+        return sol.x[..., -1, :]
+
+    k = torch.tensor(2.0, dtype=DT, requires_grad=True)
+    x0 = torch.tensor([1.0, -2.0], dtype=DT).expand(*shape, 2).clone().requires_grad_(True)
+    x_end = final(k, x0)
+    # (fixed steps put the switch inside a step's last stage: first-order accurate there)
+    torch.testing.assert_close(x_end.detach(), x0.detach() * math.exp(-1.0), rtol=1e-2, atol=0)
+    grad_x0, grad_k = torch.autograd.grad(x_end.sum(), (x0, k), allow_unused=True)
+    assert grad_k is not None, "the gradient did not reach k"
+    torch.testing.assert_close(grad_x0, (x_end / x0).detach(), rtol=1e-10, atol=0)
+    h = 1e-6
+    with torch.no_grad():
+        fd = (final(k + h, x0).sum() - final(k - h, x0).sum()) / (2 * h)
+    assert abs(float(grad_k) - float(fd)) <= drv.grad_rtol * max(1.0, abs(float(fd)))
 
 
 # ----------------------------------------------------------------------------- index-1 DAEs

@@ -46,9 +46,12 @@ def vdp(eps):
 
 
 def both_paths(f, x0, t, **opts):
-    """The same integration by the host loop and by the torch driver."""
-    host = solve_implicit_ode(f, x0, t, "radau_iia", host_loop=True, **opts)
-    dev = solve_implicit_ode(f, x0, t, "radau_iia", host_loop=False, **opts)
+    """The same simulation (no gradient recording: in grad mode the torch driver adds the
+    implicit-function-theorem evaluations of steps it then rejects to ``n_f_evals``, the host
+    loop's replay only those of accepted steps) by the host loop and by the torch driver."""
+    with torch.no_grad():
+        host = solve_implicit_ode(f, x0, t, "radau_iia", host_loop=True, **opts)
+        dev = solve_implicit_ode(f, x0, t, "radau_iia", host_loop=False, **opts)
     assert host.stats.extra["host_loop"] and not dev.stats.extra["host_loop"]
     return host, dev
 
