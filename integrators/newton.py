@@ -425,10 +425,11 @@ def newton(
             this factor in one iteration; None disables.
         params: the tensors that ``phi`` reads from its closure (e.g. the parameters of a
             module whose method ``phi`` calls) and that receive IFT gradients. None (default):
-            all of them, found in the autograd graph of ``phi`` at ``x0`` (the leaf tensors
-            that require grad, ``x`` and ``args`` aside), so gradients reach whatever ``phi``
-            reads, as plain autograd would; ``()`` differentiates with respect to ``args``
-            only.
+            all of them, found in the autograd graphs of ``phi`` at ``x0`` and at the solution
+            (the leaf tensors that require grad, ``x`` and ``args`` aside; in grad mode, one
+            evaluation more once the iterate has moved, since a branch in ``phi`` may read
+            other tensors there), so gradients reach whatever ``phi`` reads, as plain autograd
+            would; ``()`` differentiates with respect to ``args`` only.
         raise_on_failure: raise :class:`ConvergenceError` naming the failed members instead of
             only flagging them.
         return_history: keep every iterate in ``result.x_history``.
@@ -479,6 +480,7 @@ def newton(
         fx = phi(x_start, *frozen)
     if not isinstance(fx, torch.Tensor):
         raise InputValidationError(f"newton: phi must return a tensor, got {type(fx).__name__}.")
+    discover = params is None and grad_mode
     if params is None:
         params = _graph_leaves(fx, x_start) if grad_mode else ()
     params = tuple(params)
@@ -619,6 +621,11 @@ def newton(
             + ". Try a better initial guess, method='damped', a larger max_iter, or check "
             "that the Jacobian is non-singular at the solution."
         )
+    if discover and bool((iterations > 0).any()):  # the IFT holds at x*: what phi reads there
+        with torch.enable_grad():
+            at_solution = _graph_leaves(phi(x, *frozen), x)
+        counts["phi"] += 1
+        params += tuple(p for p in at_solution if not any(p is q for q in params))
     wanted = [a for a in (*args, *params) if isinstance(a, torch.Tensor) and a.requires_grad]
     if wanted and torch.is_grad_enabled():
         x = _ImplicitSolution.apply(phi, x, len(args), *args, *params)

@@ -77,9 +77,9 @@ def test_full_newton_converges_quadratically_on_a_vector_problem():
 @pytest.mark.parametrize("method", ["full", "damped", "simplified"])
 def test_the_jacobian_at_x0_reuses_the_first_evaluation(method):
     """A linear phi(x) = A x - b converges in one step from any x0: the Jacobian at x0 comes
-    from the graph of phi's first evaluation, so a solve calls phi twice (x0 and x1), and
-    the step is exactly A^{-1} (A x0 - b). A guess broadcast to phi's batch (no graph of
-    that shape) takes its Jacobian by a separate evaluation."""
+    from the graph of phi's first evaluation, so a solve without gradient recording calls phi
+    twice (x0 and x1), and the step is exactly A^{-1} (A x0 - b). A guess broadcast to phi's
+    batch (no graph of that shape) takes its Jacobian by a separate evaluation."""
     g = torch.Generator().manual_seed(4)
     A = torch.randn(5, 3, 3, generator=g, dtype=F64) + 4 * torch.eye(3, dtype=F64)
     b = torch.randn(5, 3, generator=g, dtype=F64)
@@ -89,14 +89,21 @@ def test_the_jacobian_at_x0_reuses_the_first_evaluation(method):
         calls.append(x.shape)
         return (A @ x.unsqueeze(-1)).squeeze(-1) - b
 
-    res = newton(phi, torch.ones(5, 3, dtype=F64), A, b, method=method, tol=1e-12)
+    with torch.no_grad():
+        res = newton(phi, torch.ones(5, 3, dtype=F64), A, b, method=method, tol=1e-12)
     assert bool(res.converged.all()) and res.iterations.tolist() == [1] * 5
     assert len(calls) == res.n_phi_evals == 2 and res.n_jac_evals == 1
     torch.testing.assert_close(res.x, torch.linalg.solve(A, b), rtol=1e-13, atol=1e-13)
     calls.clear()
-    broadcast = newton(phi, torch.ones(3, dtype=F64), A, b, method=method, tol=1e-12)
+    with torch.no_grad():
+        broadcast = newton(phi, torch.ones(3, dtype=F64), A, b, method=method, tol=1e-12)
     assert len(calls) == broadcast.n_phi_evals == 3
     torch.testing.assert_close(broadcast.x, res.x, rtol=1e-13, atol=1e-13)
+    # in grad mode one evaluation more, at the solution, looks up what phi reads there
+    calls.clear()
+    graded = newton(phi, torch.ones(5, 3, dtype=F64), A, b, method=method, tol=1e-12)
+    assert len(calls) == graded.n_phi_evals == 3
+    torch.testing.assert_close(graded.x, res.x, rtol=0, atol=0)
 
 
 def test_simplified_newton_converges_linearly_at_the_theorem_6_rate():
@@ -394,6 +401,23 @@ def test_ift_gradient_reaches_every_tensor_phi_reads_without_params(jacobian):
     assert g_k is None
     with torch.no_grad():
         assert not newton(gain.residual, torch.ones(2, 1, dtype=F64), c).x.requires_grad
+
+
+@pytest.mark.parametrize("jacobian", ["autograd", "given"])
+def test_ift_gradient_reaches_a_tensor_phi_reads_only_near_the_root(jacobian):
+    """phi(x) = x - 1 left of 0.5 and x - k right of it (a Python branch): from x0 = 0 the
+    first step lands right of 0.5 and the root is x* = k, dx*/dk = 1. The tensors found at x0
+    alone missed k (no gradient at all); they are also looked up at the solution."""
+    k = torch.tensor(2.0, dtype=F64, requires_grad=True)
+
+    def phi(x):
+        return x - 1.0 if float(x.max()) < 0.5 else x - k
+
+    options = {"jacobian": lambda x: torch.ones(1, 1, 1, dtype=F64)} if jacobian == "given" else {}
+    res = newton(phi, torch.zeros(1, 1, dtype=F64), **options)
+    assert res.status.tolist() == [NewtonStatus.CONVERGED] and float(res.x) == 2.0
+    (grad,) = torch.autograd.grad(res.x.sum(), k)
+    assert float(grad) == 1.0
 
 
 @pytest.mark.parametrize("argument", ["derived", "same tensor"])
