@@ -5,7 +5,8 @@ and implicit-function-theorem gradients against unrolled Newton iterations.
    ``t in [0, 2]`` (``eps = 1e-6``): adaptive Radau IIA (s = 3, ``solve_implicit_ode``) vs
    ``scipy.integrate.solve_ivp(method="Radau")`` at the same rtol = atol, for one trajectory
    and for a batch of trajectories with different ``eps`` (scipy in a Python loop, ours one
-   batched call with per-sample step sizes). Errors are relative to scipy Radau at
+   batched call with per-sample step sizes; ours without gradient recording, in
+   ``torch.no_grad()``, as scipy computes no gradients). Errors are relative to scipy Radau at
    rtol = atol = 1e-12 (``--quick``: 1e-10), at the final time, max over components (and
    over the checked members of the batch).
 2. Fixed step on the non-stiff Van der Pol (mu = 1, t in [0, 10], dt = 0.01, notes Fig. 7.3):
@@ -143,9 +144,10 @@ def _vdp_torch(eps):
     return rhs
 
 
+@torch.no_grad()
 def stiff_rows(t_end, rtols, batch, n_check, ref_rtol, repeats, batch_rtols=None):
     """Section 1: one trajectory (at ``rtols``) and a batch (at ``batch_rtols``, default
-    ``rtols``), ours vs scipy Radau."""
+    ``rtols``), ours vs scipy Radau, simulations only (no gradient recording)."""
     batch_rtols = rtols if batch_rtols is None else batch_rtols
     rows = []
     eps_one = 1e-6
