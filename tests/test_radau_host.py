@@ -445,7 +445,7 @@ def test_one_trajectory_kernel_takes_the_batched_kernels_steps(case):
             assert int((got - ref).abs().max()) <= {"n_steps": 1}.get(name, 2), name
     else:
         for name in COUNTERS:
-            assert getattr(two.stats, name).tolist() == 2 * getattr(one.stats, name).tolist()
+            assert getattr(two.stats, name).tolist() == 2 * getattr(one.stats, name).tolist(), name
         assert one.stats.n_jac_evals == two.stats.n_jac_evals
         assert one.stats.n_factorizations == two.stats.n_factorizations
     assert two.status.tolist() == 2 * one.status.tolist()
